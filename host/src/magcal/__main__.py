@@ -1,0 +1,3 @@
+from magcal.cli import main
+
+raise SystemExit(main())

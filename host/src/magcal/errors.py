@@ -1,0 +1,26 @@
+"""The error types of magcal.
+
+Every error message names the operation that failed and says what to do about it, e.g.
+"session has 210 samples; calibration needs at least 500: record longer".
+"""
+
+
+class MagcalError(Exception):
+    """Base of all errors magcal raises on purpose."""
+
+
+class SessionFormatError(MagcalError):
+    """A session file cannot be read: bad header, bad value, time going backwards, ..."""
+
+
+class ResultFormatError(MagcalError):
+    """A result file does not follow ``magcal-result/1``."""
+
+
+class InsufficientDataError(MagcalError):
+    """The session is valid but cannot determine the calibration (too short, too little
+    rotation, yaw-only motion, ...). ``--force`` turns it into a warning."""
+
+
+class CalibrationError(MagcalError):
+    """A numerical step failed (solver failure, non-finite cost, ...)."""

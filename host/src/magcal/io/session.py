@@ -1,13 +1,43 @@
 """Session files (``magcal-session: 1`` CSV): the in-memory form, reading and writing.
 
-See ``shared/docs/contracts.md`` for the format.
+See ``shared/docs/contracts.md`` for the format::
+
+    # magcal-session: 1
+    # source: ...
+    t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z
+    0,0.0012,-0.0031,0.0007,0.02,-0.11,9.80,21.3,-4.2,-38.9
+
+Reading is two-pass: a vectorised parse (``np.loadtxt``) handles valid files quickly; if it or
+any check fails, a line-by-line re-scan finds the first bad line and names it. The re-scan is
+the reference: whatever it accepts is a valid session, and the fast path accepts only files the
+re-scan would accept, with bit-identical values.
+
+Fields are plain (no CSV quoting). Whitespace-only lines are skipped. Metadata values are
+stripped of surrounding whitespace.
 """
 
 from __future__ import annotations
 
+import math
+import os
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from magcal.errors import SessionFormatError
+
+SESSION_VERSION = "1"
+FIRST_LINE = "# magcal-session: 1"
+TIME_COLUMN = "t"
+VECTOR_COLUMNS = (
+    ("gyr", ("gyr_x", "gyr_y", "gyr_z")),
+    ("acc", ("acc_x", "acc_y", "acc_z")),
+    ("mag", ("mag_x", "mag_y", "mag_z")),
+)
+#: The required columns, in the order ``write_session`` writes them.
+COLUMNS = (TIME_COLUMN,) + tuple(name for _, names in VECTOR_COLUMNS for name in names)
+#: Rows per chunk when a file with a problem is re-parsed to find the first bad line.
+RESCAN_CHUNK_ROWS = 4096
 
 
 @dataclass(frozen=True)
@@ -29,3 +59,314 @@ class Session:
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+
+# --------------------------------------------------------------------------------------------
+# Building and validating in memory
+
+
+def session_from_arrays(
+    t: np.ndarray,
+    gyr: np.ndarray,
+    acc: np.ndarray,
+    mag: np.ndarray,
+    meta: dict[str, str] | None = None,
+) -> Session:
+    """Validate arrays and wrap them in a :class:`Session` (float64 copies).
+
+    t   : (N,) seconds, finite, strictly increasing, N ≥ 1
+    gyr : (N, 3) rad/s;  acc : (N, 3) m/s²;  mag : (N, 3) raw magnetometer units
+    meta: ``key -> value`` strings (keys without ``:``, no newlines anywhere)
+
+    Raises :class:`SessionFormatError` naming the array and the (0-based) sample index.
+    """
+    t = np.array(t, dtype=np.float64)
+    if t.ndim != 1:
+        raise SessionFormatError(f"building a session: t must have shape (N,), got {t.shape}")
+    n = t.shape[0]
+    if n == 0:
+        raise SessionFormatError("building a session: it has no samples; record some data")
+    arrays = {"t": t}
+    for name, value in (("gyr", gyr), ("acc", acc), ("mag", mag)):
+        a = np.array(value, dtype=np.float64)
+        if a.shape != (n, 3):
+            raise SessionFormatError(
+                f"building a session: {name} must have shape ({n}, 3) like t, got {a.shape}"
+            )
+        arrays[name] = a
+    for name, a in arrays.items():
+        bad = ~np.isfinite(a)
+        if bad.any():
+            index = int(np.argwhere(bad)[0][0])
+            raise SessionFormatError(
+                f"building a session: {name} at sample {index} is not finite ({a[index]}); "
+                "remove or repair that sample"
+            )
+    steps = np.diff(t)
+    if (steps <= 0).any():
+        index = int(np.flatnonzero(steps <= 0)[0]) + 1
+        raise SessionFormatError(
+            f"building a session: t must be strictly increasing, but sample {index} has "
+            f"t = {float(t[index])!r} after t = {float(t[index - 1])!r}"
+        )
+    meta = dict(meta or {})
+    _check_meta(meta, "building a session")
+    return Session(t=t, gyr=arrays["gyr"], acc=arrays["acc"], mag=arrays["mag"], meta=meta)
+
+
+def _check_meta(meta: dict[str, str], operation: str) -> None:
+    for key, value in meta.items():
+        if not isinstance(key, str) or not isinstance(value, str):
+            raise SessionFormatError(f"{operation}: metadata {key!r} must map str to str")
+        if not key.strip() or ":" in key or "\n" in key or "\r" in key:
+            raise SessionFormatError(
+                f"{operation}: metadata key {key!r} must be non-empty without ':' or newlines"
+            )
+        if "\n" in value or "\r" in value:
+            raise SessionFormatError(f"{operation}: metadata {key!r} has a newline in its value")
+        if key.strip() == "magcal-session":
+            raise SessionFormatError(f"{operation}: metadata key 'magcal-session' is reserved")
+
+
+# --------------------------------------------------------------------------------------------
+# Writing
+
+
+def write_session(path: str | os.PathLike, session: Session) -> None:
+    """Write ``session`` as a ``magcal-session: 1`` CSV file.
+
+    Values are written with ``repr`` (shortest text that round-trips float64 exactly), so
+    ``read_session(path)`` gives back bit-identical arrays.
+    """
+    # Validate first so that we never write a file our own reader rejects.
+    s = session_from_arrays(session.t, session.gyr, session.acc, session.mag, session.meta)
+    data = np.column_stack([s.t, s.gyr, s.acc, s.mag])
+    row_format = ",".join(["%r"] * len(COLUMNS))  # %r of a Python float is its repr
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(FIRST_LINE + "\n")
+        for key, value in s.meta.items():
+            f.write(f"# {key.strip()}: {value}\n")
+        f.write(",".join(COLUMNS) + "\n")
+        # .tolist() gives Python floats, whose repr is plain (numpy 2 scalars print np.float64).
+        f.writelines(row_format % tuple(row) + "\n" for row in data.tolist())
+
+
+# --------------------------------------------------------------------------------------------
+# Reading
+
+
+def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
+    """Read a ``magcal-session: 1`` CSV file.
+
+    path        : the file
+    min_samples : reject sessions with fewer samples (the calling method's minimum)
+
+    Columns may come in any order; extra columns are ignored (not even parsed). Raises
+    :class:`SessionFormatError` whose message names the file, the 1-based line number and the
+    problem (bad first line, missing columns, wrong field count, non-numeric or non-finite
+    value, non-increasing time, too few samples).
+    """
+    name = os.fspath(path)
+    try:
+        # utf-8-sig: tolerate the byte-order mark some Windows tools write.
+        with open(path, encoding="utf-8-sig") as f:
+            lines = f.read().splitlines()
+    except UnicodeDecodeError as exc:
+        raise SessionFormatError(f"reading session {name}: not UTF-8 text ({exc})") from exc
+
+    meta, header_index = _read_preamble(name, lines)
+    columns = [c.strip() for c in lines[header_index].split(",")]
+    usecols = _required_indices(name, header_index + 1, columns)
+    first = header_index + 1  # index into `lines` of the first data row
+    last = len(lines)
+    while last > first and not lines[last - 1].strip():
+        last -= 1  # trailing blank lines are harmless; keep them off the fast path
+
+    data = _parse(name, lines, first, last, columns, usecols)
+
+    n = data.shape[0]
+    if n == 0:
+        raise SessionFormatError(f"reading session {name}: it has no samples; record some data")
+    if n < min_samples:
+        raise SessionFormatError(
+            f"reading session {name}: session has {n} samples; calibration needs at least "
+            f"{min_samples}: record longer"
+        )
+    return Session(
+        t=data[:, 0].copy(),
+        gyr=data[:, 1:4].copy(),
+        acc=data[:, 4:7].copy(),
+        mag=data[:, 7:10].copy(),
+        meta=meta,
+    )
+
+
+def _error(name: str, line_index: int, problem: str) -> SessionFormatError:
+    """An error about ``lines[line_index]`` (reported 1-based, as an editor shows it)."""
+    return SessionFormatError(f"reading session {name}: line {line_index + 1}: {problem}")
+
+
+def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int]:
+    """Check the first line, collect ``# key: value`` metadata; return (meta, header index)."""
+    if not lines:
+        raise SessionFormatError(
+            f"reading session {name}: the file is empty; expected first line {FIRST_LINE!r}"
+        )
+    first = lines[0].strip()
+    key, _, version = first.lstrip("#").partition(":")
+    if not first.startswith("#") or key.strip() != "magcal-session":
+        raise _error(
+            name, 0, f"expected {FIRST_LINE!r}, found {lines[0][:60]!r}: not a magcal session"
+        )
+    if version.strip() != SESSION_VERSION:
+        raise _error(
+            name,
+            0,
+            f"unsupported session version {version.strip()!r}; this reader knows version "
+            f"{SESSION_VERSION}: upgrade magcal",
+        )
+    meta: dict[str, str] = {}
+    for i in range(1, len(lines)):
+        text = lines[i].strip()
+        if not text:
+            continue
+        if not text.startswith("#"):
+            return meta, i
+        key, sep, value = text[1:].partition(":")
+        # Comment lines without "key:" carry no metadata; they are allowed and ignored.
+        if sep and key.strip():
+            meta[key.strip()] = value.strip()
+    raise SessionFormatError(
+        f"reading session {name}: no header line after the metadata; expected {','.join(COLUMNS)!r}"
+    )
+
+
+def _required_indices(name: str, header_line: int, columns: list[str]) -> list[int]:
+    """Positions of the required columns in the header, in ``COLUMNS`` order."""
+    missing = [c for c in COLUMNS if c not in columns]
+    if missing:
+        raise SessionFormatError(
+            f"reading session {name}: line {header_line}: header lacks column(s) "
+            f"{', '.join(missing)} (found: {', '.join(columns)}); the header must name "
+            f"{','.join(COLUMNS)}"
+        )
+    duplicated = [c for c in COLUMNS if columns.count(c) > 1]
+    if duplicated:
+        raise SessionFormatError(
+            f"reading session {name}: line {header_line}: header repeats column(s) "
+            f"{', '.join(duplicated)}"
+        )
+    return [columns.index(c) for c in COLUMNS]
+
+
+def _parse(
+    name: str, lines: list[str], first: int, last: int, columns: list[str], usecols: list[int]
+) -> np.ndarray:
+    """Parse the data rows ``lines[first:last]`` into an (N, 10) array in ``COLUMNS`` order."""
+    data = _parse_fast(lines[first:last], len(columns), usecols, -math.inf)
+    if data is not None:
+        return data
+    # Something is wrong, or merely unusual (a blank line). Re-parse in chunks so that only the
+    # chunk holding the first problem is scanned line by line: an error near the end of a
+    # 600k-row file is then found in about the time of one fast parse.
+    parts = [np.empty((0, len(COLUMNS)))]
+    previous_t, previous_line = -math.inf, first
+    for start in range(first, last, RESCAN_CHUNK_ROWS):
+        stop = min(start + RESCAN_CHUNK_ROWS, last)
+        part = _parse_fast(lines[start:stop], len(columns), usecols, previous_t)
+        if part is None:
+            part, previous_line = _parse_slow(
+                name, lines, start, stop, columns, usecols, previous_t, previous_line
+            )
+        elif len(part):
+            previous_line = stop - 1  # a chunk that passed has no blank lines
+        if len(part):
+            previous_t = float(part[-1, 0])
+        parts.append(part)
+    return np.concatenate(parts)
+
+
+def _parse_fast(
+    rows: list[str], n_fields: int, usecols: list[int], previous_t: float
+) -> np.ndarray | None:
+    """Vectorised parse of data rows; ``None`` if anything at all is off.
+
+    previous_t : the time of the sample before ``rows[0]`` (``-inf`` if none), s
+    """
+    if not rows:
+        return np.empty((0, len(COLUMNS)))
+    # loadtxt ignores fields outside usecols, so count the fields of every row ourselves.
+    # This also sends blank lines (0 commas) to the slow path, which skips them.
+    commas = n_fields - 1
+    if any(row.count(",") != commas for row in rows):
+        return None
+    try:
+        data = np.loadtxt(rows, delimiter=",", comments=None, usecols=usecols, ndmin=2)
+    except ValueError:
+        return None
+    if data.shape != (len(rows), len(COLUMNS)) or not np.isfinite(data).all():
+        return None
+    if data[0, 0] <= previous_t or (np.diff(data[:, 0]) <= 0).any():
+        return None
+    return data
+
+
+def _parse_slow(
+    name: str,
+    lines: list[str],
+    first: int,
+    last: int,
+    columns: list[str],
+    usecols: list[int],
+    previous_t: float,
+    previous_line: int,
+) -> tuple[np.ndarray, int]:
+    """Line-by-line parse that raises on the first bad line (the reference semantics).
+
+    previous_t, previous_line : time and line index of the sample before ``lines[first]``
+    Returns the (n, 10) data and the line index of its last sample.
+    """
+    out: list[list[float]] = []
+    for i in range(first, last):
+        line = lines[i]
+        if not line.strip():
+            continue
+        fields = line.split(",")
+        if len(fields) != len(columns):
+            raise _error(
+                name,
+                i,
+                f"has {len(fields)} fields but the header has {len(columns)}; "
+                "the row is truncated or has extra separators",
+            )
+        values = []
+        for k in usecols:
+            text = fields[k]
+            # Python's float() accepts "1_000"; numpy's parser (the fast path) does not.
+            try:
+                if "_" in text:
+                    raise ValueError
+                value = float(text)
+            except ValueError:
+                raise _error(
+                    name, i, f"column {columns[k]}: {text.strip()!r} is not a number"
+                ) from None
+            if not math.isfinite(value):
+                raise _error(
+                    name,
+                    i,
+                    f"column {columns[k]}: value {text.strip()!r} is not finite; "
+                    "remove or repair that sample",
+                )
+            values.append(value)
+        t = values[0]
+        if t <= previous_t:
+            raise _error(
+                name,
+                i,
+                f"time t = {t!r} s is not after t = {previous_t!r} s on line "
+                f"{previous_line + 1}; t must be strictly increasing",
+            )
+        previous_t, previous_line = t, i
+        out.append(values)
+    return np.array(out, dtype=np.float64).reshape(-1, len(COLUMNS)), previous_line

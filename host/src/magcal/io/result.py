@@ -1,0 +1,289 @@
+"""Calibration results (``"format": "magcal-result/1"`` JSON): in memory, reading, writing.
+
+See ``shared/docs/contracts.md``. A result file is one JSON object with the required keys
+``format, method, D, o, D_inv, m_n, dip_deg, gyro_bias, warnings``; any other key is optional
+and is kept, unchanged, in :attr:`CalibrationResult.extra` (forward compatibility: a newer
+writer's keys survive a read/write by an older reader).
+
+Numbers are written with Python's ``repr`` (via :mod:`json`), so float64 values round-trip
+exactly. JSON cannot hold NaN or infinity; they are rejected on writing and on reading.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from magcal.errors import ResultFormatError
+
+RESULT_FORMAT = "magcal-result/1"
+#: The keys every result file has, in the order they are written.
+REQUIRED_KEYS = ("format", "method", "D", "o", "D_inv", "m_n", "dip_deg", "gyro_bias", "warnings")
+#: ``m_n`` is a direction: its norm must be 1 to within this.
+M_N_NORM_TOLERANCE = 1e-6
+#: A stored ``D_inv`` must satisfy ``max |D D_inv - I| <=`` this (hand-rounded files fail).
+D_INV_TOLERANCE = 1e-6
+#: ``D`` with a larger condition number cannot be inverted meaningfully.
+D_MAX_CONDITION = 1e12
+_CONSTRUCTOR = "calibration result"
+
+
+@dataclass(frozen=True, eq=False)
+class CalibrationResult:
+    """The outcome of one calibration (eq=False: numpy arrays do not compare to a bool).
+
+    method    : "ml", "init", "two-step", "ckf", ...
+    D         : (3, 3) float, calibration matrix, raw magnetometer units per unit field
+    o         : (3,) float, offset, raw magnetometer units
+    m_n       : (3,) float, unit-norm local field in the navigation frame
+    dip_deg   : float, dip angle, degrees, positive down
+    gyro_bias : (3,) float rad/s, or None for methods that do not estimate it
+    warnings  : list of human-readable warnings (empty when none)
+    extra     : optional keys (noise covariances, statistics, optimizer report, ...). Stored
+                JSON-ready: arrays become (nested) lists and numpy scalars Python numbers, so
+                a freshly computed result and one read back from a file look the same.
+
+    Arrays are stored as read-only float64 copies. The correction is ``D_inv (y - o)``.
+    """
+
+    method: str
+    D: np.ndarray
+    o: np.ndarray
+    m_n: np.ndarray
+    dip_deg: float
+    gyro_bias: np.ndarray | None = None
+    warnings: list[str] = field(default_factory=list)
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        where = _CONSTRUCTOR
+        # object.__setattr__: the documented way to normalise fields of a frozen dataclass.
+        set_ = object.__setattr__
+        if not isinstance(self.method, str) or not self.method:
+            raise ResultFormatError(f"{where}: method must be a non-empty string")
+        set_(self, "D", _checked_array(self.D, (3, 3), "D", where))
+        _check_invertible(self.D, where)
+        set_(self, "o", _checked_array(self.o, (3,), "o", where))
+        m_n = _checked_array(self.m_n, (3,), "m_n", where)
+        norm = float(np.linalg.norm(m_n))
+        if abs(norm - 1.0) > M_N_NORM_TOLERANCE:
+            raise ResultFormatError(
+                f"{where}: m_n must have unit norm, but |m_n| = {norm!r}; normalise it"
+            )
+        set_(self, "m_n", m_n)
+        if isinstance(self.dip_deg, bool) or not isinstance(self.dip_deg, (int, float)):
+            raise ResultFormatError(f"{where}: dip_deg must be a number, got {self.dip_deg!r}")
+        if not math.isfinite(self.dip_deg):
+            raise ResultFormatError(f"{where}: dip_deg is not finite ({self.dip_deg!r})")
+        set_(self, "dip_deg", float(self.dip_deg))
+        if self.gyro_bias is not None:
+            set_(self, "gyro_bias", _checked_array(self.gyro_bias, (3,), "gyro_bias", where))
+        warnings = list(self.warnings) if isinstance(self.warnings, (list, tuple)) else None
+        if warnings is None or not all(isinstance(w, str) for w in warnings):
+            raise ResultFormatError(f"{where}: warnings must be a list of strings")
+        set_(self, "warnings", warnings)
+        if not isinstance(self.extra, dict):
+            raise ResultFormatError(f"{where}: extra must be a dict")
+        extra = {}
+        for key, value in self.extra.items():
+            if not isinstance(key, str) or key in REQUIRED_KEYS:
+                raise ResultFormatError(
+                    f"{where}: extra key {key!r} must be a string other than the required keys"
+                )
+            extra[key] = _json_ready(value, key, where)
+        set_(self, "extra", extra)
+
+    @property
+    def D_inv(self) -> np.ndarray:
+        """(3, 3) float, the correction matrix: ``m_b = D_inv (y - o)``."""
+        return np.linalg.inv(self.D)
+
+
+def apply_correction(result: CalibrationResult, mag: np.ndarray) -> np.ndarray:
+    """Calibrated field ``m_b = D_inv (y - o)`` for every sample.
+
+    mag : (N, 3) (or (..., 3)) float, raw magnetometer units
+    returns the same shape: body frame, unit field norm when the calibration fits
+    """
+    mag = np.asarray(mag, dtype=np.float64)
+    if mag.ndim == 0 or mag.shape[-1] != 3:
+        raise ValueError(f"apply_correction: mag must have shape (N, 3), got {mag.shape}")
+    # Row-vector form of D_inv (y - o): one matrix product for all samples.
+    return (mag - result.o) @ result.D_inv.T
+
+
+def result_to_dict(result: CalibrationResult) -> dict[str, Any]:
+    """The JSON object of ``result``: required keys in contract order, then ``extra``."""
+    out: dict[str, Any] = {
+        "format": RESULT_FORMAT,
+        "method": result.method,
+        "D": result.D.tolist(),
+        "o": result.o.tolist(),
+        "D_inv": result.D_inv.tolist(),
+        "m_n": result.m_n.tolist(),
+        "dip_deg": result.dip_deg,
+        "gyro_bias": None if result.gyro_bias is None else result.gyro_bias.tolist(),
+        "warnings": list(result.warnings),
+    }
+    out.update(result.extra)
+    return out
+
+
+def result_from_dict(data: Any, where: str = "result") -> CalibrationResult:
+    """Validate a decoded ``magcal-result/1`` object and build the result.
+
+    where : names the source in error messages (e.g. ``"reading result cal.json"``)
+    Unknown keys go to ``extra``. Raises :class:`ResultFormatError` naming the key.
+    """
+    if not isinstance(data, dict):
+        raise ResultFormatError(f"{where}: expected a JSON object, got {type(data).__name__}")
+    missing = [k for k in REQUIRED_KEYS if k not in data]
+    if missing:
+        raise ResultFormatError(
+            f"{where}: missing required key(s) {', '.join(missing)}; "
+            f"a {RESULT_FORMAT} file has {', '.join(REQUIRED_KEYS)}"
+        )
+    if data["format"] != RESULT_FORMAT:
+        raise ResultFormatError(
+            f"{where}: key 'format' is {data['format']!r}; this reader knows {RESULT_FORMAT!r}"
+            ": upgrade magcal if the file is newer"
+        )
+    if not isinstance(data["method"], str) or not data["method"]:
+        raise ResultFormatError(f"{where}: key 'method' must be a non-empty string")
+    arrays = {}
+    for key, shape in (("D", (3, 3)), ("D_inv", (3, 3)), ("o", (3,)), ("m_n", (3,))):
+        arrays[key] = _checked_array(_json_numbers(data[key], shape, key, where), shape, key, where)
+    gyro_bias = data["gyro_bias"]
+    if gyro_bias is not None:
+        gyro_bias = _json_numbers(gyro_bias, (3,), "gyro_bias", where)
+    dip = data["dip_deg"]
+    if isinstance(dip, bool) or not isinstance(dip, (int, float)) or not math.isfinite(dip):
+        raise ResultFormatError(f"{where}: key 'dip_deg' must be a finite number, got {dip!r}")
+    warnings = data["warnings"]
+    if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
+        raise ResultFormatError(f"{where}: key 'warnings' must be a list of strings")
+    _check_invertible(arrays["D"], where)
+    residual = np.abs(arrays["D"] @ arrays["D_inv"] - np.eye(3)).max()
+    if residual > D_INV_TOLERANCE:
+        raise ResultFormatError(
+            f"{where}: key 'D_inv' is not the inverse of 'D' (max |D D_inv - I| = {residual:.3g});"
+            " the file was edited or corrupted: recompute D_inv"
+        )
+    extra = {k: v for k, v in data.items() if k not in REQUIRED_KEYS}
+    for key, value in extra.items():
+        _json_ready(value, key, where)  # rejects NaN/inf that Python's json lets through
+    try:
+        return CalibrationResult(
+            method=data["method"],
+            D=arrays["D"],
+            o=arrays["o"],
+            m_n=arrays["m_n"],
+            dip_deg=float(dip),
+            gyro_bias=gyro_bias,
+            warnings=warnings,
+            extra=extra,
+        )
+    except ResultFormatError as exc:  # e.g. m_n not unit norm: name the source, not the class
+        problem = str(exc).removeprefix(f"{_CONSTRUCTOR}: ")
+        raise ResultFormatError(f"{where}: {problem}") from exc
+
+
+def write_result(path: str | os.PathLike, result: CalibrationResult) -> None:
+    """Write ``result`` as ``magcal-result/1`` JSON (UTF-8, 2-space indent)."""
+    # Encode fully before opening the file, so a failure leaves no half-written result.
+    text = json.dumps(result_to_dict(result), indent=2, allow_nan=False, ensure_ascii=False)
+    with open(path, "w", encoding="utf-8", newline="\n") as f:
+        f.write(text + "\n")
+
+
+def read_result(path: str | os.PathLike) -> CalibrationResult:
+    """Read and validate a ``magcal-result/1`` JSON file (errors name the file and key)."""
+    where = f"reading result {os.fspath(path)}"
+    try:
+        with open(path, encoding="utf-8") as f:
+            data = json.load(f)
+    except json.JSONDecodeError as exc:
+        raise ResultFormatError(
+            f"{where}: not valid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg}"
+        ) from exc
+    except UnicodeDecodeError as exc:
+        raise ResultFormatError(f"{where}: not UTF-8 text ({exc})") from exc
+    return result_from_dict(data, where)
+
+
+# --------------------------------------------------------------------------------------------
+# Helpers
+
+
+def _checked_array(value: Any, shape: tuple[int, ...], key: str, where: str) -> np.ndarray:
+    """A read-only float64 copy of ``value`` with the given shape and finite entries."""
+    try:
+        a = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ResultFormatError(f"{where}: {key} must be numbers of shape {shape}") from exc
+    if a.shape != shape:
+        raise ResultFormatError(f"{where}: {key} must have shape {shape}, got {a.shape}")
+    if not np.isfinite(a).all():
+        raise ResultFormatError(f"{where}: {key} has non-finite entries: {a.tolist()}")
+    a.flags.writeable = False
+    return a
+
+
+def _json_numbers(value: Any, shape: tuple[int, ...], key: str, where: str) -> Any:
+    """Check that decoded JSON is nested lists of numbers of ``shape`` (no bools, strings)."""
+    if not shape:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ResultFormatError(f"{where}: key '{key}' holds {value!r}, not a number")
+        return value
+    if not isinstance(value, list) or len(value) != shape[0]:
+        raise ResultFormatError(
+            f"{where}: key '{key}' must be a {'×'.join(map(str, shape))} list"
+            f"{' of lists' if len(shape) > 1 else ''}, row-major; got {value!r}"
+        )
+    return [_json_numbers(v, shape[1:], key, where) for v in value]
+
+
+def _check_invertible(D: np.ndarray, where: str) -> None:
+    cond = np.linalg.cond(D)
+    if not cond < D_MAX_CONDITION:  # also catches cond = inf/nan of a singular D
+        raise ResultFormatError(
+            f"{where}: D is singular or nearly so (condition number {cond:.3g}); "
+            "the calibration did not determine it"
+        )
+
+
+def _json_ready(value: Any, path: str, where: str) -> Any:
+    """``value`` as plain JSON types; numpy arrays and scalars are converted.
+
+    Raises naming ``path`` (e.g. ``stats.cost``) for NaN/inf and for types JSON cannot hold.
+    """
+    if isinstance(value, np.ndarray):
+        value = value.tolist()
+    elif isinstance(value, np.generic):
+        value = value.item()
+    if value is None or isinstance(value, (bool, str, int)):
+        return value
+    if isinstance(value, float):
+        if not math.isfinite(value):
+            raise ResultFormatError(
+                f"{where}: key '{path}' holds {value!r}; JSON has no NaN or infinity: store "
+                "null or a string instead"
+            )
+        return value
+    if isinstance(value, (list, tuple)):
+        return [_json_ready(v, f"{path}[{i}]", where) for i, v in enumerate(value)]
+    if isinstance(value, dict):
+        out = {}
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ResultFormatError(f"{where}: key '{path}' has non-string key {k!r}")
+            out[k] = _json_ready(v, f"{path}.{k}", where)
+        return out
+    raise ResultFormatError(
+        f"{where}: key '{path}' holds a {type(value).__name__}, which JSON cannot store"
+    )

@@ -22,8 +22,9 @@ from magcal.calib import frames
 from magcal.errors import MagcalError
 
 # Dip angle in Linköping, Sweden (58.41° N, 15.62° E). The paper's simulation (Section 8) only
-# says "the local magnetic field is equal to that in Linköping"; ≈71.6° is the inclination a
-# geomagnetic model (WMM/IGRF, epoch ~2015) gives there.
+# says "the local magnetic field is equal to that in Linköping" and gives no number; ≈71.6° is
+# the approximate inclination there in the world magnetic models of that time (not re-derived
+# here from a model run; any value near 72° serves the simulation equally well).
 DIP_LINKOPING_DEG = 71.6
 
 # MEMS-like noise levels (standard deviations) used by sample_mems / sample_handheld_magnet.

@@ -1,0 +1,383 @@
+"""Step 1b of Kok & Schön (2016), Section 6.1: fit an ellipsoid to the magnetometer data.
+
+The magnetometer model ``y = D R_bn m_n + o`` with ``‖m_n‖ = 1`` puts the data on the
+ellipsoid ``‖D⁻¹(y − o)‖ = 1``, i.e. (paper eq. 19–20, all up to one common scale)
+
+    yᵀ A y + bᵀ y + c = 0,   A = D⁻ᵀ D⁻¹,   b = −2 A o,   c = oᵀ A o − 1.
+
+Inverting (``shared/docs/algorithm.md`` corrects the paper's eq. 24): for any common scale
+``s`` of ``(A, b, c)``,
+
+    o      = −½ A⁻¹ b,
+    β      = ¼ bᵀ A⁻¹ b − c          (= s),
+    D̃ D̃ᵀ  = β A⁻¹                   (= D Dᵀ),
+
+and ``D̃`` is taken lower-triangular by Cholesky. ``D = D̃ U`` for some orthogonal ``U``;
+:mod:`magcal.calib.align` finds the rotation.
+
+Numerical choices:
+
+* The data are centred (mean) and scaled (RMS radius) before fitting and the result is
+  mapped back exactly; raw counts with offsets several times the field are otherwise badly
+  conditioned.
+* The N × 10 design matrix never reaches the solver: the SDP objective ``½‖M ξ‖²`` equals
+  ``½‖R ξ‖²`` for any ``R`` with ``RᵀR = MᵀM``, so a 10 × 10 factor of the Gram matrix is
+  passed instead and the solve time does not depend on N.
+* Symmetric ``A`` has 6 unknowns; the off-diagonal columns of ``M`` are doubled so that
+  ``M ξ`` is exactly ``yᵀAy + bᵀy + c``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.linalg
+
+from magcal.errors import CalibrationError, InsufficientDataError
+
+#: Fewest samples for a fit (10 unknowns up to scale; anything near this is far too few in
+#: practice, the observability check asks for much more).
+MIN_SAMPLES = 10
+
+#: Smallest accepted ratio of the smallest to the largest eigenvalue of the fitted ``A``
+#: (in the normalised coordinates). The eigenvalues go as 1/axis², so 1e-3 allows axis
+#: ratios up to about 30 — far beyond any real soft-iron distortion. Below it the data lie
+#: on (or near) a plane or a line: the sensor was not rotated enough.
+MIN_A_EIG_RATIO = 1e-3
+
+#: Smallest accepted ratio of the smallest to the largest eigenvalue of the data covariance.
+#: Data on a plane (a single circle: yaw-only motion) lie on infinitely many ellipsoids, all
+#: fitting exactly, so a positive definite ``A`` alone does not prove the fit is determined.
+#: 1e-3 means the thinnest direction of the cloud has a standard deviation of about 3 % of the
+#: widest; the observability check refuses much earlier (its threshold is 0.03).
+MIN_DATA_EIG_RATIO = 1e-3
+
+#: Relative size of the smallest eigenvalue of ``A`` (trace 1) above which the PSD
+#: constraint of the SDP counts as inactive, so that the equality-constrained least-squares
+#: solution may be used to polish the interior-point solution to full precision.
+PD_INACTIVE_EIG = 1e-6
+
+#: Rows per block when accumulating the Gram matrix (bounds the temporary memory to
+#: about 5 MB whatever N is).
+_GRAM_BLOCK_ROWS = 65536
+
+_SOLVER_NAME = "CLARABEL"
+
+
+@dataclass(frozen=True, eq=False)
+class EllipsoidFit:
+    """An ellipsoid ``yᵀ A y + bᵀ y + c = 0`` and its centre/shape form.
+
+    A          : (3, 3) float, symmetric positive definite, scaled so that ``tr A = 1``,
+                 (raw magnetometer units)⁻²
+    b          : (3,) float, same common scale, (raw units)⁻¹
+    c          : float, same common scale, dimensionless
+    o          : (3,) float, centre (hard-iron offset), raw magnetometer units
+    D_tilde    : (3, 3) float, lower-triangular Cholesky factor, ``D̃ D̃ᵀ = D Dᵀ``, raw units
+                 (``D̃⁻¹(y − o)`` has unit norm on the ellipsoid)
+    method     : ``"sdp"`` or ``"algebraic"``
+    radius_rms : float, dimensionless, RMS of ``‖D̃⁻¹(y_t − o)‖ − 1`` over the data
+    a_eig_ratio: float, smallest/largest eigenvalue of ``A`` in the normalised coordinates
+                 (1 for a sphere; near 0 for data on a plane)
+    """
+
+    A: np.ndarray
+    b: np.ndarray
+    c: float
+    o: np.ndarray
+    D_tilde: np.ndarray
+    method: str
+    radius_rms: float
+    a_eig_ratio: float
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _check_mag(mag: np.ndarray) -> np.ndarray:
+    mag = np.asarray(mag, dtype=float)
+    if mag.ndim != 2 or mag.shape[1] != 3:
+        raise ValueError(f"mag must have shape (N, 3), got {mag.shape}")
+    n = mag.shape[0]
+    if n < MIN_SAMPLES:
+        raise InsufficientDataError(
+            f"ellipsoid fit: {n} magnetometer samples; the fit needs at least {MIN_SAMPLES} "
+            "(in practice thousands): record longer while rotating the sensor"
+        )
+    if not np.all(np.isfinite(mag)):
+        raise CalibrationError(
+            "ellipsoid fit: the magnetometer data contain NaN or infinite values: "
+            "remove or interpolate the bad samples first"
+        )
+    return mag
+
+
+def _normalise(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    """Centre and scale: ``z = (y − μ)/s``, μ the mean, ``s`` the RMS radius about μ."""
+    mu = mag.mean(axis=0)
+    z = mag - mu
+    s = float(np.sqrt(np.mean(np.einsum("ij,ij->i", z, z))))
+    if not s > 0.0:
+        raise InsufficientDataError(
+            "ellipsoid fit: all magnetometer samples are identical: check that the "
+            "magnetometer is working and rotate the sensor through all orientations"
+        )
+    z = z / s
+    eig = np.linalg.eigvalsh(z.T @ z / z.shape[0])
+    if eig[0] < MIN_DATA_EIG_RATIO * eig[-1]:
+        raise InsufficientDataError(
+            f"ellipsoid fit: the magnetometer data lie close to a plane or a line (covariance "
+            f"eigenvalue ratio {eig[0] / eig[-1]:.2g} < {MIN_DATA_EIG_RATIO:g}), which many "
+            "ellipsoids fit equally well: the sensor was rotated too little; rotate it through "
+            "all orientations (tilt it nose up/down and roll it over, not only yaw)"
+        )
+    return z, mu, s
+
+
+def _design_rows(z: np.ndarray, off_diag_weight: float) -> np.ndarray:
+    """Rows ``[z1², z2², z3², w z1z2, w z1z3, w z2z3, z1, z2, z3, 1]``, (n, 10)."""
+    x, y, w = z[:, 0], z[:, 1], z[:, 2]
+    k = off_diag_weight
+    return np.column_stack(
+        [x * x, y * y, w * w, k * x * y, k * x * w, k * y * w, x, y, w, np.ones_like(x)]
+    )
+
+
+def _gram(z: np.ndarray, off_diag_weight: float) -> np.ndarray:
+    """``MᵀM / N`` (10, 10), accumulated in blocks."""
+    g = np.zeros((10, 10))
+    for start in range(0, z.shape[0], _GRAM_BLOCK_ROWS):
+        m = _design_rows(z[start : start + _GRAM_BLOCK_ROWS], off_diag_weight)
+        g += m.T @ m
+    g /= z.shape[0]
+    return 0.5 * (g + g.T)
+
+
+def _gram_factor(g: np.ndarray) -> np.ndarray:
+    """``R`` (10, 10) with ``RᵀR = G``. An eigen-factor rather than Cholesky: ``G`` is
+    singular for noise-free data (the ellipsoid is then an exact null vector)."""
+    lam, v = np.linalg.eigh(g)
+    return np.sqrt(np.clip(lam, 0.0, None))[:, None] * v.T
+
+
+def _unpack(xi: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
+    a11, a22, a33, a12, a13, a23 = xi[:6]
+    A = np.array([[a11, a12, a13], [a12, a22, a23], [a13, a23, a33]])
+    return A, np.array(xi[6:9], dtype=float), float(xi[9])
+
+
+def _trace_vector() -> np.ndarray:
+    t = np.zeros(10)
+    t[:3] = 1.0
+    return t
+
+
+def _centre_shape(A: np.ndarray, b: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """``o = −½ A⁻¹ b`` and lower-triangular ``D̃`` with ``D̃D̃ᵀ = (¼ bᵀA⁻¹b − c) A⁻¹``.
+
+    ``A`` must be positive definite. Returns None when ``β = ¼ bᵀA⁻¹b − c ≤ 0``: the quadric
+    is then an empty set (or a point), not a real ellipsoid.
+    """
+    cf = scipy.linalg.cho_factor(A, lower=True)  # cho_solve rather than inv
+    a_inv_b = scipy.linalg.cho_solve(cf, b)
+    o = -0.5 * a_inv_b
+    beta = 0.25 * float(b @ a_inv_b) - c
+    if not beta > 0.0:
+        return None
+    a_inv = scipy.linalg.cho_solve(cf, np.eye(3))
+    dd = beta * 0.5 * (a_inv + a_inv.T)
+    D_tilde = np.linalg.cholesky(dd)
+    return o, D_tilde
+
+
+def _finish(
+    xi: np.ndarray,
+    mag: np.ndarray,
+    mu: np.ndarray,
+    s: float,
+    method: str,
+    refuse_degenerate: bool = True,
+) -> EllipsoidFit | None:
+    """Map a solution in normalised coordinates back to raw units and package it.
+
+    Raises :class:`InsufficientDataError` for a near-singular ``A`` (if
+    ``refuse_degenerate``); returns None when the quadric is not a real ellipsoid (``β ≤ 0``).
+    """
+    A_s, b_s, c_s = _unpack(xi)
+    scale = np.trace(A_s)
+    A_s, b_s, c_s = A_s / scale, b_s / scale, c_s / scale
+    eig = np.linalg.eigvalsh(A_s)
+    ratio = float(eig[0] / eig[-1]) if eig[-1] > 0 else 0.0
+    if refuse_degenerate and ratio < MIN_A_EIG_RATIO:
+        raise InsufficientDataError(
+            f"ellipsoid fit ({method}): the fitted ellipsoid is degenerate (eigenvalue ratio "
+            f"{ratio:.2g} < {MIN_A_EIG_RATIO:g}): the magnetometer data lie close to a plane "
+            "or a line because the sensor was rotated too little; rotate it through all "
+            "orientations (tilt it nose up/down and roll it over, not only yaw)"
+        )
+    shape = _centre_shape(A_s, b_s, c_s)
+    if shape is None:
+        return None
+    o_s, D_s = shape
+    # Back to raw units: y = μ + s z. The centre and shape map directly ...
+    o = mu + s * o_s
+    D_tilde = s * D_s
+    # ... and (A, b, c) by substituting z = (y − μ)/s, then renormalising to tr A = 1.
+    A = A_s / s**2
+    b = b_s / s - 2.0 * A @ mu
+    c = float(mu @ A @ mu - b_s @ mu / s + c_s)
+    tr = np.trace(A)
+    A, b, c = A / tr, b / tr, c / tr
+    u = scipy.linalg.solve_triangular(D_tilde, (mag - o).T, lower=True)
+    radius_rms = float(np.sqrt(np.mean((np.linalg.norm(u, axis=0) - 1.0) ** 2)))
+    return EllipsoidFit(
+        A=0.5 * (A + A.T),
+        b=b,
+        c=c,
+        o=o,
+        D_tilde=D_tilde,
+        method=method,
+        radius_rms=radius_rms,
+        a_eig_ratio=ratio,
+    )
+
+
+def _solve_sdp(r: np.ndarray) -> np.ndarray:
+    """``min ½‖R ξ‖² s.t. tr A = 1, A ⪰ 0`` with Clarabel (an interior-point solver)."""
+    import cvxpy as cp  # imported here: cvxpy is slow to import and only this step needs it
+
+    A = cp.Variable((3, 3), symmetric=True)
+    b = cp.Variable(3)
+    c = cp.Variable(1)
+    xi = cp.hstack([A[0, 0], A[1, 1], A[2, 2], A[0, 1], A[0, 2], A[1, 2], b, c])
+    problem = cp.Problem(cp.Minimize(0.5 * cp.sum_squares(r @ xi)), [cp.trace(A) == 1, A >> 0])
+    try:
+        problem.solve(solver=cp.CLARABEL)
+    except cp.error.SolverError as exc:
+        raise CalibrationError(
+            f"ellipsoid fit: the SDP solver {_SOLVER_NAME} failed ({exc}); check the "
+            "magnetometer data for outliers, or install/upgrade clarabel"
+        ) from exc
+    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or A.value is None:
+        raise CalibrationError(
+            f"ellipsoid fit: the SDP solver {_SOLVER_NAME} ended with status "
+            f"'{problem.status}'; check the magnetometer data for outliers and rotate the "
+            "sensor through all orientations"
+        )
+    Av = A.value
+    return np.concatenate(
+        [
+            [Av[0, 0], Av[1, 1], Av[2, 2], Av[0, 1], Av[0, 2], Av[1, 2]],
+            np.asarray(b.value, dtype=float),
+            np.asarray(c.value, dtype=float).ravel(),
+        ]
+    )
+
+
+def _polish(g: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Polish an SDP solution whose PSD constraint is inactive.
+
+    If the minimiser of ``ξᵀGξ`` subject only to ``tr A = 1`` (a linear KKT system) has
+    ``A ≻ 0``, it is feasible for the SDP and, by convexity, its exact optimum; the
+    interior-point solution only approximates it (to about the solver tolerance). Returns
+    the polished ξ, or the given one when the constraint is (nearly) active.
+    """
+    A, _, _ = _unpack(xi)
+    if np.linalg.eigvalsh(A)[0] < PD_INACTIVE_EIG * np.trace(A):
+        return xi
+    t = _trace_vector()
+    kkt = np.zeros((11, 11))
+    kkt[:10, :10] = g
+    kkt[:10, 10] = t
+    kkt[10, :10] = t
+    rhs = np.zeros(11)
+    rhs[10] = 1.0
+    try:
+        sol = np.linalg.solve(kkt, rhs)
+    except np.linalg.LinAlgError:
+        return xi
+    cand = sol[:10]
+    if not np.all(np.isfinite(cand)):
+        return xi
+    A_c, _, _ = _unpack(cand)
+    if np.linalg.eigvalsh(A_c)[0] <= 0.0:
+        return xi
+    xi_n = xi / np.trace(A)
+    if cand @ g @ cand > xi_n @ g @ xi_n + 1e-12 * (1.0 + abs(xi_n @ g @ xi_n)):
+        return xi
+    return cand
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def fit_ellipsoid_sdp(mag: np.ndarray) -> EllipsoidFit:
+    """Ellipsoid fit as the SDP ``min ½‖M ξ‖² s.t. tr A = 1, A ⪰ 0`` (paper eq. 23).
+
+    mag : (N, 3) float, raw magnetometer units.
+
+    Returns an :class:`EllipsoidFit` in raw units; ``D_tilde`` is lower-triangular and
+    ``D_tilde⁻¹ (y − o)`` lies on the unit sphere up to noise.
+
+    Raises :class:`InsufficientDataError` when the data do not determine an ellipsoid
+    (too few samples, data on or near a plane or a line, a near-singular ``A``: too little
+    rotation), and
+    :class:`CalibrationError` when the solver fails or the data are not finite.
+    """
+    mag = _check_mag(mag)
+    z, mu, s = _normalise(mag)
+    g = _gram(z, off_diag_weight=2.0)
+    xi = _solve_sdp(_gram_factor(g))
+    xi = _polish(g, xi)
+    fit = _finish(xi, mag, mu, s, "sdp")
+    if fit is None:
+        raise InsufficientDataError(
+            "ellipsoid fit: the fitted quadric is not a real ellipsoid (empty set): the "
+            "magnetometer data do not cover enough directions; rotate the sensor through all "
+            "orientations (tilt it nose up/down and roll it over, not only yaw)"
+        )
+    return fit
+
+
+def fit_ellipsoid_algebraic(mag: np.ndarray) -> EllipsoidFit | None:
+    """Plain algebraic fit: ``min ‖M ξ‖ s.t. ‖ξ‖ = 1`` (smallest eigenvector), no PD constraint.
+
+    mag : (N, 3) float, raw magnetometer units.
+
+    ``‖ξ‖`` is the norm of ``(vec A, b, c)`` with both copies of each off-diagonal of ``A``
+    (as in the paper's eq. 22), taken in the same normalised coordinates as the SDP fit.
+
+    Returns None when the fitted ``A`` is not positive definite, or the quadric is not a real
+    ellipsoid — the cases the SDP formulation exists to avoid. A positive definite but
+    near-singular fit is returned (see ``a_eig_ratio``), not refused: this function is for
+    comparison. Raises like :func:`fit_ellipsoid_sdp` for bad input (too few samples,
+    non-finite or identical samples, data on a plane or a line).
+    """
+    mag = _check_mag(mag)
+    z, mu, s = _normalise(mag)
+    # With off-diagonal columns scaled by √2 the unknowns are (A11, A22, A33, √2 A12, ...),
+    # whose Euclidean norm is ‖(vec A, b, c)‖.
+    root2 = np.sqrt(2.0)
+    g = _gram(z, off_diag_weight=root2)
+    _, vecs = np.linalg.eigh(g)
+    xi = vecs[:, 0].copy()
+    xi[3:6] /= root2
+    A, _, _ = _unpack(xi)
+    if np.trace(A) < 0.0:
+        xi = -xi
+        A = -A
+    if np.linalg.eigvalsh(A)[0] <= 0.0:
+        return None
+    return _finish(xi, mag, mu, s, "algebraic", refuse_degenerate=False)
+
+
+def symmetric_fit(fit: EllipsoidFit) -> np.ndarray:
+    """The plain symmetric ellipsoid correction used by simple tools, (3, 3), raw units.
+
+    ``D_sym = (D̃ D̃ᵀ)^½``, the symmetric positive definite square root: the same ellipsoid,
+    with no estimate of the rotation between the magnetometer and the inertial axes.
+    """
+    dd = fit.D_tilde @ fit.D_tilde.T
+    lam, v = np.linalg.eigh(0.5 * (dd + dd.T))
+    return (v * np.sqrt(np.clip(lam, 0.0, None))) @ v.T

@@ -1,0 +1,214 @@
+"""Tests of the ellipsoid fit (Algorithm 1, step 1b)."""
+
+from __future__ import annotations
+
+import time
+
+import cvxpy as cp
+import numpy as np
+import pytest
+from magcal.calib.ellipsoid import (
+    EllipsoidFit,
+    fit_ellipsoid_algebraic,
+    fit_ellipsoid_sdp,
+    symmetric_fit,
+)
+from magcal.errors import CalibrationError, InsufficientDataError
+
+
+def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
+    u = rng.normal(size=(n, 3))
+    return u / np.linalg.norm(u, axis=1, keepdims=True)
+
+
+def _random_D(rng: np.random.Generator) -> np.ndarray:
+    """A well-conditioned calibration matrix: scale, skew and rotation (any handedness)."""
+    return np.diag(rng.uniform(0.7, 1.4, 3)) + 0.15 * rng.normal(size=(3, 3))
+
+
+def _ellipsoid_data(rng, n, D, o, noise=0.0):
+    return _unit_vectors(rng, n) @ D.T + o + noise * rng.normal(size=(n, 3))
+
+
+def _rel(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.max(np.abs(a - b)) / np.max(np.abs(b)))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_noise_free_recovers_DDt_and_offset(seed):
+    rng = np.random.default_rng(seed)
+    D = _random_D(rng)
+    o = rng.normal(size=3) * 2.0
+    y = _ellipsoid_data(rng, 3000, D, o)
+    fit = fit_ellipsoid_sdp(y)
+    assert isinstance(fit, EllipsoidFit)
+    assert fit.method == "sdp"
+    # The acceptance criterion: D̃D̃ᵀ = DDᵀ and o = o to 1e-6 relative.
+    assert _rel(fit.D_tilde @ fit.D_tilde.T, D @ D.T) < 1e-6
+    assert np.max(np.abs(fit.o - o)) < 1e-6 * np.linalg.norm(o)
+    # D̃ is the lower-triangular Cholesky factor.
+    assert np.allclose(fit.D_tilde, np.tril(fit.D_tilde))
+    assert np.all(np.diag(fit.D_tilde) > 0)
+    # D = D̃ U with U orthogonal.
+    U = np.linalg.solve(fit.D_tilde, D)
+    assert np.allclose(U @ U.T, np.eye(3), atol=1e-6)
+    assert fit.radius_rms < 1e-6
+
+
+def test_quadric_coefficients_describe_the_data():
+    rng = np.random.default_rng(10)
+    D = _random_D(rng)
+    o = np.array([30.0, -12.0, 5.0])
+    y = _ellipsoid_data(rng, 2000, D, o)
+    fit = fit_ellipsoid_sdp(y)
+    assert np.trace(fit.A) == pytest.approx(1.0)
+    assert np.allclose(fit.A, fit.A.T)
+    assert np.all(np.linalg.eigvalsh(fit.A) > 0)
+    resid = np.einsum("ni,ij,nj->n", y, fit.A, y) + y @ fit.b + fit.c
+    assert np.max(np.abs(resid)) < 1e-8 * abs(fit.c)
+    # eq. 20 up to scale: A ∝ D⁻ᵀD⁻¹, b = −2Ao, and the corrected formulas of algorithm.md.
+    Dinv = np.linalg.inv(D)
+    A_true = Dinv.T @ Dinv
+    assert _rel(fit.A, A_true / np.trace(A_true)) < 1e-6
+    assert _rel(fit.b, -2.0 * fit.A @ o) < 1e-6
+    Ainv_b = np.linalg.solve(fit.A, fit.b)
+    beta = 0.25 * fit.b @ Ainv_b - fit.c
+    assert _rel(beta * np.linalg.inv(fit.A), D @ D.T) < 1e-6
+    assert np.allclose(-0.5 * Ainv_b, o, rtol=1e-6)
+
+
+def test_scale_and_offset_invariance():
+    rng = np.random.default_rng(3)
+    D = _random_D(rng)
+    o = rng.normal(size=3)
+    y = _ellipsoid_data(rng, 4000, D, o, noise=0.02)
+    f1 = fit_ellipsoid_sdp(y)
+    f2 = fit_ellipsoid_sdp(y * 50.0 + 100.0)
+    assert np.allclose(f2.o, 50.0 * f1.o + 100.0, rtol=1e-6, atol=1e-6)
+    assert np.allclose(f2.D_tilde, 50.0 * f1.D_tilde, rtol=1e-6, atol=1e-6)
+    assert f2.radius_rms == pytest.approx(f1.radius_rms, rel=1e-6)
+
+
+def test_noisy_data_are_close():
+    rng = np.random.default_rng(4)
+    D = _random_D(rng) * 48.0  # µT-like
+    o = np.array([120.0, -40.0, 300.0])  # offsets several times the field
+    y = _ellipsoid_data(rng, 20000, D, o, noise=0.5)
+    fit = fit_ellipsoid_sdp(y)
+    assert _rel(fit.D_tilde @ fit.D_tilde.T, D @ D.T) < 0.01
+    assert np.linalg.norm(fit.o - o) < 0.01 * np.linalg.norm(D, 2)
+    assert fit.radius_rms == pytest.approx(0.5 / 48.0 / np.mean(np.diag(D) / 48.0), rel=0.5)
+
+
+def test_600k_samples_fast():
+    rng = np.random.default_rng(5)
+    D = _random_D(rng)
+    o = rng.normal(size=3)
+    fit_ellipsoid_sdp(_ellipsoid_data(rng, 200, D, o))  # warm-up: cvxpy import
+    y = _ellipsoid_data(rng, 600_000, D, o, noise=0.01)
+    t0 = time.perf_counter()
+    fit = fit_ellipsoid_sdp(y)
+    elapsed = time.perf_counter() - t0
+    assert _rel(fit.D_tilde @ fit.D_tilde.T, D @ D.T) < 1e-2
+    assert elapsed < 1.0, f"fit of 600k samples took {elapsed:.2f} s"
+
+
+def test_planar_data_raise():
+    rng = np.random.default_rng(6)
+    u = rng.normal(size=(2000, 2))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    y = np.column_stack([u, np.zeros(len(u))]) @ _random_D(rng).T + 5.0
+    with pytest.raises(InsufficientDataError, match="rotate"):
+        fit_ellipsoid_sdp(y)
+
+
+def test_line_data_raise():
+    t = np.linspace(-1.0, 1.0, 500)
+    y = np.outer(t, [1.0, 2.0, 3.0]) + 0.001 * np.random.default_rng(0).normal(size=(500, 3))
+    with pytest.raises(InsufficientDataError, match="rotat"):
+        fit_ellipsoid_sdp(y)
+
+
+def test_bad_input_raises():
+    with pytest.raises(InsufficientDataError, match="at least"):
+        fit_ellipsoid_sdp(np.ones((5, 3)))
+    with pytest.raises(InsufficientDataError, match="identical"):
+        fit_ellipsoid_sdp(np.ones((100, 3)))
+    y = _ellipsoid_data(np.random.default_rng(0), 100, np.eye(3), np.zeros(3))
+    y[3, 1] = np.nan
+    with pytest.raises(CalibrationError, match="NaN"):
+        fit_ellipsoid_sdp(y)
+    with pytest.raises(ValueError, match="shape"):
+        fit_ellipsoid_sdp(np.ones((100, 2)))
+
+
+def test_solver_failure_raises(monkeypatch):
+    def fail(self, *args, **kwargs):
+        raise cp.error.SolverError("simulated failure")
+
+    monkeypatch.setattr(cp.Problem, "solve", fail)
+    y = _ellipsoid_data(np.random.default_rng(0), 100, np.eye(3), np.zeros(3))
+    with pytest.raises(CalibrationError, match="CLARABEL"):
+        fit_ellipsoid_sdp(y)
+
+
+def test_solver_bad_status_raises(monkeypatch):
+    def infeasible(self, *args, **kwargs):
+        self._status = cp.INFEASIBLE
+
+    monkeypatch.setattr(cp.Problem, "solve", infeasible)
+    y = _ellipsoid_data(np.random.default_rng(0), 100, np.eye(3), np.zeros(3))
+    with pytest.raises(CalibrationError, match="status"):
+        fit_ellipsoid_sdp(y)
+
+
+def test_solver_is_clarabel(monkeypatch):
+    seen = {}
+    original = cp.Problem.solve
+
+    def spy(self, *args, **kwargs):
+        seen.update(kwargs)
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(cp.Problem, "solve", spy)
+    fit_ellipsoid_sdp(_ellipsoid_data(np.random.default_rng(0), 100, np.eye(3), np.zeros(3)))
+    assert seen["solver"] == cp.CLARABEL
+
+
+def test_algebraic_agrees_on_good_data():
+    rng = np.random.default_rng(7)
+    D = _random_D(rng)
+    o = rng.normal(size=3)
+    y = _ellipsoid_data(rng, 3000, D, o)
+    alg = fit_ellipsoid_algebraic(y)
+    sdp = fit_ellipsoid_sdp(y)
+    assert alg is not None and alg.method == "algebraic"
+    assert np.allclose(alg.D_tilde, sdp.D_tilde, atol=1e-8)
+    assert np.allclose(alg.o, sdp.o, atol=1e-8)
+
+
+def test_sdp_keeps_A_positive_definite_where_algebraic_does_not():
+    # A ±40° cap of the sphere with noise: the algebraic fit's A is indefinite (seeded case).
+    rng = np.random.default_rng(1)
+    u = _unit_vectors(rng, 6000)
+    u = u[u[:, 2] > np.cos(np.radians(40.0))]
+    y = u * 50.0 + [10.0, 20.0, 30.0] + 2.0 * rng.normal(size=u.shape)
+    assert fit_ellipsoid_algebraic(y) is None
+    fit = fit_ellipsoid_sdp(y)
+    assert np.all(np.linalg.eigvalsh(fit.A) > 0)
+
+
+def test_symmetric_fit():
+    rng = np.random.default_rng(8)
+    D = _random_D(rng)
+    fit = fit_ellipsoid_sdp(_ellipsoid_data(rng, 2000, D, np.zeros(3)))
+    D_sym = symmetric_fit(fit)
+    assert np.allclose(D_sym, D_sym.T)
+    assert np.all(np.linalg.eigvalsh(D_sym) > 0)
+    assert np.allclose(D_sym @ D_sym, D @ D.T, atol=1e-6)
+    # For a symmetric positive definite D the symmetric fit is D itself.
+    S = D @ D.T
+    lam, v = np.linalg.eigh(S)
+    D_spd = (v * np.sqrt(lam)) @ v.T
+    fit = fit_ellipsoid_sdp(_ellipsoid_data(rng, 2000, D_spd, np.ones(3)))
+    assert np.allclose(symmetric_fit(fit), D_spd, atol=1e-6)

@@ -1,0 +1,338 @@
+"""Step 1a of Kok & Schön (2016), Section 6: gyro bias and noise covariances.
+
+The paper takes them from "a short batch of stationary data" at the start of the recording,
+or from prior sensor knowledge. Hand-held recordings often have no stationary start, so:
+
+* :func:`find_stationary` looks for the longest stationary stretch *anywhere* in the session;
+* :func:`initial_noise_and_bias` estimates from it, or falls back to conservative priors
+  (the maximum-likelihood step estimates bias and covariances afterwards anyway).
+
+A stretch is stationary when, over moving windows of :data:`WINDOW_S`,
+
+1. the gyro *variation* (per-axis standard deviation, not the magnitude: a constant bias is
+   allowed) and the accelerometer variation are at the noise floor — a few times the
+   quietest windows' level, capped by absolute limits;
+2. the mean gyro magnitude is below :data:`GYRO_BIAS_MAX_RAD_S` (faster is no bias);
+3. the accelerometer norm is near gravity;
+
+and, over the whole stretch, the accelerometer direction (and the magnetometer reading, when
+given) does not drift. The last test rejects a slow constant-rate rotation, which the gyro
+alone cannot tell from a bias; a rotation about the vertical leaves the accelerometer
+unchanged and only the magnetometer reveals it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+
+from magcal.calib.frames import GRAVITY_M_S2
+from magcal.errors import InsufficientDataError
+
+# --- detection ---------------------------------------------------------------------------
+
+#: Length of the moving window, seconds.
+WINDOW_S = 0.5
+#: Fewest samples in a window (for slow sample rates), samples.
+WINDOW_MIN_SAMPLES = 10
+#: Shortest accepted stretch, seconds *and* samples: both must hold, so that the bias is
+#: averaged over at least a second and a covariance has enough samples.
+MIN_STATIONARY_S = 1.0
+MIN_STATIONARY_SAMPLES = 50
+#: Noise floor = this quantile of the windows' variation (the quietest windows) ...
+NOISE_FLOOR_QUANTILE = 0.05
+#: ... and a window is quiet when its variation is below this multiple of the floor
+#: (a window standard deviation scatters by ~10 % for 50 samples; 4× is a safe margin).
+NOISE_FLOOR_FACTOR = 4.0
+#: Absolute limits on the per-axis RMS standard deviation of a quiet window. The upper limits
+#: hold whatever the floor; the lower ones keep quantised sensors (which can read constant)
+#: from getting a zero threshold.
+GYR_STD_MAX_RAD_S = 0.02
+GYR_STD_MIN_RAD_S = 2e-3
+ACC_STD_MAX_M_S2 = 0.1
+ACC_STD_MIN_M_S2 = 0.02
+#: A gyro bias of an uncalibrated MEMS gyro stays below about 5 °/s; a larger constant rate
+#: is a rotation. rad/s.
+GYRO_BIAS_MAX_RAD_S = 0.1
+#: Tolerance on the accelerometer norm at rest (uncalibrated accelerometers are off by a few
+#: per cent of g), m/s².
+ACC_NORM_TOL_M_S2 = 1.0
+#: A drift over a stretch is rejected when it is statistically significant (χ² with 3
+#: degrees of freedom above this: p < 1e-8 for white noise) *and* larger than an absolute
+#: floor: the accelerometer direction turning by more than ACC_DRIFT_MIN_RAD, or the
+#: magnetometer changing by more than MAG_DRIFT_MIN_FRACTION of the field scale.
+DRIFT_CHI2_MAX = 40.0
+ACC_DRIFT_MIN_RAD = 0.005
+MAG_DRIFT_MIN_FRACTION = 0.005
+
+# --- priors (used without a stationary stretch) --------------------------------------------
+
+#: Gyro noise standard deviation prior, rad/s per axis (conservative for MEMS gyros).
+GYR_NOISE_PRIOR_RAD_S = 0.01
+#: Accelerometer noise standard deviation prior, m/s² per axis.
+ACC_NOISE_PRIOR_M_S2 = 0.1
+#: Magnetometer noise standard deviation prior, as a fraction of the median field norm about
+#: the data centre (dimensionless; the unit of the data is arbitrary).
+MAG_NOISE_PRIOR_FRACTION = 0.01
+#: Floor on each estimated standard deviation, as a fraction of the prior: a quantised sensor
+#: at rest can read constant, which would give a singular covariance.
+NOISE_FLOOR_FRACTION = 0.05
+#: Fewest samples to estimate covariances from.
+MIN_COVARIANCE_SAMPLES = 10
+
+
+@dataclass(frozen=True, eq=False)
+class NoiseInit:
+    """Initial gyro bias and noise covariances.
+
+    gyro_bias : (3,) float, rad/s
+    Sigma_gyr : (3, 3) float, (rad/s)², gyro noise covariance
+    Sigma_acc : (3, 3) float, (m/s²)², accelerometer noise covariance
+    Sigma_mag : (3, 3) float, (raw magnetometer units)², magnetometer noise covariance
+    source    : ``"stationary"`` (estimated from ``stationary``) or ``"prior"``
+    stationary: the stretch used, or None
+    """
+
+    gyro_bias: np.ndarray
+    Sigma_gyr: np.ndarray
+    Sigma_acc: np.ndarray
+    Sigma_mag: np.ndarray
+    source: Literal["stationary", "prior"]
+    stationary: slice | None = None
+
+
+# --------------------------------------------------------------------------- helpers
+
+
+def _check_xyz(name: str, x: np.ndarray, n: int) -> np.ndarray:
+    x = np.asarray(x, dtype=float)
+    if x.shape != (n, 3):
+        raise ValueError(f"{name} must have shape ({n}, 3), got {x.shape}")
+    return x
+
+
+def _moving_mean_var(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and (biased) variance of each length-``w`` window: x (N, d) → 2 × (N−w+1, d).
+
+    Cumulative sums of data centred on their median (to limit cancellation).
+    """
+    x = x - np.median(x, axis=0)
+    zero = np.zeros((1, x.shape[1]))
+    s1 = np.concatenate([zero, np.cumsum(x, axis=0)])
+    s2 = np.concatenate([zero, np.cumsum(x * x, axis=0)])
+    mean = (s1[w:] - s1[:-w]) / w
+    var = (s2[w:] - s2[:-w]) / w - mean * mean
+    return mean, np.clip(var, 0.0, None)
+
+
+def _threshold(std: np.ndarray, lo: float, hi: float) -> float:
+    floor = float(np.quantile(std, NOISE_FLOOR_QUANTILE))
+    return float(np.clip(NOISE_FLOOR_FACTOR * floor, lo, hi))
+
+
+def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """Maximal runs ``[start, stop)`` of True."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    starts = np.flatnonzero(d == 1)
+    stops = np.flatnonzero(d == -1)
+    return list(zip(starts.tolist(), stops.tolist(), strict=True))
+
+
+def _drift(t: np.ndarray, x: np.ndarray) -> tuple[float, float]:
+    """Linear trend of x (n, 3) over t (n,): total change over the stretch (norm, x units)
+    and its χ² statistic (3 degrees of freedom for white noise without a trend)."""
+    tc = t - t.mean()
+    stt = float(tc @ tc)
+    xc = x - x.mean(axis=0)
+    slope = tc @ xc / stt
+    resid = xc - np.outer(tc, slope)
+    var = np.sum(resid * resid, axis=0) / max(len(t) - 2, 1)
+    scale2 = np.mean(x * x) * 1e-24 + 1e-300  # keeps a constant (quantised) signal finite
+    chi2 = float(np.sum(slope * slope * stt / np.maximum(var, scale2)))
+    return float(np.linalg.norm(slope) * (t[-1] - t[0])), chi2
+
+
+# --------------------------------------------------------------------------- public API
+
+
+def find_stationary(
+    t: np.ndarray,
+    gyr: np.ndarray,
+    acc: np.ndarray,
+    mag: np.ndarray | None = None,
+) -> slice | None:
+    """The longest stationary stretch of a session, anywhere in it, or None.
+
+    t   : (N,) float, s, increasing
+    gyr : (N, 3) float, rad/s
+    acc : (N, 3) float, m/s²
+    mag : optional (N, 3) float, raw magnetometer units; when given, a slow rotation about
+          the vertical (invisible to gyro variation and accelerometer) is rejected too.
+
+    Returns ``slice(start, stop)`` into the sample arrays, at least :data:`MIN_STATIONARY_S`
+    long and with at least :data:`MIN_STATIONARY_SAMPLES` samples, or None when there is no
+    such stretch. See the module docstring for the tests.
+    """
+    t = np.asarray(t, dtype=float)
+    n = t.shape[0]
+    gyr = _check_xyz("gyr", gyr, n)
+    acc = _check_xyz("acc", acc, n)
+    if mag is not None:
+        mag = _check_xyz("mag", mag, n)
+    if n < max(MIN_STATIONARY_SAMPLES, 2):
+        return None
+    dt = float(np.median(np.diff(t)))
+    if not dt > 0.0:
+        return None
+    w = max(WINDOW_MIN_SAMPLES, round(WINDOW_S / dt))
+    min_len = max(MIN_STATIONARY_SAMPLES, int(np.ceil(MIN_STATIONARY_S / dt)) + 1)
+    if n < max(w, min_len):
+        return None
+
+    g_mean, g_var = _moving_mean_var(gyr, w)
+    a_mean, a_var = _moving_mean_var(acc, w)
+    g_mean += np.median(gyr, axis=0)
+    a_mean += np.median(acc, axis=0)
+    g_std = np.sqrt(np.mean(g_var, axis=1))  # per-axis RMS standard deviation
+    a_std = np.sqrt(np.mean(a_var, axis=1))
+    g_thr = _threshold(g_std, GYR_STD_MIN_RAD_S, GYR_STD_MAX_RAD_S)
+    a_thr = _threshold(a_std, ACC_STD_MIN_M_S2, ACC_STD_MAX_M_S2)
+    quiet = (
+        (g_std <= g_thr)
+        & (a_std <= a_thr)
+        & (np.linalg.norm(g_mean, axis=1) <= GYRO_BIAS_MAX_RAD_S)
+        & (np.abs(np.linalg.norm(a_mean, axis=1) - GRAVITY_M_S2) <= ACC_NORM_TOL_M_S2)
+    )
+    # Samples covered by a quiet window.
+    cover = np.zeros(n + 1, dtype=np.int64)
+    idx = np.flatnonzero(quiet)
+    np.add.at(cover, idx, 1)
+    np.add.at(cover, idx + w, -1)
+    stationary = np.cumsum(cover[:n]) > 0
+
+    if mag is not None:
+        mag_c = mag - mag.mean(axis=0)
+        mag_scale = float(np.sqrt(np.mean(np.sum(mag_c * mag_c, axis=1))))
+
+    # A gradual start of motion leaks into the edge windows: trim a quarter window at an
+    # edge that is not the end of the data.
+    trim = w // 4
+    runs = []
+    for start, stop in _runs(stationary):
+        start = start + (trim if start > 0 else 0)
+        stop = stop - (trim if stop < n else 0)
+        if stop - start >= min_len and t[stop - 1] - t[start] >= MIN_STATIONARY_S:
+            runs.append((start, stop))
+    runs.sort(key=lambda r: r[1] - r[0], reverse=True)
+
+    for start, stop in runs:
+        sl = slice(start, stop)
+        if np.linalg.norm(gyr[sl].mean(axis=0)) > GYRO_BIAS_MAX_RAD_S:
+            continue
+        ts = t[sl]
+        change, chi2 = _drift(ts, acc[sl])
+        a_norm = float(np.linalg.norm(acc[sl].mean(axis=0)))
+        if chi2 > DRIFT_CHI2_MAX and change > ACC_DRIFT_MIN_RAD * a_norm:
+            continue
+        if mag is not None:
+            change, chi2 = _drift(ts, mag[sl])
+            if chi2 > DRIFT_CHI2_MAX and change > MAG_DRIFT_MIN_FRACTION * mag_scale:
+                continue
+        return sl
+    return None
+
+
+def _lsb(x: np.ndarray) -> np.ndarray:
+    """Per-axis resolution estimate: the smallest non-zero step between samples, (3,).
+    Zero for a signal that never changes."""
+    d = np.abs(np.diff(x, axis=0))
+    d = np.where(d > 0.0, d, np.inf)
+    lsb = d.min(axis=0) if d.shape[0] else np.full(x.shape[1], np.inf)
+    return np.where(np.isfinite(lsb), lsb, 0.0)
+
+
+def _floored_cov(x: np.ndarray, floor_std: np.ndarray) -> np.ndarray:
+    """Sample covariance of x (n, 3) with each variance floored at ``floor_std²`` and all
+    eigenvalues at ``min(floor_std)²`` (so the result is positive definite)."""
+    cov = np.atleast_2d(np.cov(x, rowvar=False))
+    cov = 0.5 * (cov + cov.T)
+    floor_var = floor_std**2
+    cov = cov + np.diag(np.clip(floor_var - np.diag(cov), 0.0, None))
+    lam, v = np.linalg.eigh(cov)
+    lam = np.maximum(lam, float(floor_var.min()))
+    return (v * lam) @ v.T
+
+
+def _mag_scale(mag: np.ndarray) -> float:
+    """Median field norm about the data centre (the mean), raw units; 1.0 if zero."""
+    r = np.linalg.norm(mag - mag.mean(axis=0), axis=1)
+    s = float(np.median(r))
+    return s if s > 0.0 else 1.0
+
+
+def initial_noise_and_bias(
+    t: np.ndarray,
+    gyr: np.ndarray,
+    acc: np.ndarray,
+    mag: np.ndarray,
+    stationary: slice | None,
+) -> NoiseInit:
+    """Initial gyro bias and noise covariances (Algorithm 1, step 1a).
+
+    t   : (N,) float, s
+    gyr : (N, 3) float, rad/s
+    acc : (N, 3) float, m/s²
+    mag : (N, 3) float, raw magnetometer units
+    stationary : a stretch from :func:`find_stationary`, or None
+
+    With a stretch: bias = mean gyro over it; covariances = sample covariances over it, each
+    standard deviation floored at ``max(NOISE_FLOOR_FRACTION × prior, LSB/√12)`` (the
+    quantisation noise; a quantised sensor at rest can read constant).
+
+    Without: the priors — bias 0, :data:`GYR_NOISE_PRIOR_RAD_S`,
+    :data:`ACC_NOISE_PRIOR_M_S2`, and :data:`MAG_NOISE_PRIOR_FRACTION` of the median field
+    norm about the data centre — all isotropic. The maximum-likelihood step refines them.
+
+    Raises :class:`InsufficientDataError` when the given stretch has fewer than
+    :data:`MIN_COVARIANCE_SAMPLES` samples.
+    """
+    t = np.asarray(t, dtype=float)
+    n = t.shape[0]
+    gyr = _check_xyz("gyr", gyr, n)
+    acc = _check_xyz("acc", acc, n)
+    mag = _check_xyz("mag", mag, n)
+    if n == 0:
+        raise InsufficientDataError("noise initialisation: the session is empty: record data")
+    mag_prior = MAG_NOISE_PRIOR_FRACTION * _mag_scale(mag)
+    prior_std = {"gyr": GYR_NOISE_PRIOR_RAD_S, "acc": ACC_NOISE_PRIOR_M_S2, "mag": mag_prior}
+
+    if stationary is None:
+        return NoiseInit(
+            gyro_bias=np.zeros(3),
+            Sigma_gyr=GYR_NOISE_PRIOR_RAD_S**2 * np.eye(3),
+            Sigma_acc=ACC_NOISE_PRIOR_M_S2**2 * np.eye(3),
+            Sigma_mag=mag_prior**2 * np.eye(3),
+            source="prior",
+            stationary=None,
+        )
+
+    count = len(range(*stationary.indices(n)))
+    if count < MIN_COVARIANCE_SAMPLES:
+        raise InsufficientDataError(
+            f"noise initialisation: the stationary stretch has {count} samples; at least "
+            f"{MIN_COVARIANCE_SAMPLES} are needed: pass a longer stretch, or None to use priors"
+        )
+    covs = {}
+    for name, x in (("gyr", gyr), ("acc", acc), ("mag", mag)):
+        floor_std = np.maximum(NOISE_FLOOR_FRACTION * prior_std[name], _lsb(x) / np.sqrt(12.0))
+        covs[name] = _floored_cov(x[stationary], floor_std)
+    return NoiseInit(
+        gyro_bias=gyr[stationary].mean(axis=0),
+        Sigma_gyr=covs["gyr"],
+        Sigma_acc=covs["acc"],
+        Sigma_mag=covs["mag"],
+        source="stationary",
+        stationary=stationary,
+    )

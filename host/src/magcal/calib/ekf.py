@@ -170,3 +170,27 @@ def run_filter(p: ModelParams, data: FilterData, use_mag: bool = True) -> Filter
             "units are rad/s and m/s², and that the initial calibration is sensible"
         )
     return FilterOutput(cost=cost, q_filt=q_filt, innovations=innov, normalised=normed)
+
+
+def accelerometer_extra_variance(
+    acc: np.ndarray, g: float, sigma_acc: float, rate_hz: float, window_s: float = 0.05
+) -> np.ndarray:
+    """Data-only inflation ``c_t`` (m/s²)² of Σ_a for samples taken while accelerating.
+
+    The model ``y_a = −R_bn g_n + e_a`` has no translational acceleration; a filter that
+    trusts such samples tilts its attitude and, through it, the misalignment estimate. The
+    norm deviation ``‖y_a‖ − g`` is a lower bound on the acceleration along gravity, and its
+    size at neighbouring samples says the same of the other axes. So ``c_t`` is the largest
+    squared deviation within ±window_s, less a 3σ noise allowance (clean samples get 0).
+    It depends on the data only, never on θ, so the cost stays smooth in θ.
+
+    acc : (N, 3) m/s²; g : m/s²; sigma_acc : accelerometer noise std, m/s²; rate_hz : Hz.
+    Returns (N,) (m/s²)².
+    """
+    dev = np.abs(np.linalg.norm(acc, axis=1) - g)
+    excess = np.maximum(dev - 3.0 * sigma_acc, 0.0)
+    half = max(1, int(round(window_s * rate_hz)))
+    padded = np.pad(excess, half, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
+    # Three axes can carry acceleration, the norm shows about one: scale by 3.
+    return 3.0 * windows.max(axis=1) ** 2

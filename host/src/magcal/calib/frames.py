@@ -194,3 +194,17 @@ def so3_grid(count: int) -> np.ndarray:
     beta = 2.0 * np.pi * i / psi
     q = np.stack([r * np.sin(alpha), r * np.cos(alpha), R * np.sin(beta), R * np.cos(beta)], -1)
     return quat_normalize(q)
+
+
+def triad(up_b: np.ndarray, field_b: np.ndarray, field_n: np.ndarray) -> np.ndarray:
+    """Attitude q_nb from the body-frame "up" (accelerometer direction at rest) and field,
+    given the n-frame field (TRIAD, Shuster & Oh 1981, gravity as the exact vector)."""
+
+    def frame(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        t1 = a / np.linalg.norm(a)
+        t2 = np.cross(t1, b)
+        t2 = t2 / np.linalg.norm(t2)
+        return np.column_stack([t1, t2, np.cross(t1, t2)])
+
+    R_nb = frame(np.array([0.0, 0.0, 1.0]), field_n) @ frame(up_b, field_b).T
+    return matrix_to_quat(R_nb)

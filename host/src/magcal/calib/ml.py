@@ -1,0 +1,165 @@
+"""Algorithm 1, step 2: minimise V(θ) (eq. 6) from θ₀ with damped BFGS.
+
+Numerical choices, each a fix for a way the plain problem fails:
+
+* The magnetometer data are centred on the ellipsoid's centre and divided by its mean
+  radius first, so D ≈ rotation, o ≈ 0 whatever the sensor's units; the result is mapped
+  back (``ModelParams.unscaled_magnetometer``).
+* BFGS runs in variables scaled by the expected statistical uncertainty of each parameter
+  (:func:`parameter_scales`), so its identity start is close to the true curvature.
+* A weak log-normal prior on the gyroscope noise (:data:`GYRO_NOISE_PRIOR_WIDTH`): at
+  IMU rates the likelihood hardly depends on Σ_ω once it is small, so its Cholesky
+  parameters drift towards −∞ along an almost flat valley and BFGS never converges. The
+  prior is a factor of 10 wide in σ; where the data say something they dominate it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal.calib import cost, ekf, params
+from magcal.calib.initial import InitialEstimate, starting_attitude
+from magcal.calib.optimize import OptimizeOptions, OptimizeReport, minimize_bfgs
+from magcal.calib.params import ModelParams
+from magcal.io.session import Session
+
+#: 1-σ width of the prior on log σ_ω (nats; ln 10 = a factor of 10) and on the unit
+#: lower-triangular entries of its Cholesky factor (dimensionless correlations).
+GYRO_NOISE_PRIOR_WIDTH = (np.log(10.0), 1.0)
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """y' = (y − centre) / scale; centre (3,) and scale in magnetometer units."""
+
+    centre: np.ndarray
+    scale: float
+
+    def apply(self, mag: np.ndarray) -> np.ndarray:
+        return (np.asarray(mag, dtype=float) - self.centre) / self.scale
+
+
+@dataclass(frozen=True)
+class MLEstimate:
+    params: ModelParams  # raw magnetometer units
+    theta: np.ndarray  # (34,) normalised
+    theta0: np.ndarray  # (34,) normalised
+    report: OptimizeReport
+    data: ekf.FilterData  # normalised
+    normalisation: Normalisation
+    gradient: str
+
+
+def normalisation_for(p: ModelParams) -> Normalisation:
+    return Normalisation(centre=np.asarray(p.o, dtype=float).copy(),
+                         scale=float(abs(np.linalg.det(p.D)) ** (1.0 / 3.0)))
+
+
+def filter_data_for(
+    session: Session, init: InitialEstimate, p_norm: ModelParams, norm: Normalisation
+) -> ekf.FilterData:
+    mag_n = norm.apply(session.mag)
+    q0 = starting_attitude(session.acc, mag_n, p_norm)
+    return ekf.make_filter_data(
+        session.t, session.gyr, session.acc, mag_n, q0, acc_extra_var=init.acc_extra_var,
+        g=init.g,
+    )
+
+
+def parameter_scales(p_norm: ModelParams, n: int) -> np.ndarray:
+    """Rough 1-σ uncertainty of each θ component for n samples (34,).
+
+    D, o and the dip are measured against the magnetometer noise; the bias through the
+    attitude it makes drift, in practice about as well; the noise parameters as log-scales,
+    the gyroscope's an order of magnitude more weakly (its noise is small next to the
+    measurement updates). Only their ratios matter much: BFGS rescales after one step.
+    """
+    sigma_m = float(np.sqrt(np.trace(p_norm.Sigma_mag) / 3.0))
+    s = np.empty(params.N_PARAMS)
+    s[params.SLICE_D] = sigma_m
+    s[params.SLICE_O] = sigma_m
+    s[params.INDEX_DIP] = sigma_m
+    s[params.SLICE_BIAS] = sigma_m
+    s[params.SLICE_CHOL_GYR] = 10.0
+    s[params.SLICE_CHOL_ACC] = 1.5
+    s[params.SLICE_CHOL_MAG] = 0.7
+    return s / np.sqrt(n)
+
+
+def _prior(theta0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and precision (diagonal) of the weak prior on the gyroscope noise parameters."""
+    mean = np.zeros(params.N_PARAMS)
+    precision = np.zeros(params.N_PARAMS)
+    sl = params.SLICE_CHOL_GYR
+    mean[sl] = theta0[sl]
+    mean[sl.start + 3 : sl.stop] = 0.0
+    w_log, w_corr = GYRO_NOISE_PRIOR_WIDTH
+    precision[sl.start : sl.start + 3] = 1.0 / w_log**2
+    precision[sl.start + 3 : sl.stop] = 1.0 / w_corr**2
+    return mean, precision
+
+
+def penalised_cost_functions(
+    data: ekf.FilterData, theta0: np.ndarray, gradient: str = "exact"
+) -> tuple[Callable, Callable]:
+    """(θ ↦ (V + prior, ∇), θ ↦ V + prior) with the gradient exact or finite-difference."""
+    mean, precision = _prior(theta0)
+    tape = np.empty(10 * len(data))
+    typical = np.maximum(np.abs(theta0), 1e-3)
+
+    def penalty(theta):
+        r = theta - mean
+        return 0.5 * float(np.sum(precision * r * r)), precision * r
+
+    def f(theta):
+        return cost.cost(theta, data) + penalty(theta)[0]
+
+    if gradient == "exact":
+
+        def fg(theta):
+            v, g = cost.cost_and_gradient(theta, data, tape)
+            pv, pg = penalty(theta)
+            return v + pv, g + pg
+
+    elif gradient == "numeric":
+
+        def fg(theta):
+            v = cost.cost(theta, data)
+            g = cost.numeric_gradient(theta, data, "forward", typical=typical, value=v)
+            pv, pg = penalty(theta)
+            return v + pv, g + pg
+
+    else:
+        raise ValueError(f"unknown gradient {gradient!r}: use 'exact' or 'numeric'")
+    return fg, f
+
+
+def maximum_likelihood(
+    session: Session,
+    init: InitialEstimate,
+    gradient: str = "exact",
+    options: OptimizeOptions = OptimizeOptions(),
+    progress: Callable[[int, float, float], None] | None = None,
+) -> MLEstimate:
+    """Algorithm 1 step 2 from the initial estimate."""
+    norm = normalisation_for(init.params)
+    p0 = init.params.scaled_magnetometer(norm.centre, norm.scale)
+    data = filter_data_for(session, init, p0, norm)
+    theta0 = params.pack(p0)
+    fg, f = penalised_cost_functions(data, theta0, gradient)
+    report = minimize_bfgs(
+        fg, theta0, parameter_scales(p0, len(data)), options, fun=f, progress=progress
+    )
+    p_hat = params.unpack(report.x).unscaled_magnetometer(norm.centre, norm.scale)
+    return MLEstimate(
+        params=p_hat,
+        theta=report.x,
+        theta0=theta0,
+        report=report,
+        data=data,
+        normalisation=norm,
+        gradient=gradient,
+    )

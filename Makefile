@@ -1,0 +1,42 @@
+# magcal: the one entry point. `make demo` and `make test` set everything up themselves.
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+OUT := out
+
+.PHONY: setup demo test lint accuracy accuracy-quick bench clean
+
+setup: $(STAMP)
+
+# Re-install when the package definition or the native kernel changes (the editable
+# install compiles host/csrc into magcal/calib/_mekf*.so).
+$(STAMP): host/pyproject.toml host/setup.py $(wildcard host/csrc/*.c host/csrc/*.h)
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e 'host[dev]'
+	touch $@
+
+demo: setup
+	@mkdir -p $(OUT)/demo
+	host/magcal simulate --preset mems --duration 60 --seed 1 -o $(OUT)/demo/session.csv
+	host/magcal calibrate $(OUT)/demo/session.csv --method ml -o $(OUT)/demo/result.json \
+		--plot $(OUT)/demo/plots --truth $(OUT)/demo/session.truth.json
+
+lint: setup
+	$(VENV)/bin/ruff check host tests tools bench
+	$(VENV)/bin/ruff format --check host tests tools bench
+
+test: setup lint
+	$(PY) -m pytest -q tests
+
+accuracy: setup
+	$(PY) tools/accuracy_report.py --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy
+
+bench: setup
+	$(PY) bench/run_bench.py --out bench/results.json
+
+clean:
+	rm -rf $(OUT) build host/build host/src/*.egg-info
+	find host -name '_mekf*.so' -delete

@@ -1,0 +1,147 @@
+"""From a session to a calibration result: Algorithm 1 with its checks and diagnostics.
+
+This is the one entry point the command line and the report scripts call.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal.calib import ekf, observability, quality
+from magcal.calib.initial import InitialEstimate, initial_estimate
+from magcal.calib.ml import MLEstimate, filter_data_for, maximum_likelihood, normalisation_for
+from magcal.calib.optimize import OptimizeOptions
+from magcal.calib.params import ModelParams
+from magcal.errors import MagcalError
+from magcal.io.result import CalibrationResult
+from magcal.io.session import Session
+
+METHODS = ("ml", "init")
+
+#: RMS of ‖y_a‖ − g (m/s²) above which the inclination from the accelerometer, and with it
+#: the misalignment between magnetometer and inertial axes, cannot be trusted: at 0.5 m/s²
+#: the accelerometer's gravity direction is off by ≈3° RMS.
+MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2 = 0.5
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A result and what a person wants to look at next to it."""
+
+    result: CalibrationResult
+    init: InitialEstimate
+    ml: MLEstimate | None
+    filter_output: ekf.FilterOutput
+    calibrated: np.ndarray  # (N, 3) D⁻¹(y − o), unit norm when good
+    seconds: dict
+
+
+def _filter_at(session: Session, init: InitialEstimate, p: ModelParams) -> ekf.FilterOutput:
+    norm = normalisation_for(init.params)
+    p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
+    return ekf.run_filter(p_norm, filter_data_for(session, init, p_norm, norm))
+
+
+def _alignment_warnings(session: Session, g: float) -> list[str]:
+    dev = np.linalg.norm(session.acc, axis=1) - g
+    rms = float(np.sqrt(np.mean(dev * dev)))
+    if rms > MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2:
+        return [
+            f"accelerations too large to trust the inclination (RMS |‖acc‖ − g| = {rms:.2f} "
+            f"m/s², limit {MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2} m/s²): the misalignment between "
+            "magnetometer and inertial axes is poorly determined; rotate more slowly"
+        ]
+    return []
+
+
+def calibrate(
+    session: Session,
+    method: str = "ml",
+    *,
+    force: bool = False,
+    gradient: str = "exact",
+    options: OptimizeOptions = OptimizeOptions(),
+    progress: Callable[[int, float, float], None] | None = None,
+) -> Calibration:
+    """Calibrate a session with ``method`` ("ml" or "init")."""
+    if method not in METHODS:
+        raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    seconds = {}
+    t0 = time.perf_counter()
+    report = observability.check_observability(session.gyr, session.acc, session.mag, session.t)
+    warnings = observability.raise_if_unobservable(report, force)
+    seconds["checks"] = time.perf_counter() - t0
+
+    init = initial_estimate(session)
+    seconds.update(init.seconds)
+    warnings += list(init.warnings)
+    warnings += _alignment_warnings(session, init.g)
+
+    extra: dict = {
+        "initial": {
+            "D": init.params.D,
+            "o": init.params.o,
+            "dip_deg": float(np.rad2deg(init.params.dip_rad)),
+            "noise_source": init.noise.source,
+        },
+        "observability": {
+            "gravity_eigenvalues": report.gravity_eigenvalues,
+            "mag_eig_ratio": report.mag_eig_ratio,
+            "total_rotation_rad": report.total_rotation_rad,
+        },
+    }
+    est = None
+    if method == "ml":
+        t0 = time.perf_counter()
+        est = maximum_likelihood(session, init, gradient, options, progress)
+        seconds["ml"] = time.perf_counter() - t0
+        p = est.params
+        r = est.report
+        extra["optimizer"] = {
+            "gradient": gradient,
+            "iterations": r.iterations,
+            "cost_evaluations": r.cost_evaluations,
+            "gradient_evaluations": r.gradient_evaluations,
+            "final_cost": r.cost,
+            "stopping_rule": r.stopping_rule,
+            "seconds": r.seconds,
+        }
+        if not r.converged:
+            warnings.append(
+                f"the ML optimisation stopped on '{r.stopping_rule}' before converging after "
+                f"{r.iterations} iterations: the estimate may be improvable"
+            )
+    else:
+        p = init.params
+
+    t0 = time.perf_counter()
+    out = _filter_at(session, init, p)
+    calibrated = np.linalg.solve(p.D, (session.mag - p.o).T).T
+    seconds["diagnostics"] = time.perf_counter() - t0
+    extra["Sigma_gyr"] = p.Sigma_gyr
+    extra["Sigma_acc"] = p.Sigma_acc
+    extra["Sigma_mag"] = p.Sigma_mag
+    extra["innovations"] = quality.innovation_stats(out.normalised).as_dict()
+    extra["field_norm"] = {
+        "before": quality.norm_stats(session.mag),
+        "after": quality.norm_stats(calibrated),
+    }
+    extra["seconds"] = seconds
+
+    result = CalibrationResult(
+        method=method,
+        D=p.D,
+        o=p.o,
+        m_n=p.m_n,
+        dip_deg=float(np.rad2deg(p.dip_rad)),
+        gyro_bias=p.gyro_bias,
+        warnings=warnings,
+        extra=extra,
+    )
+    return Calibration(
+        result=result, init=init, ml=est, filter_output=out, calibrated=calibrated, seconds=seconds
+    )

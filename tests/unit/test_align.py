@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+
 from magcal.calib import align
 from magcal.calib.align import (
     Alignment,
@@ -143,9 +144,7 @@ def test_yaw_only_warns():
 
 def test_acceleration_weights():
     g = 9.81
-    acc = np.array(
-        [[0.0, 0.0, g], [0.0, 0.0, g + 0.5], [g - 0.5, 0.0, 0.0], [0, 0, g + 5.0]]
-    )
+    acc = np.array([[0.0, 0.0, g], [0.0, 0.0, g + 0.5], [g - 0.5, 0.0, 0.0], [0, 0, g + 5.0]])
     w = acceleration_weights(acc)
     assert w == pytest.approx([1.0, 0.5, 0.5, 1.0 / 101.0])
     assert acceleration_weights(acc, g=g + 0.5)[1] == pytest.approx(1.0)

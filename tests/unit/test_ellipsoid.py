@@ -7,6 +7,7 @@ import time
 import cvxpy as cp
 import numpy as np
 import pytest
+
 from magcal.calib.ellipsoid import (
     EllipsoidFit,
     fit_ellipsoid_algebraic,

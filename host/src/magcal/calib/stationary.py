@@ -37,8 +37,9 @@ from magcal.errors import InsufficientDataError
 WINDOW_S = 0.5
 #: Fewest samples in a window (for slow sample rates), samples.
 WINDOW_MIN_SAMPLES = 10
-#: Shortest accepted stretch, seconds *and* samples: both must hold, so that the bias is
-#: averaged over at least a second and a covariance has enough samples.
+#: Shortest accepted stretch: at least MIN_STATIONARY_SAMPLES samples *or* at least
+#: MIN_STATIONARY_S seconds (the paper's Table 2 sessions rest for 100 samples); never less
+#: than WINDOW_MIN_SAMPLES samples.
 MIN_STATIONARY_S = 1.0
 MIN_STATIONARY_SAMPLES = 50
 #: Noise floor = this quantile of the windows' variation (the quietest windows) ...
@@ -47,8 +48,11 @@ NOISE_FLOOR_QUANTILE = 0.05
 #: (a window standard deviation scatters by ~10 % for 50 samples; 4× is a safe margin).
 NOISE_FLOOR_FACTOR = 4.0
 #: Absolute limits on the per-axis RMS standard deviation of a quiet window. The upper limits
-#: hold whatever the floor; the lower ones keep quantised sensors (which can read constant)
-#: from getting a zero threshold.
+#: guard against calling the quietest part of a session without any rest "stationary"; they
+#: are raised to NOISE_FLOOR_FACTOR × the white-noise level seen in second differences for
+#: a noisy sensor (the paper's Table 2 has gyro σ up to 0.1 rad/s and accelerometer σ up to
+#: 0.3 m/s²). The lower limits keep quantised sensors (which can read constant) from getting
+#: a zero threshold.
 GYR_STD_MAX_RAD_S = 0.02
 GYR_STD_MIN_RAD_S = 2e-3
 ACC_STD_MAX_M_S2 = 0.1
@@ -66,6 +70,9 @@ ACC_NORM_TOL_M_S2 = 1.0
 DRIFT_CHI2_MAX = 40.0
 ACC_DRIFT_MIN_RAD = 0.005
 MAG_DRIFT_MIN_FRACTION = 0.005
+
+#: Most a stretch's edge may be trimmed to pass the drift tests, in windows.
+MAX_EDGE_TRIM_WINDOWS = 2
 
 # --- priors (used without a stationary stretch) --------------------------------------------
 
@@ -127,8 +134,21 @@ def _moving_mean_var(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
     return mean, np.clip(var, 0.0, None)
 
 
-def _threshold(std: np.ndarray, lo: float, hi: float) -> float:
+def _white_noise_std(x: np.ndarray) -> float:
+    """Per-axis RMS of the white-noise standard deviation from second differences, robustly:
+    ``Δ²x`` has variance ``6σ²`` for white noise, while smooth motion barely contributes."""
+    if x.shape[0] < 3:
+        return 0.0
+    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
+    sigma = 1.4826 * np.median(np.abs(d2), axis=0) / np.sqrt(6.0)
+    return float(np.sqrt(np.mean(sigma * sigma)))
+
+
+def _threshold(std: np.ndarray, x: np.ndarray, lo: float, hi: float) -> float:
+    """Quiet-window threshold: NOISE_FLOOR_FACTOR × the quietest windows' level, at least
+    ``lo``, at most ``hi`` (raised for a sensor whose white noise alone exceeds it)."""
     floor = float(np.quantile(std, NOISE_FLOOR_QUANTILE))
+    hi = max(hi, NOISE_FLOOR_FACTOR * _white_noise_std(x))
     return float(np.clip(NOISE_FLOOR_FACTOR * floor, lo, hi))
 
 
@@ -171,9 +191,9 @@ def find_stationary(
     mag : optional (N, 3) float, raw magnetometer units; when given, a slow rotation about
           the vertical (invisible to gyro variation and accelerometer) is rejected too.
 
-    Returns ``slice(start, stop)`` into the sample arrays, at least :data:`MIN_STATIONARY_S`
-    long and with at least :data:`MIN_STATIONARY_SAMPLES` samples, or None when there is no
-    such stretch. See the module docstring for the tests.
+    Returns ``slice(start, stop)`` into the sample arrays, with at least
+    :data:`MIN_STATIONARY_SAMPLES` samples or :data:`MIN_STATIONARY_S` long, or None when
+    there is no such stretch. See the module docstring for the tests.
     """
     t = np.asarray(t, dtype=float)
     n = t.shape[0]
@@ -181,14 +201,13 @@ def find_stationary(
     acc = _check_xyz("acc", acc, n)
     if mag is not None:
         mag = _check_xyz("mag", mag, n)
-    if n < max(MIN_STATIONARY_SAMPLES, 2):
+    if n < WINDOW_MIN_SAMPLES:
         return None
     dt = float(np.median(np.diff(t)))
     if not dt > 0.0:
         return None
     w = max(WINDOW_MIN_SAMPLES, round(WINDOW_S / dt))
-    min_len = max(MIN_STATIONARY_SAMPLES, int(np.ceil(MIN_STATIONARY_S / dt)) + 1)
-    if n < max(w, min_len):
+    if n < w:
         return None
 
     g_mean, g_var = _moving_mean_var(gyr, w)
@@ -197,8 +216,8 @@ def find_stationary(
     a_mean += np.median(acc, axis=0)
     g_std = np.sqrt(np.mean(g_var, axis=1))  # per-axis RMS standard deviation
     a_std = np.sqrt(np.mean(a_var, axis=1))
-    g_thr = _threshold(g_std, GYR_STD_MIN_RAD_S, GYR_STD_MAX_RAD_S)
-    a_thr = _threshold(a_std, ACC_STD_MIN_M_S2, ACC_STD_MAX_M_S2)
+    g_thr = _threshold(g_std, gyr, GYR_STD_MIN_RAD_S, GYR_STD_MAX_RAD_S)
+    a_thr = _threshold(a_std, acc, ACC_STD_MIN_M_S2, ACC_STD_MAX_M_S2)
     quiet = (
         (g_std <= g_thr)
         & (a_std <= a_thr)
@@ -216,32 +235,76 @@ def find_stationary(
         mag_c = mag - mag.mean(axis=0)
         mag_scale = float(np.sqrt(np.mean(np.sum(mag_c * mag_c, axis=1))))
 
+    def long_enough(start: int, stop: int) -> bool:
+        count = stop - start
+        return count >= WINDOW_MIN_SAMPLES and (
+            count >= MIN_STATIONARY_SAMPLES or t[stop - 1] - t[start] >= MIN_STATIONARY_S
+        )
+
+    def steady(sl: slice) -> bool:
+        """Whole-stretch tests: no rotation posing as a bias, no drift."""
+        if np.linalg.norm(gyr[sl].mean(axis=0)) > GYRO_BIAS_MAX_RAD_S:
+            return False
+        ts = t[sl]
+        change, chi2 = _drift(ts, acc[sl])
+        a_norm = float(np.linalg.norm(acc[sl].mean(axis=0)))
+        if chi2 > DRIFT_CHI2_MAX and change > ACC_DRIFT_MIN_RAD * a_norm:
+            return False
+        if mag is not None:
+            change, chi2 = _drift(ts, mag[sl])
+            if chi2 > DRIFT_CHI2_MAX and change > MAG_DRIFT_MIN_FRACTION * mag_scale:
+                return False
+        return True
+
+    signals = [gyr, acc] if mag is None else [gyr, acc, mag]
+
+    def edge_deviation(sl: slice, edge: slice) -> float:
+        """How far an edge's mean is from the stretch's median, in robust noise units."""
+        total = 0.0
+        for x in signals:
+            med = np.median(x[sl], axis=0)
+            sigma = 1.4826 * np.median(np.abs(x[sl] - med), axis=0) + 1e-12 * (1.0 + np.abs(med))
+            total += float(np.linalg.norm((x[edge].mean(axis=0) - med) / sigma))
+        return total
+
     # A gradual start of motion leaks into the edge windows: trim a quarter window at an
-    # edge that is not the end of the data.
+    # edge that is not the end of the data; then, while the whole-stretch tests fail, trim
+    # the edge that deviates more, by a half window at a time and at most MAX_EDGE_TRIM_WINDOWS
+    # windows per edge: a slow motion onset is cut away, while a stretch that drifts
+    # throughout (a slow constant-rate rotation) is rejected rather than shrunk until its
+    # drift is too small to detect.
     trim = w // 4
     runs = []
     for start, stop in _runs(stationary):
         start = start + (trim if start > 0 else 0)
         stop = stop - (trim if stop < n else 0)
-        if stop - start >= min_len and t[stop - 1] - t[start] >= MIN_STATIONARY_S:
+        if long_enough(start, stop):
             runs.append((start, stop))
     runs.sort(key=lambda r: r[1] - r[0], reverse=True)
 
-    for start, stop in runs:
-        sl = slice(start, stop)
-        if np.linalg.norm(gyr[sl].mean(axis=0)) > GYRO_BIAS_MAX_RAD_S:
-            continue
-        ts = t[sl]
-        change, chi2 = _drift(ts, acc[sl])
-        a_norm = float(np.linalg.norm(acc[sl].mean(axis=0)))
-        if chi2 > DRIFT_CHI2_MAX and change > ACC_DRIFT_MIN_RAD * a_norm:
-            continue
-        if mag is not None:
-            change, chi2 = _drift(ts, mag[sl])
-            if chi2 > DRIFT_CHI2_MAX and change > MAG_DRIFT_MIN_FRACTION * mag_scale:
-                continue
-        return sl
-    return None
+    best: slice | None = None
+    max_trim = MAX_EDGE_TRIM_WINDOWS * w
+    for run_start, run_stop in runs:
+        if best is not None and run_stop - run_start <= best.stop - best.start:
+            break
+        start, stop = run_start, run_stop
+        while long_enough(start, stop):
+            if steady(slice(start, stop)):
+                if best is None or stop - start > best.stop - best.start:
+                    best = slice(start, stop)
+                break
+            cut = max(w // 2, 1)
+            can_head = start + cut - run_start <= max_trim
+            can_tail = run_stop - (stop - cut) <= max_trim
+            if not (can_head or can_tail):
+                break
+            head = edge_deviation(slice(start, stop), slice(start, start + cut))
+            tail = edge_deviation(slice(start, stop), slice(stop - cut, stop))
+            if can_tail and (tail >= head or not can_head):
+                stop -= cut
+            else:
+                start += cut
+    return best
 
 
 def _lsb(x: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ setup(
             "magcal.calib._mekf",
             sources=["csrc/mekf_likelihood.c", "csrc/_mekf_module.c"],
             include_dirs=["csrc"],
-            extra_compile_args=["-std=c99", "-O2", "-Wall", "-Wextra"],
+            extra_compile_args=["-std=c99", "-O3", "-Wall", "-Wextra"],
         )
     ]
 )

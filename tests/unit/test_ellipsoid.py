@@ -123,6 +123,34 @@ def test_planar_data_raise():
         fit_ellipsoid_sdp(y)
 
 
+def test_force_on_degenerate_data_gives_a_regularised_fit_with_a_warning():
+    rng = np.random.default_rng(6)
+    u = rng.normal(size=(2000, 2))
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    y = 40.0 * np.column_stack([u, np.zeros(len(u))]) + [5.0, -3.0, 7.0]
+    fit = fit_ellipsoid_sdp(y, force=True)
+    assert fit.warnings and "Forced" in fit.warnings[0] and "plane" in fit.warnings[0]
+    # Among all quadrics through the circle, the sphere centred in its plane.
+    assert np.allclose(fit.o, [5.0, -3.0, 7.0], atol=0.1)
+    assert np.allclose(fit.D_tilde @ fit.D_tilde.T, 1600.0 * np.eye(3), rtol=0.1, atol=16.0)
+    assert fit.radius_rms < 0.01
+    # A patch (small wobble) gives a sane, if uncertain, ellipsoid.
+    v = _unit_vectors(rng, 20000)
+    v = v[v[:, 2] > np.cos(np.radians(15.0))]
+    y = 40.0 * v + 0.4 * rng.normal(size=v.shape)
+    with pytest.raises(InsufficientDataError):
+        fit_ellipsoid_sdp(y)
+    fit = fit_ellipsoid_sdp(y, force=True)
+    assert fit.warnings and fit.a_eig_ratio > 0.01
+
+
+def test_force_changes_nothing_on_good_data():
+    rng = np.random.default_rng(12)
+    y = _ellipsoid_data(rng, 3000, _random_D(rng), rng.normal(size=3), noise=0.01)
+    a, b = fit_ellipsoid_sdp(y), fit_ellipsoid_sdp(y, force=True)
+    assert b.warnings == () and np.array_equal(a.D_tilde, b.D_tilde)
+
+
 def test_line_data_raise():
     t = np.linspace(-1.0, 1.0, 500)
     y = np.outer(t, [1.0, 2.0, 3.0]) + 0.001 * np.random.default_rng(0).normal(size=(500, 3))

@@ -29,6 +29,7 @@ Numerical choices:
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,6 +53,14 @@ MIN_A_EIG_RATIO = 1e-3
 #: 1e-3 means the thinnest direction of the cloud has a standard deviation of about 3 % of the
 #: widest; the observability check refuses much earlier (its threshold is 0.03).
 MIN_DATA_EIG_RATIO = 1e-3
+
+#: ``force=True`` on degenerate data: weight ρ of the ridge ``½ρ(‖A − I/3‖² + ε‖b‖²)`` (in
+#: the normalised coordinates) that picks, among the many near-equally good quadrics, the one
+#: closest to a sphere, relative to the mean eigenvalue of the Gram matrix ``MᵀM/N`` ...
+FORCED_RIDGE = 0.1
+#: ... and ε, much smaller: it only pins the centre where the data leave it free (for data
+#: on a circle, the sphere through the circle centred in its plane).
+FORCED_RIDGE_B = 1e-3
 
 #: Relative size of the smallest eigenvalue of ``A`` (trace 1) above which the PSD
 #: constraint of the SDP counts as inactive, so that the equality-constrained least-squares
@@ -80,6 +89,7 @@ class EllipsoidFit:
     radius_rms : float, dimensionless, RMS of ``‖D̃⁻¹(y_t − o)‖ − 1`` over the data
     a_eig_ratio: float, smallest/largest eigenvalue of ``A`` in the normalised coordinates
                  (1 for a sphere; near 0 for data on a plane)
+    warnings   : tuple of str; non-empty only for a fit forced on degenerate data
     """
 
     A: np.ndarray
@@ -90,6 +100,7 @@ class EllipsoidFit:
     method: str
     radius_rms: float
     a_eig_ratio: float
+    warnings: tuple[str, ...] = ()
 
 
 # --------------------------------------------------------------------------- helpers
@@ -123,16 +134,20 @@ def _normalise(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
             "ellipsoid fit: all magnetometer samples are identical: check that the "
             "magnetometer is working and rotate the sensor through all orientations"
         )
-    z = z / s
+    return z / s, mu, s
+
+
+def _planarity_problem(z: np.ndarray) -> str | None:
+    """A message if the (normalised) data lie close to a plane or a line, else None."""
     eig = np.linalg.eigvalsh(z.T @ z / z.shape[0])
-    if eig[0] < MIN_DATA_EIG_RATIO * eig[-1]:
-        raise InsufficientDataError(
-            f"ellipsoid fit: the magnetometer data lie close to a plane or a line (covariance "
-            f"eigenvalue ratio {eig[0] / eig[-1]:.2g} < {MIN_DATA_EIG_RATIO:g}), which many "
-            "ellipsoids fit equally well: the sensor was rotated too little; rotate it through "
-            "all orientations (tilt it nose up/down and roll it over, not only yaw)"
-        )
-    return z, mu, s
+    if eig[0] >= MIN_DATA_EIG_RATIO * eig[-1]:
+        return None
+    return (
+        f"ellipsoid fit: the magnetometer data lie close to a plane or a line (covariance "
+        f"eigenvalue ratio {eig[0] / eig[-1]:.2g} < {MIN_DATA_EIG_RATIO:g}), which many "
+        "ellipsoids fit equally well: the sensor was rotated too little; rotate it through "
+        "all orientations (tilt it nose up/down and roll it over, not only yaw)"
+    )
 
 
 def _design_rows(z: np.ndarray, off_diag_weight: float) -> np.ndarray:
@@ -176,10 +191,13 @@ def _trace_vector() -> np.ndarray:
 def _centre_shape(A: np.ndarray, b: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray] | None:
     """``o = −½ A⁻¹ b`` and lower-triangular ``D̃`` with ``D̃D̃ᵀ = (¼ bᵀA⁻¹b − c) A⁻¹``.
 
-    ``A`` must be positive definite. Returns None when ``β = ¼ bᵀA⁻¹b − c ≤ 0``: the quadric
-    is then an empty set (or a point), not a real ellipsoid.
+    Returns None when ``A`` is not (numerically) positive definite or
+    ``β = ¼ bᵀA⁻¹b − c ≤ 0``: the quadric is then not a real ellipsoid.
     """
-    cf = scipy.linalg.cho_factor(A, lower=True)  # cho_solve rather than inv
+    try:
+        cf = scipy.linalg.cho_factor(A, lower=True)  # cho_solve rather than inv
+    except np.linalg.LinAlgError:
+        return None
     a_inv_b = scipy.linalg.cho_solve(cf, b)
     o = -0.5 * a_inv_b
     beta = 0.25 * float(b @ a_inv_b) - c
@@ -187,38 +205,43 @@ def _centre_shape(A: np.ndarray, b: np.ndarray, c: float) -> tuple[np.ndarray, n
         return None
     a_inv = scipy.linalg.cho_solve(cf, np.eye(3))
     dd = beta * 0.5 * (a_inv + a_inv.T)
-    D_tilde = np.linalg.cholesky(dd)
+    try:
+        D_tilde = np.linalg.cholesky(dd)
+    except np.linalg.LinAlgError:
+        return None
     return o, D_tilde
 
 
 def _finish(
-    xi: np.ndarray,
-    mag: np.ndarray,
-    mu: np.ndarray,
-    s: float,
-    method: str,
-    refuse_degenerate: bool = True,
-) -> EllipsoidFit | None:
+    xi: np.ndarray, mag: np.ndarray, mu: np.ndarray, s: float, method: str
+) -> tuple[EllipsoidFit | None, str | None]:
     """Map a solution in normalised coordinates back to raw units and package it.
 
-    Raises :class:`InsufficientDataError` for a near-singular ``A`` (if
-    ``refuse_degenerate``); returns None when the quadric is not a real ellipsoid (``β ≤ 0``).
+    Returns ``(fit, problem)``: ``problem`` names a near-singular ``A`` (the fit is still
+    returned) or a quadric that is not a real ellipsoid (``β ≤ 0``; fit None).
     """
     A_s, b_s, c_s = _unpack(xi)
     scale = np.trace(A_s)
     A_s, b_s, c_s = A_s / scale, b_s / scale, c_s / scale
     eig = np.linalg.eigvalsh(A_s)
     ratio = float(eig[0] / eig[-1]) if eig[-1] > 0 else 0.0
-    if refuse_degenerate and ratio < MIN_A_EIG_RATIO:
-        raise InsufficientDataError(
+    problem = None
+    if ratio < MIN_A_EIG_RATIO:
+        problem = (
             f"ellipsoid fit ({method}): the fitted ellipsoid is degenerate (eigenvalue ratio "
             f"{ratio:.2g} < {MIN_A_EIG_RATIO:g}): the magnetometer data lie close to a plane "
             "or a line because the sensor was rotated too little; rotate it through all "
             "orientations (tilt it nose up/down and roll it over, not only yaw)"
         )
+    if eig[0] <= 0.0:
+        return None, problem
     shape = _centre_shape(A_s, b_s, c_s)
     if shape is None:
-        return None
+        return None, (
+            "ellipsoid fit: the fitted quadric is not a real ellipsoid (empty set): the "
+            "magnetometer data do not cover enough directions; rotate the sensor through all "
+            "orientations (tilt it nose up/down and roll it over, not only yaw)"
+        )
     o_s, D_s = shape
     # Back to raw units: y = μ + s z. The centre and shape map directly ...
     o = mu + s * o_s
@@ -231,7 +254,7 @@ def _finish(
     A, b, c = A / tr, b / tr, c / tr
     u = scipy.linalg.solve_triangular(D_tilde, (mag - o).T, lower=True)
     radius_rms = float(np.sqrt(np.mean((np.linalg.norm(u, axis=0) - 1.0) ** 2)))
-    return EllipsoidFit(
+    fit = EllipsoidFit(
         A=0.5 * (A + A.T),
         b=b,
         c=c,
@@ -241,17 +264,27 @@ def _finish(
         radius_rms=radius_rms,
         a_eig_ratio=ratio,
     )
+    return fit, problem
 
 
-def _solve_sdp(r: np.ndarray) -> np.ndarray:
-    """``min ½‖R ξ‖² s.t. tr A = 1, A ⪰ 0`` with Clarabel (an interior-point solver)."""
+def _solve_sdp(r: np.ndarray, ridge: float = 0.0) -> np.ndarray:
+    """``min ½‖R ξ‖² s.t. tr A = 1, A ⪰ 0`` with Clarabel (an interior-point solver).
+
+    ``ridge`` > 0 adds ``½ ridge (‖A − I/3‖²_F + FORCED_RIDGE_B ‖b‖²)`` (see
+    :data:`FORCED_RIDGE`).
+    """
     import cvxpy as cp  # imported here: cvxpy is slow to import and only this step needs it
 
     A = cp.Variable((3, 3), symmetric=True)
     b = cp.Variable(3)
     c = cp.Variable(1)
     xi = cp.hstack([A[0, 0], A[1, 1], A[2, 2], A[0, 1], A[0, 2], A[1, 2], b, c])
-    problem = cp.Problem(cp.Minimize(0.5 * cp.sum_squares(r @ xi)), [cp.trace(A) == 1, A >> 0])
+    objective = 0.5 * cp.sum_squares(r @ xi)
+    if ridge > 0.0:
+        objective = objective + 0.5 * ridge * (
+            cp.sum_squares(A - np.eye(3) / 3.0) + FORCED_RIDGE_B * cp.sum_squares(b)
+        )
+    problem = cp.Problem(cp.Minimize(objective), [cp.trace(A) == 1, A >> 0])
     try:
         problem.solve(solver=cp.CLARABEL)
     except cp.error.SolverError as exc:
@@ -312,32 +345,43 @@ def _polish(g: np.ndarray, xi: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------- public API
 
 
-def fit_ellipsoid_sdp(mag: np.ndarray) -> EllipsoidFit:
+def fit_ellipsoid_sdp(mag: np.ndarray, *, force: bool = False) -> EllipsoidFit:
     """Ellipsoid fit as the SDP ``min ½‖M ξ‖² s.t. tr A = 1, A ⪰ 0`` (paper eq. 23).
 
-    mag : (N, 3) float, raw magnetometer units.
+    mag   : (N, 3) float, raw magnetometer units.
+    force : on data that do not determine an ellipsoid, return a fit regularised towards a
+            sphere (see :data:`FORCED_RIDGE`) with a warning instead of raising; for
+            ``--force`` on a session the observability check refused.
 
     Returns an :class:`EllipsoidFit` in raw units; ``D_tilde`` is lower-triangular and
     ``D_tilde⁻¹ (y − o)`` lies on the unit sphere up to noise.
 
     Raises :class:`InsufficientDataError` when the data do not determine an ellipsoid
-    (too few samples, data on or near a plane or a line, a near-singular ``A``: too little
-    rotation), and
+    (data on or near a plane or a line, a near-singular ``A``, not a real ellipsoid: too
+    little rotation) unless ``force``, and for too few or identical samples; raises
     :class:`CalibrationError` when the solver fails or the data are not finite.
     """
     mag = _check_mag(mag)
     z, mu, s = _normalise(mag)
     g = _gram(z, off_diag_weight=2.0)
-    xi = _solve_sdp(_gram_factor(g))
-    xi = _polish(g, xi)
-    fit = _finish(xi, mag, mu, s, "sdp")
+    r = _gram_factor(g)
+    problem = _planarity_problem(z)
+    if problem is None:
+        xi = _polish(g, _solve_sdp(r))
+        fit, problem = _finish(xi, mag, mu, s, "sdp")
+        if problem is None:
+            return fit
+    if not force:
+        raise InsufficientDataError(problem)
+    xi = _solve_sdp(r, ridge=FORCED_RIDGE * float(np.trace(g)) / 10.0)
+    fit, still = _finish(xi, mag, mu, s, "sdp")
     if fit is None:
-        raise InsufficientDataError(
-            "ellipsoid fit: the fitted quadric is not a real ellipsoid (empty set): the "
-            "magnetometer data do not cover enough directions; rotate the sensor through all "
-            "orientations (tilt it nose up/down and roll it over, not only yaw)"
-        )
-    return fit
+        raise InsufficientDataError(f"{problem} (a regularised fit failed too: {still})")
+    warning = (
+        f"{problem}. Forced: the fit is regularised towards a sphere, so the scale and "
+        "offset along the directions the data do not cover are guesses"
+    )
+    return dataclasses.replace(fit, warnings=(warning,))
 
 
 def fit_ellipsoid_algebraic(mag: np.ndarray) -> EllipsoidFit | None:
@@ -356,6 +400,9 @@ def fit_ellipsoid_algebraic(mag: np.ndarray) -> EllipsoidFit | None:
     """
     mag = _check_mag(mag)
     z, mu, s = _normalise(mag)
+    problem = _planarity_problem(z)
+    if problem is not None:
+        raise InsufficientDataError(problem)
     # With off-diagonal columns scaled by √2 the unknowns are (A11, A22, A33, √2 A12, ...),
     # whose Euclidean norm is ‖(vec A, b, c)‖.
     root2 = np.sqrt(2.0)
@@ -369,7 +416,8 @@ def fit_ellipsoid_algebraic(mag: np.ndarray) -> EllipsoidFit | None:
         A = -A
     if np.linalg.eigvalsh(A)[0] <= 0.0:
         return None
-    return _finish(xi, mag, mu, s, "algebraic", refuse_degenerate=False)
+    fit, _ = _finish(xi, mag, mu, s, "algebraic")
+    return fit
 
 
 def symmetric_fit(fit: EllipsoidFit) -> np.ndarray:

@@ -11,14 +11,17 @@ A stretch is stationary when, over moving windows of :data:`WINDOW_S`,
 
 1. the gyro *variation* (per-axis standard deviation, not the magnitude: a constant bias is
    allowed) and the accelerometer variation are at the noise floor — a few times the
-   quietest windows' level, capped by absolute limits;
+   quietest windows' level, capped by absolute limits (raised for sensors whose white noise,
+   seen in second differences, is larger);
 2. the mean gyro magnitude is below :data:`GYRO_BIAS_MAX_RAD_S` (faster is no bias);
 3. the accelerometer norm is near gravity;
 
 and, over the whole stretch, the accelerometer direction (and the magnetometer reading, when
 given) does not drift. The last test rejects a slow constant-rate rotation, which the gyro
 alone cannot tell from a bias; a rotation about the vertical leaves the accelerometer
-unchanged and only the magnetometer reveals it.
+unchanged and only the magnetometer reveals it. A stretch failing it is trimmed at the edge
+that deviates more (a slow start of motion leaks into the edge windows), by at most
+:data:`MAX_EDGE_TRIM_WINDOWS` windows per edge.
 """
 
 from __future__ import annotations

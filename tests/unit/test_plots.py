@@ -6,6 +6,7 @@ import sys
 
 import numpy as np
 import pytest
+
 from magcal.report.plots import (
     plot_ellipsoid_sphere,
     plot_heading_rmse_histograms,

@@ -6,6 +6,7 @@ import json
 
 import numpy as np
 import pytest
+
 from magcal.calib.frames import euler_zyx_to_matrix, field_direction
 from magcal.errors import MagcalError, ResultFormatError
 from magcal.io.result import (

@@ -6,6 +6,7 @@ import time
 
 import numpy as np
 import pytest
+
 from magcal.errors import MagcalError, SessionFormatError
 from magcal.io.session import (
     COLUMNS,

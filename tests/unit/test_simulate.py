@@ -5,6 +5,7 @@ import time
 
 import numpy as np
 import pytest
+
 from magcal.calib import frames
 from magcal.errors import MagcalError
 from magcal.sim import (

@@ -14,8 +14,9 @@ from magcal.errors import MagcalError
 EXIT_ERROR = 2
 
 
-def _progress_printer(stream=sys.stderr):
+def _progress_printer(stream=None):
     """A BFGS progress line: rewritten in place on a terminal, every 10th otherwise."""
+    stream = stream or sys.stderr
     tty = stream.isatty()
 
     def show(iteration: int, cost: float, decrement: float) -> None:
@@ -59,9 +60,20 @@ def _run_simulate(args) -> int:
     from magcal.io.session import write_session
     from magcal.sim.scenarios import preset, simulate, write_truth
 
-    keys = ("rate_hz", "duration_s", "stationary_s", "motion", "max_rate_rad_s",
-            "translational_acc_rms", "n_bumps", "gyro_sigma", "acc_sigma", "mag_sigma",
-            "field_scale", "offset_scale")
+    keys = (
+        "rate_hz",
+        "duration_s",
+        "stationary_s",
+        "motion",
+        "max_rate_rad_s",
+        "translational_acc_rms",
+        "n_bumps",
+        "gyro_sigma",
+        "acc_sigma",
+        "mag_sigma",
+        "field_scale",
+        "offset_scale",
+    )
     overrides = {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
     session, truth = simulate(preset(args.preset, **overrides), args.seed)
     out = Path(args.output)
@@ -78,15 +90,23 @@ def _add_calibrate(sub) -> None:
     p.add_argument("--method", default="ml", choices=["ml", "init"])
     p.add_argument("-o", "--output", help="result JSON to write")
     p.add_argument("--plot", metavar="DIR", help="write the paper's figures as PNG here")
-    p.add_argument("--force", action="store_true",
-                   help="calibrate even when the session cannot determine it (with a warning)")
-    p.add_argument("--gradient", default="exact", choices=["exact", "numeric"],
-                   help="exact (reverse mode) or the paper's finite differences")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="calibrate even when the session cannot determine it (with a warning)",
+    )
+    p.add_argument(
+        "--gradient",
+        default="exact",
+        choices=["exact", "numeric"],
+        help="exact (reverse mode) or the paper's finite differences",
+    )
     p.add_argument("--truth", help="truth JSON of a simulated session: also print errors")
     p.set_defaults(run=_run_calibrate)
 
 
-def _print_summary(cal, out=sys.stdout) -> None:
+def _print_summary(cal, out=None) -> None:
+    out = out or sys.stdout
     r = cal.result
     x = r.extra
     np.set_printoptions(precision=5, suppress=True)
@@ -121,15 +141,18 @@ def _print_summary(cal, out=sys.stdout) -> None:
         print(f"warning: {w}", file=out)
 
 
-def _print_truth_comparison(cal, truth_path: str, session, out=sys.stdout) -> None:
+def _print_truth_comparison(cal, truth_path: str, session, out=None) -> None:
+    out = out or sys.stdout
     from magcal.calib import quality
     from magcal.sim.scenarios import read_truth
 
     truth = read_truth(truth_path)
     st = truth.sensor
     floor = quality.known_attitude_fit(session.mag, truth.q_nb, st.m_n)
-    rows = [("known-attitude floor", floor), ("initial estimate", (cal.init.params.D,
-            cal.init.params.o))]
+    rows = [
+        ("known-attitude floor", floor),
+        ("initial estimate", (cal.init.params.D, cal.init.params.o)),
+    ]
     if cal.ml is not None:
         rows.append(("ML estimate", (cal.result.D, cal.result.o)))
     print("calibration-induced heading error against the truth (RMS over SO(3)):", file=out)
@@ -152,7 +175,8 @@ def _write_plots(cal, session, directory: str) -> list[Path]:
             d / "field_norm.png",
         ),
         plots.plot_innovation_histogram(
-            cal.filter_output.normalised, d / "innovations.png",
+            cal.filter_output.normalised,
+            d / "innovations.png",
             title=f"Normalised innovations ({cal.result.method})",
         ),
     ]

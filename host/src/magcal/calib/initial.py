@@ -55,7 +55,9 @@ def inertial_attitude(
     k = min(INITIAL_ATTITUDE_SAMPLES, len(session))
     up_b = session.acc[:k].mean(axis=0)
     # Any heading will do: pick the one that makes body x horizontal-ish and well defined.
-    helper = np.array([1.0, 0.0, 0.0]) if abs(up_b[0]) < 0.9 * np.linalg.norm(up_b) else np.eye(3)[1]
+    helper = (
+        np.array([1.0, 0.0, 0.0]) if abs(up_b[0]) < 0.9 * np.linalg.norm(up_b) else np.eye(3)[1]
+    )
     q0 = frames.triad(up_b, helper, np.array([1.0, 0.0, 0.0]))
     data = ekf.make_filter_data(
         session.t, session.gyr, session.acc, session.mag, q0, acc_extra_var=acc_extra_var, g=g
@@ -72,8 +74,9 @@ def inertial_attitude(
     return ekf.run_filter(p, data, use_mag=False).q_filt
 
 
-def initial_estimate(session: Session) -> InitialEstimate:
-    """Algorithm 1 step 1 on a whole session."""
+def initial_estimate(session: Session, force: bool = False) -> InitialEstimate:
+    """Algorithm 1 step 1 on a whole session. ``force`` accepts data that cannot determine
+    the ellipsoid (with a warning) instead of raising."""
     seconds = {}
     t0 = time.perf_counter()
     still = stationary.find_stationary(session.t, session.gyr, session.acc, session.mag)
@@ -87,7 +90,7 @@ def initial_estimate(session: Session) -> InitialEstimate:
     seconds["noise"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    fit = fit_ellipsoid_sdp(session.mag)
+    fit = fit_ellipsoid_sdp(session.mag, force=force)
     seconds["ellipsoid"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
@@ -105,7 +108,7 @@ def initial_estimate(session: Session) -> InitialEstimate:
         Sigma_acc=noise.Sigma_acc,
         Sigma_mag=noise.Sigma_mag,
     )
-    warnings = list(alignment.warnings)
+    warnings = list(fit.warnings) + list(alignment.warnings)
     if noise.source == "prior":
         warnings.append(
             "no stationary stretch found: gyro bias and noise levels start from conservative "

@@ -54,8 +54,10 @@ class MLEstimate:
 
 
 def normalisation_for(p: ModelParams) -> Normalisation:
-    return Normalisation(centre=np.asarray(p.o, dtype=float).copy(),
-                         scale=float(abs(np.linalg.det(p.D)) ** (1.0 / 3.0)))
+    return Normalisation(
+        centre=np.asarray(p.o, dtype=float).copy(),
+        scale=float(abs(np.linalg.det(p.D)) ** (1.0 / 3.0)),
+    )
 
 
 def filter_data_for(
@@ -64,7 +66,12 @@ def filter_data_for(
     mag_n = norm.apply(session.mag)
     q0 = starting_attitude(session.acc, mag_n, p_norm)
     return ekf.make_filter_data(
-        session.t, session.gyr, session.acc, mag_n, q0, acc_extra_var=init.acc_extra_var,
+        session.t,
+        session.gyr,
+        session.acc,
+        mag_n,
+        q0,
+        acc_extra_var=init.acc_extra_var,
         g=init.g,
     )
 

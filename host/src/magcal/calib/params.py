@@ -42,8 +42,11 @@ PARAM_NAMES = (
     [f"D{i}{j}" for i in range(3) for j in range(3)]
     + ["o0", "o1", "o2", "dip"]
     + ["bias_x", "bias_y", "bias_z"]
-    + [f"{s}_{n}" for s in ("chol_gyr", "chol_acc", "chol_mag")
-       for n in ("l0", "l1", "l2", "u10", "u20", "u21")]
+    + [
+        f"{s}_{n}"
+        for s in ("chol_gyr", "chol_acc", "chol_mag")
+        for n in ("l0", "l1", "l2", "u10", "u20", "u21")
+    ]
 )
 
 _TRIL_OFF = ((1, 0), (2, 0), (2, 1))
@@ -112,12 +115,16 @@ def chol_params_to_factor(c: np.ndarray) -> np.ndarray:
     U = np.eye(3)
     for k, (i, j) in enumerate(_TRIL_OFF):
         U[i, j] = c[3 + k]
-    return np.exp(c[:3])[:, None] * U
+    # A line-search trial far out in log σ overflows to inf; the filter then reports a
+    # non-finite cost and the line search backs off, so the overflow is not an error here.
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.exp(c[:3])[:, None] * U
 
 
 def chol_params_to_cov(c: np.ndarray) -> np.ndarray:
     L = chol_params_to_factor(c)
-    return L @ L.T
+    with np.errstate(over="ignore", invalid="ignore"):
+        return L @ L.T
 
 
 def chol_params_grad(c: np.ndarray, Sigma_bar: np.ndarray) -> np.ndarray:
@@ -125,7 +132,8 @@ def chol_params_grad(c: np.ndarray, Sigma_bar: np.ndarray) -> np.ndarray:
     L = chol_params_to_factor(c)
     # Σ = L Lᵀ ⇒ ∂V/∂L = (Σ̄ + Σ̄ᵀ) L, restricted to the lower triangle.
     L_bar = np.tril((Sigma_bar + Sigma_bar.T) @ L)
-    d = np.exp(c[:3])
+    with np.errstate(over="ignore"):
+        d = np.exp(c[:3])
     # L_ij = d_i U_ij (U_ii = 1) ⇒ ∂/∂l_i = Σ_j L̄_ij L_ij ; ∂/∂u_ij = L̄_ij d_i.
     g = np.empty(6)
     g[:3] = np.sum(L_bar * L, axis=1)

@@ -76,7 +76,7 @@ def calibrate(
     warnings = observability.raise_if_unobservable(report, force)
     seconds["checks"] = time.perf_counter() - t0
 
-    init = initial_estimate(session)
+    init = initial_estimate(session, force)
     seconds.update(init.seconds)
     warnings += list(init.warnings)
     warnings += _alignment_warnings(session, init.g)

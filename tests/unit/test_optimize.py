@@ -1,0 +1,47 @@
+import numpy as np
+import pytest
+
+from magcal.calib.optimize import OptimizeOptions, minimize_bfgs
+from magcal.errors import CalibrationError
+
+
+def rosenbrock(x):
+    v = 100 * (x[1] - x[0] ** 2) ** 2 + (1 - x[0]) ** 2
+    g = np.array([-400 * x[0] * (x[1] - x[0] ** 2) - 2 * (1 - x[0]), 200 * (x[1] - x[0] ** 2)])
+    return v, g
+
+
+def test_bfgs_converges_on_rosenbrock_and_says_why():
+    rep = minimize_bfgs(
+        rosenbrock,
+        np.array([-1.2, 1.0]),
+        np.ones(2),
+        OptimizeOptions(decrement_tol=1e-16, gradient_tol=1e-8),
+    )
+    np.testing.assert_allclose(rep.x, [1.0, 1.0], atol=1e-6)
+    assert rep.converged
+    assert rep.stopping_rule in ("gradient", "step")
+    assert rep.iterations > 5
+
+
+def test_scaling_makes_badly_scaled_quadratic_easy():
+    s = np.array([1e-4, 1.0, 1e3])
+
+    def f(x):
+        z = x / s
+        return 0.5 * float(z @ z), z / s
+
+    rep = minimize_bfgs(f, s * 3.0, s, OptimizeOptions(decrement_tol=1e-20, gradient_tol=1e-10))
+    assert rep.iterations <= 3
+    np.testing.assert_allclose(rep.x / s, 0.0, atol=1e-8)
+
+
+def test_iteration_cap_is_reported():
+    rep = minimize_bfgs(rosenbrock, np.array([-1.2, 1.0]), np.ones(2), OptimizeOptions(max_iter=3))
+    assert rep.stopping_rule == "max_iter"
+    assert not rep.converged
+
+
+def test_non_finite_start_raises():
+    with pytest.raises(CalibrationError, match="not finite at the initial estimate"):
+        minimize_bfgs(lambda x: (float("nan"), x), np.zeros(2), np.ones(2))

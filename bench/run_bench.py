@@ -1,0 +1,755 @@
+#!/usr/bin/env python3
+"""magcal benchmark: the speed and memory targets of issue 3, measured on one core.
+
+    python bench/run_bench.py --out bench/results.json     # what `make bench` runs (~1-2 min)
+    python bench/run_bench.py --show old.json new.json     # headline figures side by side
+
+Four measurements, each in a fresh subprocess of this script (``--worker NAME``) with
+OMP/OPENBLAS/MKL_NUM_THREADS=1 set before numpy is imported and the process pinned to one
+CPU with ``os.sched_setaffinity``:
+
+1. ``calibrate``: the full ML calibration (``pipeline.calibrate``: checks, initial estimate,
+   ML optimisation, diagnostics) of a simulated 10-minute 100 Hz MEMS session, in a cold
+   process as a user gets it. Imports and the simulation are timed but kept out of the
+   total. Peak RSS (``ru_maxrss``) is read in the same process, which does nothing else.
+2. ``imports``: how long ``import cvxpy`` takes once magcal is loaded (the ellipsoid SDP
+   imports it lazily, so in a cold process it is paid inside the "ellipsoid" stage).
+3. ``compare``: exact against finite-difference gradients on a shorter session, both ML
+   optimisations from the same initial estimate θ₀ in one process.
+4. ``scaling``: one cost+gradient and one cost-only evaluation at 6k, 60k and 600k samples.
+
+Progress goes to stderr, the table to stdout, the machine-readable summary to ``--out``.
+Targets are reported as pass/fail, never asserted: timing depends on the machine.
+See bench/README.md for what each figure means.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime
+import importlib.metadata
+import json
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+RESULTS_FORMAT = "magcal-bench/1"
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+#: Environment that keeps numpy's BLAS and any OpenMP pool to one thread. It must be in the
+#: environment before numpy is imported, so the workers get it from their parent.
+SINGLE_THREAD_ENV = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+#: One worker must finish within this; a hung worker fails the benchmark rather than `make`.
+WORKER_TIMEOUT_S = 900.0
+GIT_TIMEOUT_S = 10.0
+
+PRESET = "mems"
+SEED = 1
+TAPE_DOUBLES_PER_SAMPLE = 10  # the reverse-mode tape of host/csrc/mekf_likelihood.c
+
+# Issue 3 targets.
+TARGET_CALIBRATION_S = 10.0
+TARGET_PEAK_RSS_MB = 1024.0
+TARGET_SPEEDUP = 20.0
+TARGET_COST_REL_DIFF = 1e-6
+
+#: Keys of ``result.extra["seconds"]`` in pipeline order; noise + ellipsoid + alignment is
+#: the initial estimate (Algorithm 1 step 1), ml is step 2.
+STAGES = ("checks", "noise", "ellipsoid", "alignment", "ml", "diagnostics")
+INIT_STAGES = ("noise", "ellipsoid", "alignment")
+
+
+@dataclass(frozen=True)
+class BenchConfig:
+    """Sizes and repetitions. Durations are of the motion, s; the preset adds 2 s of rest
+    at 100 Hz, so 600 s gives 60,200 samples."""
+
+    calib_duration_s: float = 600.0
+    calib_runs: int = 5
+    compare_duration_s: float = 60.0
+    compare_max_iter: int = 500
+    scaling_durations_s: tuple[float, ...] = (60.0, 600.0, 6000.0)
+    scaling_reps: tuple[int, ...] = (9, 5, 3)
+
+
+#: A few seconds in total; only checks that the code runs (tests/unit/test_bench_smoke.py).
+SMOKE_CONFIG = BenchConfig(
+    calib_duration_s=15.0,
+    calib_runs=1,
+    compare_duration_s=15.0,
+    compare_max_iter=3,
+    scaling_durations_s=(15.0, 30.0),
+    scaling_reps=(2, 1),
+)
+
+
+def _log(msg: str) -> None:
+    print(f"[bench] {msg}", file=sys.stderr, flush=True)
+
+
+# --------------------------------------------------------------------------------------
+# Workers: run in a fresh, single-threaded, pinned process. numpy and magcal are imported
+# inside them only, after the environment is set.
+
+
+def _peak_rss_mb() -> float:
+    import resource
+
+    # ru_maxrss is in KiB on Linux (bytes on macOS).
+    scale = 1.0 / 1024.0 if sys.platform != "darwin" else 1.0 / (1024.0 * 1024.0)
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
+
+
+def _cpu_seconds() -> float:
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_SELF)
+    return r.ru_utime + r.ru_stime
+
+
+def _session(duration_s: float, seed: int):
+    from magcal.sim.scenarios import preset, simulate
+
+    session, _ = simulate(preset(PRESET, duration_s=float(duration_s)), seed)
+    return session
+
+
+def _ml_problem(session):
+    """(init, normalised θ₀ params, FilterData, θ₀) as ml.maximum_likelihood builds them."""
+    from magcal.calib import initial, ml, params
+
+    init = initial.initial_estimate(session)
+    norm = ml.normalisation_for(init.params)
+    p0 = init.params.scaled_magnetometer(norm.centre, norm.scale)
+    data = ml.filter_data_for(session, init, p0, norm)
+    return init, p0, data, params.pack(p0)
+
+
+def work_calibrate(duration_s: float, seed: int, warm: bool) -> dict:
+    """One full calibration in this (cold) process; with ``warm`` a second one afterwards."""
+    t0 = time.perf_counter()
+    from magcal.calib import pipeline
+
+    import_s = time.perf_counter() - t0
+    cvxpy_loaded = "cvxpy" in sys.modules
+    t0 = time.perf_counter()
+    session = _session(duration_s, seed)
+    simulate_s = time.perf_counter() - t0
+    rss_before_mb = _peak_rss_mb()
+    _log(f"  {len(session)} samples simulated in {simulate_s:.2f} s; calibrating")
+
+    cpu0 = _cpu_seconds()
+    t0 = time.perf_counter()
+    cal = pipeline.calibrate(session, "ml", gradient="exact")
+    wall_s = time.perf_counter() - t0
+    out = {
+        "samples": len(session),
+        "import_s": import_s,
+        "cvxpy_imported_before_calibrate": cvxpy_loaded,
+        "simulate_s": simulate_s,
+        "wall_s": wall_s,
+        "cpu_s": _cpu_seconds() - cpu0,
+        "stages_s": {k: float(cal.result.extra["seconds"].get(k, 0.0)) for k in STAGES},
+        "optimizer": _optimizer_summary(cal.result.extra["optimizer"]),
+        "peak_rss_before_calibrate_mb": rss_before_mb,
+        "peak_rss_mb": _peak_rss_mb(),
+    }
+    if warm:
+        t0 = time.perf_counter()
+        cal = pipeline.calibrate(session, "ml", gradient="exact")
+        out["warm_wall_s"] = time.perf_counter() - t0
+        out["warm_stages_s"] = {k: float(cal.result.extra["seconds"].get(k, 0.0)) for k in STAGES}
+    return out
+
+
+def _optimizer_summary(opt: dict) -> dict:
+    keys = ("iterations", "cost_evaluations", "gradient_evaluations", "final_cost")
+    out = {k: opt[k] for k in keys}
+    out["stopping_rule"] = opt["stopping_rule"]
+    out["seconds"] = float(opt["seconds"])
+    return out
+
+
+def work_imports() -> dict:
+    """Import time of magcal's pipeline, then of cvxpy on top of it."""
+    t0 = time.perf_counter()
+    from magcal.calib import pipeline  # noqa: F401
+
+    magcal_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    import cvxpy  # noqa: F401
+
+    return {"magcal_pipeline_s": magcal_s, "cvxpy_s": time.perf_counter() - t0}
+
+
+def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
+    """Exact and numeric-gradient ML from one initial estimate, as the pipeline runs them."""
+    import numpy as np
+
+    from magcal.calib import cost, ml
+    from magcal.calib.optimize import OptimizeOptions
+
+    session = _session(duration_s, seed)
+    # Import cvxpy first so that init_s is the initial estimate's computation only (in a
+    # fresh process the ellipsoid fit would otherwise pay for the import).
+    t0 = time.perf_counter()
+    import cvxpy  # noqa: F401
+
+    cvxpy_import_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    init, p0, data, theta0 = _ml_problem(session)
+    init_s = time.perf_counter() - t0
+    scales = ml.parameter_scales(p0, len(data))
+    options = OptimizeOptions(max_iter=max_iter)
+    runs = {}
+    thetas = {}
+    for gradient in ("exact", "numeric"):
+        _log(f"  {gradient} gradient: optimising ({len(session)} samples)")
+
+        def progress(it, v, dec, gradient=gradient):
+            if it % 25 == 0:
+                _log(f"    {gradient} iteration {it}: cost {v:.6f}, decrement {dec:.2e}")
+
+        with _capture_objective(ml) as objective:
+            t0 = time.perf_counter()
+            est = ml.maximum_likelihood(session, init, gradient, options, progress)
+            wall_s = time.perf_counter() - t0
+        if gradient == "exact":
+            fg_exact = objective.get("fun_and_grad")
+        r = est.report
+        thetas[gradient] = est.theta
+        runs[gradient] = {
+            "wall_s": wall_s,
+            "iterations": r.iterations,
+            "cost_evaluations": r.cost_evaluations,
+            "gradient_evaluations": r.gradient_evaluations,
+            "seconds_per_gradient_evaluation": wall_s / max(r.gradient_evaluations, 1),
+            "final_cost": float(r.cost),
+            "final_cost_without_prior": float(cost.cost(est.theta, data)),
+            "stopping_rule": r.stopping_rule,
+            "converged": bool(r.converged),
+            "theta0_identical": bool(np.array_equal(est.theta0, theta0)),
+        }
+        _log(f"  {gradient}: {wall_s:.2f} s, {r.iterations} iterations, '{r.stopping_rule}'")
+    # How stationary each end point is, judged by the exact gradient of the objective the
+    # optimiser minimised (V plus its prior), in scaled variables (the optimiser's gradient
+    # test compares this with OptimizeOptions.gradient_tol).
+    for gradient, theta in thetas.items():
+        g_max = None
+        if fg_exact is not None:
+            g_max = float(np.max(np.abs(fg_exact(theta)[1] * scales)))
+        runs[gradient]["max_scaled_exact_gradient_at_end"] = g_max
+    e, n = runs["exact"], runs["numeric"]
+    diff = abs(n["final_cost"] - e["final_cost"])
+    return {
+        "samples": len(session),
+        "init_s": init_s,
+        "cvxpy_import_s": cvxpy_import_s,
+        "max_iter": max_iter,
+        "exact": e,
+        "numeric": n,
+        "final_cost_abs_diff": diff,
+        "final_cost_rel_diff": diff / max(abs(e["final_cost"]), 1e-300),
+        "max_param_diff_sigma": float(np.max(np.abs(thetas["exact"] - thetas["numeric"]) / scales)),
+        "speedup_ml": n["wall_s"] / e["wall_s"],
+        "speedup_with_init": (init_s + n["wall_s"]) / (init_s + e["wall_s"]),
+    }
+
+
+@contextlib.contextmanager
+def _capture_objective(ml_module):
+    """Record the ``fun_and_grad`` that ``ml.maximum_likelihood`` hands to the optimiser, so
+    the end points can be judged by the very objective it minimised (prior included)
+    without restating how ml builds it. Yields a dict, empty if ml stops calling
+    ``minimize_bfgs`` by that name."""
+    captured: dict = {}
+    original = ml_module.minimize_bfgs
+
+    def recording(fun_and_grad, *args, **kwargs):
+        captured["fun_and_grad"] = fun_and_grad
+        return original(fun_and_grad, *args, **kwargs)
+
+    ml_module.minimize_bfgs = recording
+    try:
+        yield captured
+    finally:
+        ml_module.minimize_bfgs = original
+
+
+def work_scaling(durations_s: list[float], reps: list[int], seed: int) -> dict:
+    """Median time of one cost+gradient and one cost evaluation at θ₀ per session size."""
+    import tracemalloc
+
+    import numpy as np
+
+    from magcal.calib import cost
+
+    rows = []
+    for duration_s, n_rep in zip(durations_s, reps, strict=True):
+        session = _session(duration_s, seed)
+        _, _, data, theta0 = _ml_problem(session)
+        n = len(data)
+        _log(f"  {n} samples: {n_rep} repetitions")
+        tape = np.empty(TAPE_DOUBLES_PER_SAMPLE * n)
+        cost.cost_and_gradient(theta0, data, tape)  # warm-up: page in the tape and the data
+        t_cg, t_c = [], []
+        for _ in range(n_rep):
+            t0 = time.perf_counter()
+            cost.cost_and_gradient(theta0, data, tape)
+            t_cg.append(time.perf_counter() - t0)
+            t0 = time.perf_counter()
+            cost.cost(theta0, data)
+            t_c.append(time.perf_counter() - t0)
+        # What one evaluation allocates on the Python/numpy side (the C kernel has no heap
+        # allocations): with no tape passed in, this includes the tape itself.
+        tracemalloc.start()
+        cost.cost_and_gradient(theta0, data)
+        cg_alloc = tracemalloc.get_traced_memory()[1]
+        tracemalloc.reset_peak()
+        cost.cost(theta0, data)
+        c_alloc = tracemalloc.get_traced_memory()[1]
+        tracemalloc.stop()
+        fields = (data.dt, data.gyr, data.acc, data.mag, data.acc_extra_var)
+        cg_s, c_s = statistics.median(t_cg), statistics.median(t_c)
+        rows.append(
+            {
+                "samples": n,
+                "repetitions": n_rep,
+                "cost_grad_s": cg_s,
+                "cost_grad_all_s": t_cg,
+                "cost_s": c_s,
+                "cost_all_s": t_c,
+                "cost_grad_ns_per_sample": 1e9 * cg_s / n,
+                "cost_ns_per_sample": 1e9 * c_s / n,
+                "grad_over_cost": cg_s / c_s,
+                "tape_mb": tape.nbytes / 1e6,
+                "data_mb": sum(f.nbytes for f in fields) / 1e6,
+                "cost_grad_alloc_mb": cg_alloc / 1e6,
+                "cost_alloc_mb": c_alloc / 1e6,
+            }
+        )
+    first, last = rows[0], rows[-1]
+    slope = None
+    if last["samples"] != first["samples"]:
+        slope = float(
+            np.log(last["cost_grad_s"] / first["cost_grad_s"])
+            / np.log(last["samples"] / first["samples"])
+        )
+    return {"rows": rows, "loglog_slope_cost_grad": slope, "peak_rss_mb": _peak_rss_mb()}
+
+
+def _worker_main(name: str, params: dict, result_file: str) -> None:
+    # Normally inherited from the parent; set again in case a worker is run by hand. Still
+    # before any numpy import: the workers import it lazily.
+    os.environ.update(SINGLE_THREAD_ENV)
+    cpu = params.pop("cpu", None)
+    if cpu is not None and hasattr(os, "sched_setaffinity"):
+        os.sched_setaffinity(0, {int(cpu)})
+    workers = {
+        "calibrate": work_calibrate,
+        "imports": work_imports,
+        "compare": work_compare,
+        "scaling": work_scaling,
+    }
+    out = workers[name](**params)
+    out["versions"] = {
+        "python": platform.python_version(),
+        "numpy": sys.modules["numpy"].__version__ if "numpy" in sys.modules else None,
+    }
+    Path(result_file).write_text(json.dumps(out))
+
+
+# --------------------------------------------------------------------------------------
+# Parent: spawns the workers, assembles the results, prints and writes them.
+
+
+def run_worker(name: str, params: dict, cpu: int | None) -> dict:
+    """Run one worker in a fresh pinned, single-threaded subprocess; its result plus the
+    wall time of the whole process (interpreter start to exit) as ``process_wall_s``."""
+    with tempfile.TemporaryDirectory(prefix="magcal-bench-") as tmp:
+        result_file = os.path.join(tmp, "result.json")
+        cmd = [
+            sys.executable,
+            str(Path(__file__).resolve()),
+            "--worker",
+            name,
+            "--params",
+            json.dumps({**params, "cpu": cpu}),
+            "--result-file",
+            result_file,
+        ]
+        env = {**os.environ, **SINGLE_THREAD_ENV}
+        t0 = time.perf_counter()
+        try:
+            proc = subprocess.run(cmd, env=env, timeout=WORKER_TIMEOUT_S, check=False)
+        except subprocess.TimeoutExpired as exc:
+            raise SystemExit(
+                f"bench: worker '{name}' took longer than {WORKER_TIMEOUT_S:.0f} s: check "
+                "the machine's load, or run it by hand to see where it hangs"
+            ) from exc
+        process_wall_s = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise SystemExit(
+                f"bench: worker '{name}' failed with exit code {proc.returncode} (its "
+                "traceback is above): fix the error and run the benchmark again"
+            )
+        out = json.loads(Path(result_file).read_text())
+    out["process_wall_s"] = process_wall_s
+    return out
+
+
+def _git(*args: str) -> str | None:
+    try:
+        proc = subprocess.run(
+            ["git", *args],
+            cwd=REPO_ROOT,
+            capture_output=True,
+            text=True,
+            timeout=GIT_TIMEOUT_S,
+            check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return proc.stdout.strip() if proc.returncode == 0 else None
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown"
+
+
+def machine_info(cpu: int | None) -> dict:
+    try:
+        numpy_version = importlib.metadata.version("numpy")
+    except importlib.metadata.PackageNotFoundError:
+        numpy_version = None
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpu_model": _cpu_model(),
+        "pinned_cpu": cpu,
+        "loadavg_at_start": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "numpy": numpy_version,
+    }
+
+
+def _default_cpu() -> int | None:
+    if not hasattr(os, "sched_getaffinity"):
+        return None
+    return min(os.sched_getaffinity(0))
+
+
+def _median_run(runs: list[dict]) -> dict:
+    """The run with the median total wall time (the lower one of an even count)."""
+    ordered = sorted(runs, key=lambda r: r["wall_s"])
+    return ordered[(len(ordered) - 1) // 2]
+
+
+def run_all(config: BenchConfig, cpu: int | None) -> dict:
+    """Every measurement; returns the results dictionary written to ``--out``."""
+    started = time.perf_counter()
+    results: dict = {
+        "format": RESULTS_FORMAT,
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "git": {
+            "commit": _git("rev-parse", "HEAD"),
+            "host_dirty": bool(_git("status", "--porcelain", "--", "host")),
+        },
+        "machine": machine_info(cpu),
+        "config": {**asdict(config), "preset": PRESET, "seed": SEED},
+    }
+
+    runs = []
+    for i in range(config.calib_runs):
+        warm = i == config.calib_runs - 1
+        _log(f"1/4 full calibration, cold process, run {i + 1}/{config.calib_runs}")
+        r = run_worker(
+            "calibrate",
+            {"duration_s": config.calib_duration_s, "seed": SEED, "warm": warm},
+            cpu,
+        )
+        _log(f"  total {r['wall_s']:.2f} s, peak RSS {r['peak_rss_mb']:.0f} MB")
+        runs.append(r)
+    results["machine"]["numpy"] = runs[0]["versions"]["numpy"] or results["machine"]["numpy"]
+    median = _median_run(runs)
+    results["calibration"] = {
+        "samples": median["samples"],
+        "runs": len(runs),
+        "wall_s": median["wall_s"],
+        "wall_all_s": [r["wall_s"] for r in runs],
+        "cpu_s": median["cpu_s"],
+        "stages_s": median["stages_s"],
+        "init_s": sum(median["stages_s"][k] for k in INIT_STAGES),
+        "optimizer": median["optimizer"],
+        "import_s": median["import_s"],
+        "cvxpy_imported_before_calibrate": median["cvxpy_imported_before_calibrate"],
+        "simulate_s": median["simulate_s"],
+        "process_wall_s": median["process_wall_s"],
+        "warm_wall_s": runs[-1].get("warm_wall_s"),
+        "warm_stages_s": runs[-1].get("warm_stages_s"),
+    }
+    results["memory"] = {
+        "peak_rss_mb": max(r["peak_rss_mb"] for r in runs),
+        "peak_rss_before_calibrate_mb": max(r["peak_rss_before_calibrate_mb"] for r in runs),
+    }
+
+    _log("2/4 import times (fresh process)")
+    results["imports"] = run_worker("imports", {}, cpu)
+    results["imports"].pop("versions", None)
+
+    _log(f"3/4 exact vs numeric gradient, {config.compare_duration_s:g} s session")
+    cmp_ = run_worker(
+        "compare",
+        {
+            "duration_s": config.compare_duration_s,
+            "seed": SEED,
+            "max_iter": config.compare_max_iter,
+        },
+        cpu,
+    )
+    cmp_.pop("versions", None)
+    results["exact_vs_numeric"] = cmp_
+
+    _log("4/4 scaling of one cost(+gradient) evaluation")
+    scal = run_worker(
+        "scaling",
+        {
+            "durations_s": list(config.scaling_durations_s),
+            "reps": list(config.scaling_reps),
+            "seed": SEED,
+        },
+        cpu,
+    )
+    scal.pop("versions", None)
+    results["scaling"] = scal
+
+    results["targets"] = targets(results)
+    results["bench_wall_s"] = time.perf_counter() - started
+    return results
+
+
+def targets(results: dict) -> dict:
+    """Issue 3's targets, each {value, target, pass}. Reported, never asserted."""
+    cal, cmp_ = results["calibration"], results["exact_vs_numeric"]
+
+    def row(value, target, ok):
+        return {"value": value, "target": target, "pass": bool(ok)}
+
+    return {
+        "calibration_wall_s": row(
+            cal["wall_s"], f"<= {TARGET_CALIBRATION_S:g}", cal["wall_s"] <= TARGET_CALIBRATION_S
+        ),
+        "peak_rss_mb": row(
+            results["memory"]["peak_rss_mb"],
+            f"<= {TARGET_PEAK_RSS_MB:g}",
+            results["memory"]["peak_rss_mb"] <= TARGET_PEAK_RSS_MB,
+        ),
+        "speedup_ml": row(
+            cmp_["speedup_ml"], f">= {TARGET_SPEEDUP:g}", cmp_["speedup_ml"] >= TARGET_SPEEDUP
+        ),
+        "final_cost_rel_diff": row(
+            cmp_["final_cost_rel_diff"],
+            f"<= {TARGET_COST_REL_DIFF:g}",
+            cmp_["final_cost_rel_diff"] <= TARGET_COST_REL_DIFF,
+        ),
+    }
+
+
+# --------------------------------------------------------------------------------------
+# Output
+
+
+def _pf(ok: bool) -> str:
+    return "PASS" if ok else "FAIL"
+
+
+def format_table(res: dict) -> str:
+    m, cal, mem = res["machine"], res["calibration"], res["memory"]
+    cmp_, scal, tg = res["exact_vs_numeric"], res["scaling"], res["targets"]
+    commit = (res["git"]["commit"] or "unknown")[:10]
+    dirty = " (host/ modified)" if res["git"]["host_dirty"] else ""
+    pin = f"pinned to CPU {m['pinned_cpu']}" if m["pinned_cpu"] is not None else "not pinned"
+    load = m["loadavg_at_start"]
+    load_txt = f", load {load[0]:.2f} at start" if load else ""
+    out = [
+        f"magcal benchmark, {res['date']}, commit {commit}{dirty}",
+        f"machine: {m['cpu_model']}, {m['cpu_count']} cores ({pin}, 1 thread){load_txt}",
+        f"Python {m['python']}, numpy {m['numpy']}; preset '{PRESET}', seed {SEED}",
+        "",
+        f"1. Full ML calibration (pipeline.calibrate), {cal['samples']:,} samples, cold "
+        f"process, median of {cal['runs']}",
+        f"   {'total wall':<34}{cal['wall_s']:8.2f} s   target <= {TARGET_CALIBRATION_S:g} s"
+        f"   {_pf(tg['calibration_wall_s']['pass'])}",
+        f"   {'  all runs':<34}{', '.join(f'{w:.2f}' for w in cal['wall_all_s']):>8} s",
+        f"   {'  CPU time (user+sys)':<34}{cal['cpu_s']:8.2f} s",
+    ]
+    labels = {
+        "checks": "observability checks",
+        "noise": "init: stationary, bias, noise",
+        "ellipsoid": "init: ellipsoid SDP",
+        "alignment": "init: alignment (R_D, m_z)",
+        "ml": "ML optimisation",
+        "diagnostics": "diagnostics",
+    }
+    for k in STAGES:
+        out.append(f"   {'  ' + labels[k]:<34}{cal['stages_s'][k]:8.2f} s")
+    opt = cal["optimizer"]
+    out += [
+        f"   {'  (init total)':<34}{cal['init_s']:8.2f} s",
+        f"   optimiser: {opt['iterations']} iterations, {opt['gradient_evaluations']} "
+        f"cost+gradient evaluations, stopped on '{opt['stopping_rule']}', "
+        f"final cost {opt['final_cost']:.6f}",
+        f"   not in the total: import magcal {cal['import_s']:.2f} s, simulation "
+        f"{cal['simulate_s']:.2f} s; whole process {cal['process_wall_s']:.2f} s",
+        f"   cvxpy import ({res['imports']['cvxpy_s']:.2f} s in a fresh process) is "
+        + (
+            "paid inside 'init: ellipsoid SDP'"
+            if not cal["cvxpy_imported_before_calibrate"]
+            else "paid before calibrate (in the import)"
+        ),
+    ]
+    if cal.get("warm_wall_s") is not None:
+        out.append(
+            f"   warm (second calibration, same process): {cal['warm_wall_s']:.2f} s, "
+            f"ellipsoid {cal['warm_stages_s']['ellipsoid']:.2f} s"
+        )
+    out += [
+        "",
+        "2. Peak memory of the calibration process",
+        f"   {'max RSS':<34}{mem['peak_rss_mb']:8.0f} MB  target <= {TARGET_PEAK_RSS_MB:g} MB"
+        f"  {_pf(tg['peak_rss_mb']['pass'])}",
+        f"   {'  of which before calibrate':<34}{mem['peak_rss_before_calibrate_mb']:8.0f} MB",
+        "",
+        f"3. Exact vs numeric gradient, {cmp_['samples']:,} samples, same θ₀ "
+        f"(init {cmp_['init_s']:.2f} s, shared, after importing cvxpy)",
+        f"   {'':<34}{'exact':>14}{'numeric':>18}",
+    ]
+    e, n = cmp_["exact"], cmp_["numeric"]
+    for label, key, fmt in (
+        ("ML wall (s)", "wall_s", "{:.2f}"),
+        ("iterations", "iterations", "{}"),
+        ("cost evaluations", "cost_evaluations", "{}"),
+        ("gradient evaluations", "gradient_evaluations", "{}"),
+        ("s per gradient evaluation", "seconds_per_gradient_evaluation", "{:.4f}"),
+        ("final cost (with prior)", "final_cost", "{:.6f}"),
+        ("final V(θ) (no prior)", "final_cost_without_prior", "{:.6f}"),
+        ("stopping rule", "stopping_rule", "{}"),
+        ("max |exact grad| at end (scaled)", "max_scaled_exact_gradient_at_end", "{:.2e}"),
+    ):
+        cells = ["-" if x[key] is None else fmt.format(x[key]) for x in (e, n)]
+        out.append(f"   {label:<34}{cells[0]:>14}{cells[1]:>18}")
+    out += [
+        f"   {'final cost difference':<34}{cmp_['final_cost_abs_diff']:.3e} nats, relative "
+        f"{cmp_['final_cost_rel_diff']:.2e}  target <= {TARGET_COST_REL_DIFF:g}  "
+        f"{_pf(tg['final_cost_rel_diff']['pass'])}",
+        f"   {'max parameter difference':<34}{cmp_['max_param_diff_sigma']:.2e} σ "
+        "(in units of each parameter's rough 1-σ uncertainty)",
+        f"   {'speed-up, ML step':<34}{cmp_['speedup_ml']:8.1f} x  target >= "
+        f"{TARGET_SPEEDUP:g} x  {_pf(tg['speedup_ml']['pass'])}",
+        f"   {'speed-up incl. shared init':<34}{cmp_['speedup_with_init']:8.1f} x",
+        "",
+        "4. One evaluation at θ₀ (median), time per sample, memory",
+        f"   {'samples':>9}{'cost+grad':>12}{'cost':>10}{'ratio':>7}{'cg ns/smp':>11}"
+        f"{'c ns/smp':>10}{'tape':>10}{'alloc/eval':>12}{'data':>9}",
+    ]
+    for r in scal["rows"]:
+        out.append(
+            f"   {r['samples']:>9,}{r['cost_grad_s'] * 1e3:>9.1f} ms{r['cost_s'] * 1e3:>7.1f} ms"
+            f"{r['grad_over_cost']:>7.2f}{r['cost_grad_ns_per_sample']:>11.0f}"
+            f"{r['cost_ns_per_sample']:>10.0f}{r['tape_mb']:>7.1f} MB"
+            f"{r['cost_grad_alloc_mb']:>9.1f} MB{r['data_mb']:>6.1f} MB"
+        )
+    if scal["loglog_slope_cost_grad"] is not None:
+        out.append(
+            f"   log-log slope of cost+gradient time vs samples: "
+            f"{scal['loglog_slope_cost_grad']:.3f} (1 = linear)"
+        )
+    out += ["", f"benchmark took {res['bench_wall_s']:.0f} s"]
+    return "\n".join(out)
+
+
+#: Headline figures for ``--show``: (label, path into the results, format).
+HEADLINE = (
+    ("commit", ("git", "commit"), "{:.10}"),
+    ("date", ("date",), "{:.10}"),
+    ("cores", ("machine", "cpu_count"), "{}"),
+    ("calibration wall (s)", ("calibration", "wall_s"), "{:.2f}"),
+    ("  init (s)", ("calibration", "init_s"), "{:.2f}"),
+    ("  ML (s)", ("calibration", "stages_s", "ml"), "{:.2f}"),
+    ("  iterations", ("calibration", "optimizer", "iterations"), "{}"),
+    ("peak RSS (MB)", ("memory", "peak_rss_mb"), "{:.0f}"),
+    ("numeric/exact speed-up", ("exact_vs_numeric", "speedup_ml"), "{:.1f}"),
+    ("final cost rel. diff", ("exact_vs_numeric", "final_cost_rel_diff"), "{:.1e}"),
+    ("cost+grad slope", ("scaling", "loglog_slope_cost_grad"), "{:.3f}"),
+)
+
+
+def _get(d: dict, path: tuple[str, ...]):
+    for key in path:
+        if not isinstance(d, dict) or key not in d:
+            return None
+        d = d[key]
+    return d
+
+
+def format_headlines(files: list[str]) -> str:
+    """One column per results file, for comparing runs over time."""
+    docs = [json.loads(Path(f).read_text()) for f in files]
+    lines = [f"{'':<26}" + "".join(f"{Path(f).name[:16]:>18}" for f in files)]
+    for label, path, fmt in HEADLINE:
+        cells = []
+        for d in docs:
+            v = _get(d, path)
+            cells.append("-" if v is None else fmt.format(v))
+        lines.append(f"{label:<26}" + "".join(f"{c:>18}" for c in cells))
+    for d_i, d in enumerate(docs):
+        for r in _get(d, ("scaling", "rows")) or []:
+            lines.append(
+                f"file {d_i + 1}: {r['samples']:>9,} samples  cost+grad "
+                f"{r['cost_grad_s'] * 1e3:8.1f} ms  ({r['cost_grad_ns_per_sample']:.0f} ns/sample)"
+            )
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", help="write the machine-readable results here (JSON)")
+    ap.add_argument("--cpu", type=int, default=None, help="CPU to pin to (default: lowest)")
+    ap.add_argument("--smoke", action="store_true", help="tiny sizes; only checks it runs")
+    ap.add_argument("--show", nargs="+", metavar="JSON", help="print headline figures only")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    ap.add_argument("--params", default="{}", help=argparse.SUPPRESS)
+    ap.add_argument("--result-file", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+
+    if args.worker:
+        _worker_main(args.worker, json.loads(args.params), args.result_file)
+        return 0
+    if args.show:
+        print(format_headlines(args.show))
+        return 0
+    cpu = args.cpu if args.cpu is not None else _default_cpu()
+    results = run_all(SMOKE_CONFIG if args.smoke else BenchConfig(), cpu)
+    print(format_table(results))
+    if args.out:
+        Path(args.out).write_text(json.dumps(results, indent=1, sort_keys=False) + "\n")
+        _log(f"results written to {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,94 @@
+"""bench/run_bench.py runs end to end on tiny sessions (structure only, never timing)."""
+
+import importlib.util
+import json
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH_PATH = Path(__file__).resolve().parents[2] / "bench" / "run_bench.py"
+
+
+@pytest.fixture(scope="module")
+def bench():
+    spec = importlib.util.spec_from_file_location("run_bench", BENCH_PATH)
+    module = importlib.util.module_from_spec(spec)
+    # dataclasses resolve string annotations through sys.modules, so register it first.
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    yield module
+    sys.modules.pop(spec.name, None)
+
+
+@pytest.fixture(scope="module")
+def smoke_results(bench, tmp_path_factory):
+    out = tmp_path_factory.mktemp("bench") / "results.json"
+    try:
+        assert bench.main(["--smoke", "--out", str(out)]) == 0
+    except SystemExit as exc:  # a failed worker: report its message, not pytest internals
+        pytest.fail(str(exc))
+    return out, json.loads(out.read_text())
+
+
+def test_smoke_run_writes_every_section(smoke_results, bench):
+    _, res = smoke_results
+    assert res["format"] == bench.RESULTS_FORMAT
+    assert res["machine"]["cpu_count"] >= 1
+    assert res["machine"]["numpy"]
+    cal = res["calibration"]
+    assert cal["samples"] > 1000
+    assert cal["runs"] == bench.SMOKE_CONFIG.calib_runs
+    assert set(cal["stages_s"]) == set(bench.STAGES)
+    assert cal["wall_s"] > 0 and cal["warm_wall_s"] > 0
+    assert cal["optimizer"]["iterations"] >= 1
+    assert res["memory"]["peak_rss_mb"] >= res["memory"]["peak_rss_before_calibrate_mb"] > 0
+    assert res["imports"]["cvxpy_s"] > 0
+
+
+def test_smoke_compare_starts_both_gradients_from_the_same_theta0(smoke_results):
+    _, res = smoke_results
+    cmp_ = res["exact_vs_numeric"]
+    for gradient in ("exact", "numeric"):
+        assert cmp_[gradient]["theta0_identical"]
+        assert cmp_[gradient]["iterations"] <= cmp_["max_iter"]
+    assert cmp_["final_cost_rel_diff"] >= 0.0
+    assert cmp_["speedup_ml"] > 0.0
+
+
+def test_smoke_scaling_rows_and_tape_size(smoke_results, bench):
+    _, res = smoke_results
+    rows = res["scaling"]["rows"]
+    assert len(rows) == len(bench.SMOKE_CONFIG.scaling_durations_s)
+    assert rows[0]["samples"] < rows[1]["samples"]
+    for r in rows:
+        assert r["tape_mb"] == pytest.approx(8 * bench.TAPE_DOUBLES_PER_SAMPLE * r["samples"] / 1e6)
+        assert r["repetitions"] == len(r["cost_grad_all_s"])
+    assert res["scaling"]["loglog_slope_cost_grad"] is not None
+
+
+def test_smoke_targets_are_reported_not_asserted(smoke_results):
+    _, res = smoke_results
+    assert set(res["targets"]) == {
+        "calibration_wall_s",
+        "peak_rss_mb",
+        "speedup_ml",
+        "final_cost_rel_diff",
+    }
+    for row in res["targets"].values():
+        assert isinstance(row["pass"], bool)
+
+
+def test_table_and_show_print_the_results(smoke_results, bench, capsys):
+    path, res = smoke_results
+    table = bench.format_table(res)
+    for heading in ("1. Full ML calibration", "2. Peak memory", "3. Exact vs numeric", "4. One"):
+        assert heading in table
+    assert bench.main(["--show", str(path), str(path)]) == 0
+    shown = capsys.readouterr().out
+    assert "calibration wall (s)" in shown and "peak RSS (MB)" in shown
+
+
+def test_failing_worker_stops_the_benchmark_with_its_name(bench):
+    with pytest.raises(SystemExit, match="worker 'no-such-worker' failed"):
+        bench.run_worker("no-such-worker", {}, None)

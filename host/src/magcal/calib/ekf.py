@@ -173,15 +173,16 @@ def run_filter(p: ModelParams, data: FilterData, use_mag: bool = True) -> Filter
 
 
 def accelerometer_extra_variance(
-    acc: np.ndarray, g: float, sigma_acc: float, rate_hz: float, window_s: float = 0.05
+    acc: np.ndarray, g: float, sigma_acc: float, rate_hz: float, window_s: float = 0.5
 ) -> np.ndarray:
     """Data-only inflation ``c_t`` (m/s²)² of Σ_a for samples taken while accelerating.
 
     The model ``y_a = −R_bn g_n + e_a`` has no translational acceleration; a filter that
     trusts such samples tilts its attitude and, through it, the misalignment estimate. The
-    norm deviation ``‖y_a‖ − g`` is a lower bound on the acceleration along gravity, and its
-    size at neighbouring samples says the same of the other axes. So ``c_t`` is the largest
-    squared deviation within ±window_s, less a 3σ noise allowance (clean samples get 0).
+    norm deviation ``‖y_a‖ − g`` is a lower bound on the acceleration along gravity. A hand
+    or vehicle acceleration lasts a fraction of a second while its direction turns, so at
+    some instant of it the norm shows its size: ``c_t`` is the largest squared deviation
+    within ±window_s, less a 3σ noise allowance (clean samples get 0).
     It depends on the data only, never on θ, so the cost stays smooth in θ.
 
     acc : (N, 3) m/s²; g : m/s²; sigma_acc : accelerometer noise std, m/s²; rate_hz : Hz.

@@ -7,10 +7,13 @@ Numerical choices, each a fix for a way the plain problem fails:
   back (``ModelParams.unscaled_magnetometer``).
 * BFGS runs in variables scaled by the expected statistical uncertainty of each parameter
   (:func:`parameter_scales`), so its identity start is close to the true curvature.
-* A weak log-normal prior on the gyroscope noise (:data:`GYRO_NOISE_PRIOR_WIDTH`): at
-  IMU rates the likelihood hardly depends on Σ_ω once it is small, so its Cholesky
-  parameters drift towards −∞ along an almost flat valley and BFGS never converges. The
-  prior is a factor of 10 wide in σ; where the data say something they dominate it.
+* A log-normal prior on the gyroscope noise (:func:`gyro_noise_prior`). At IMU rates the
+  likelihood hardly depends on Σ_ω once it is small, so without one its Cholesky
+  parameters drift towards −∞ along an almost flat valley and BFGS never converges. And
+  with translational accelerations, which the model lacks, the likelihood prefers a large
+  Σ_ω: a filter that follows the accelerometer explains them best, but its tilted
+  attitude biases the misalignment. A stationary stretch measures Σ_ω directly, so then
+  the prior is that measurement with its sampling uncertainty; without one it is weak.
 """
 
 from __future__ import annotations
@@ -27,8 +30,12 @@ from magcal.calib.params import ModelParams
 from magcal.io.session import Session
 
 #: 1-σ width of the prior on log σ_ω (nats; ln 10 = a factor of 10) and on the unit
-#: lower-triangular entries of its Cholesky factor (dimensionless correlations).
-GYRO_NOISE_PRIOR_WIDTH = (np.log(10.0), 1.0)
+#: lower-triangular entries of its Cholesky factor (dimensionless correlations) when no
+#: stationary stretch measured the gyroscope noise.
+GYRO_NOISE_PRIOR_WIDTH_UNMEASURED = (np.log(10.0), 1.0)
+#: Smallest width when it was measured: a gyroscope's noise at rest and in motion differ
+#: by about this much (vibration, quantisation), however long the stretch.
+GYRO_NOISE_PRIOR_WIDTH_MIN = 0.1
 
 
 @dataclass(frozen=True)
@@ -96,24 +103,34 @@ def parameter_scales(p_norm: ModelParams, n: int) -> np.ndarray:
     return s / np.sqrt(n)
 
 
-def _prior(theta0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and precision (diagonal) of the weak prior on the gyroscope noise parameters."""
+def gyro_noise_prior(theta0: np.ndarray, stationary_samples: int) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and diagonal precision (34,) of the prior on the gyroscope noise parameters.
+
+    Centred on θ₀'s Σ_ω. With ``stationary_samples`` = n > 0 it was measured there: a
+    log-σ estimated from n samples has standard error 1/√(2n), a correlation 1/√n; both
+    are floored at :data:`GYRO_NOISE_PRIOR_WIDTH_MIN`. Otherwise the widths are
+    :data:`GYRO_NOISE_PRIOR_WIDTH_UNMEASURED`, centred on uncorrelated axes.
+    """
     mean = np.zeros(params.N_PARAMS)
     precision = np.zeros(params.N_PARAMS)
     sl = params.SLICE_CHOL_GYR
     mean[sl] = theta0[sl]
-    mean[sl.start + 3 : sl.stop] = 0.0
-    w_log, w_corr = GYRO_NOISE_PRIOR_WIDTH
+    if stationary_samples > 0:
+        w_log = max(GYRO_NOISE_PRIOR_WIDTH_MIN, 1.0 / np.sqrt(2.0 * stationary_samples))
+        w_corr = max(GYRO_NOISE_PRIOR_WIDTH_MIN, 1.0 / np.sqrt(stationary_samples))
+    else:
+        mean[sl.start + 3 : sl.stop] = 0.0
+        w_log, w_corr = GYRO_NOISE_PRIOR_WIDTH_UNMEASURED
     precision[sl.start : sl.start + 3] = 1.0 / w_log**2
     precision[sl.start + 3 : sl.stop] = 1.0 / w_corr**2
     return mean, precision
 
 
 def penalised_cost_functions(
-    data: ekf.FilterData, theta0: np.ndarray, gradient: str = "exact"
+    data: ekf.FilterData, theta0: np.ndarray, stationary_samples: int, gradient: str = "exact"
 ) -> tuple[Callable, Callable]:
     """(θ ↦ (V + prior, ∇), θ ↦ V + prior) with the gradient exact or finite-difference."""
-    mean, precision = _prior(theta0)
+    mean, precision = gyro_noise_prior(theta0, stationary_samples)
     tape = np.empty(10 * len(data))
     typical = np.maximum(np.abs(theta0), 1e-3)
 
@@ -156,14 +173,17 @@ def maximum_likelihood(
     p0 = init.params.scaled_magnetometer(norm.centre, norm.scale)
     data = filter_data_for(session, init, p0, norm)
     theta0 = params.pack(p0)
-    fg, f = penalised_cost_functions(data, theta0, gradient)
+    still = init.noise.stationary
+    n_still = 0 if still is None else still.stop - still.start
+    fg, _ = penalised_cost_functions(data, theta0, n_still, gradient)
     # Cost and gradient together at every trial point: nearly every step is accepted at
     # α = 1, so a cost-only line search would pay for the forward pass twice.
     report = minimize_bfgs(fg, theta0, parameter_scales(p0, len(data)), options, progress=progress)
-    p_hat = params.unpack(report.x).unscaled_magnetometer(norm.centre, norm.scale)
+    theta = report.x
+    p_hat = params.unpack(theta).unscaled_magnetometer(norm.centre, norm.scale)
     return MLEstimate(
         params=p_hat,
-        theta=report.x,
+        theta=theta,
         theta0=theta0,
         report=report,
         data=data,

@@ -547,7 +547,11 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "git": {
             "commit": _git("rev-parse", "HEAD"),
-            "host_dirty": bool(_git("status", "--porcelain", "--", "host")),
+            # Uncommitted changes to the measured code: the figures are then not the commit's.
+            "host_modified": [
+                line[3:]
+                for line in (_git("status", "--porcelain", "--", "host") or "").splitlines()
+            ],
         },
         "machine": machine_info(cpu),
         "config": {**asdict(config), "preset": PRESET, "seed": SEED},
@@ -767,7 +771,8 @@ def format_table(res: dict) -> str:
     m, cal, mem = res["machine"], res["calibration"], res["memory"]
     cmp_, scal, tg = res["exact_vs_numeric"], res["scaling"], res["targets"]
     commit = (res["git"]["commit"] or "unknown")[:10]
-    dirty = " (host/ modified)" if res["git"]["host_dirty"] else ""
+    modified = res["git"].get("host_modified") or []
+    dirty = f" + uncommitted changes to {', '.join(modified)}" if modified else ""
     pin = f"pinned to CPU {m['pinned_cpu']}" if m["pinned_cpu"] is not None else "not pinned"
     load = m["loadavg_at_start"]
     load_txt = f", load {load[0]:.2f} at start" if load else ""

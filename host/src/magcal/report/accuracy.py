@@ -413,14 +413,14 @@ def _symmetry_info(runs: list[dict]) -> Criterion:
     return Criterion(
         "ML ends on a symmetric twin: dip outside (−90°, 90°) (heading reference turned by "
         "180°) / det D̂ < 0 (mirrored)",
-        f"{len(flipped)}/{len(done)} {_seeds(flipped)} / {len(mirrored)}/{len(done)} "
+        f"{len(flipped)}/{len(done)}{_seeds(flipped)} / {len(mirrored)}/{len(done)}"
         f"{_seeds(mirrored)}",
         None,
     )
 
 
 def _seeds(seeds: list[int]) -> str:
-    return f"(seeds {', '.join(map(str, seeds))})" if seeds else ""
+    return f" (seeds {', '.join(map(str, seeds))})" if seeds else ""
 
 
 def _heading_columns(runs: list[dict]) -> dict:
@@ -549,7 +549,7 @@ def verdict_table2(runs: list[dict]) -> Verdict:
         Criterion(
             "runs where the algebraic fit's A is not positive definite while the SDP's is",
             f"{alg_not_pd}/{len(done)}; in {len(alg_not_pd_failed)} more the algebraic A is "
-            f"not PD and the run failed {_seeds(alg_not_pd_failed)} (the library's algebraic "
+            f"not PD and the run failed{_seeds(alg_not_pd_failed)} (the library's algebraic "
             f"fit returns no ellipsoid in {alg_invalid}/{len(runs)}; returned with a non-PD A: "
             f"{inconsistent})",
             None if inconsistent == 0 else False,

@@ -371,7 +371,7 @@ class Verdict:
             f"{c.text}: {c.measured}"
             for c in self.criteria
         ]
-        lines += [f"  error: {e}" for e in self.errors]
+        lines += [f"  run: {e}" for e in self.errors]
         return "\n".join(lines)
 
 
@@ -394,8 +394,21 @@ def _common(key: str, runs: list[dict]) -> dict:
         "n_runtime_warning_runs": sum(r.get("runtime_warnings", 0) > 0 for r in runs),
         "seconds_median": _median(secs),
         "seconds_max": float(secs.max()) if secs.size else float("nan"),
-        "errors": [f"seed {r['seed']}: {r['error']}" for r in runs if r.get("error")],
+        "errors": [f"seed {r['seed']}: {r['error']}" for r in runs if r.get("error")]
+        + [
+            f"seed {r['seed']}: refused by the observability check, then calibrated with "
+            f"force=True (FORCED, not a pass): {_forced_reason(r)}"
+            for r in runs
+            if r.get("forced")
+        ],
     }
+
+
+def _forced_reason(run: dict) -> str:
+    for w in run.get("warnings", []):
+        if "(forced)" in w:
+            return w
+    return "see the run's warnings"
 
 
 def _no_errors(c: dict) -> Criterion:

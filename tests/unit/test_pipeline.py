@@ -87,3 +87,17 @@ def test_unknown_method_is_rejected():
     session, _ = simulate(preset("mems", duration_s=12), seed=8)
     with pytest.raises(MagcalError, match="unknown method"):
         calibrate(session, "magic")
+
+
+def test_dip_twin_is_mapped_to_the_north_pointing_branch():
+    from magcal.calib.ml import canonical_dip
+    from magcal.calib.params import INDEX_DIP
+
+    for dip, expected in (
+        (np.deg2rad(110), np.deg2rad(70)),
+        (np.deg2rad(-100), np.deg2rad(-80)),
+        (np.deg2rad(60 + 360), np.deg2rad(60)),
+    ):
+        theta = np.zeros(34)
+        theta[INDEX_DIP] = dip
+        assert canonical_dip(theta)[INDEX_DIP] == pytest.approx(expected)

@@ -161,6 +161,20 @@ def penalised_cost_functions(
     return fg, f
 
 
+def canonical_dip(theta: np.ndarray) -> np.ndarray:
+    """θ with the dip mapped onto the branch m_x = cos δ > 0 (paper eq. 17c).
+
+    The parametrisation (8b) also allows δ' = π − δ, i.e. ``m_n' = Rz(π) m_n``: the same
+    likelihood with the navigation frame turned by 180° in heading, D and o unchanged. Map
+    it back so that m_n points north and the dip is the usual one."""
+    theta = np.array(theta, dtype=float)
+    dip = float(np.arctan2(np.sin(theta[params.INDEX_DIP]), np.cos(theta[params.INDEX_DIP])))
+    if np.cos(dip) < 0.0:
+        dip = float(np.arctan2(np.sin(np.pi - dip), np.cos(np.pi - dip)))
+    theta[params.INDEX_DIP] = dip
+    return theta
+
+
 def maximum_likelihood(
     session: Session,
     init: InitialEstimate,
@@ -179,7 +193,7 @@ def maximum_likelihood(
     # Cost and gradient together at every trial point: nearly every step is accepted at
     # α = 1, so a cost-only line search would pay for the forward pass twice.
     report = minimize_bfgs(fg, theta0, parameter_scales(p0, len(data)), options, progress=progress)
-    theta = report.x
+    theta = canonical_dip(report.x)
     p_hat = params.unpack(theta).unscaled_magnetometer(norm.centre, norm.scale)
     return MLEstimate(
         params=p_hat,

@@ -219,6 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     ]
     tasks.sort(key=lambda t: -_COST_ESTIMATE_S.get(t[0], 1.0))
     runs: dict[str, list[dict]] = {k: [] for k in keys}
+    commit_at_start = _git_description()  # the code the workers import (forked below)
     t0 = time.perf_counter()
     with multiprocessing.get_context("fork").Pool(args.workers) as pool:
         for i, (key, run) in enumerate(pool.imap_unordered(_task, tasks), start=1):
@@ -250,7 +251,12 @@ def main(argv: list[str] | None = None) -> int:
         "cores": os.cpu_count(),
         "workers": args.workers,
         "python": platform.python_version(),
-        "commit": _git_description(),
+        "commit": commit_at_start
+        + (
+            ""
+            if _git_description() == commit_at_start
+            else f" (the tree changed to {_git_description()} during the run: rerun)"
+        ),
         "figure8": str(figure8) if figure8 else None,
     }
     out = Path(args.out)

@@ -189,10 +189,20 @@ def maximum_likelihood(
     theta0 = params.pack(p0)
     still = init.noise.stationary
     n_still = 0 if still is None else still.stop - still.start
-    fg, _ = penalised_cost_functions(data, theta0, n_still, gradient)
-    # Cost and gradient together at every trial point: nearly every step is accepted at
-    # α = 1, so a cost-only line search would pay for the forward pass twice.
-    report = minimize_bfgs(fg, theta0, parameter_scales(p0, len(data)), options, progress=progress)
+    fg, f = penalised_cost_functions(data, theta0, n_still, gradient)
+    # Exact gradients: cost and gradient together at every trial point, since nearly every
+    # step is accepted at α = 1 and a cost-only line search would pay for the forward pass
+    # twice. Finite differences (the paper's way): the line search tries points by cost
+    # alone, as a gradient there costs n_θ + 1 passes.
+    line_search_cost = f if gradient == "numeric" else None
+    report = minimize_bfgs(
+        fg,
+        theta0,
+        parameter_scales(p0, len(data)),
+        options,
+        fun=line_search_cost,
+        progress=progress,
+    )
     theta = canonical_dip(report.x)
     p_hat = params.unpack(theta).unscaled_magnetometer(norm.centre, norm.scale)
     return MLEstimate(

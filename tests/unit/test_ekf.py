@@ -57,3 +57,10 @@ def test_acc_inflation_is_zero_at_rest_and_large_for_bumps():
     acc[100] += [8.0, 0.0, 5.0]
     c = ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0)
     assert c[100] > 10.0 and c[98] > 10.0
+
+
+def test_acc_inflation_ignores_smooth_accelerations():
+    # 0.3 m/s² of smooth motion is the ML step's Σ_a business, not an outlier.
+    t = np.arange(1000) / 100.0
+    acc = np.column_stack([0.3 * np.sin(2 * t), 0.3 * np.cos(3 * t), 9.81 + 0.3 * np.sin(t)])
+    assert not np.any(ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0))

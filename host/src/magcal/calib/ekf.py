@@ -172,26 +172,36 @@ def run_filter(p: ModelParams, data: FilterData, use_mag: bool = True) -> Filter
     return FilterOutput(cost=cost, q_filt=q_filt, innovations=innov, normalised=normed)
 
 
-def accelerometer_extra_variance(
-    acc: np.ndarray, g: float, sigma_acc: float, rate_hz: float, window_s: float = 0.5
-) -> np.ndarray:
-    """Data-only inflation ``c_t`` (m/s²)² of Σ_a for samples taken while accelerating.
+#: Accelerometer outliers ("bumps"): a sample whose norm deviates from g by more than
+#: 3σ plus this much (m/s²) is not explained by noise or by the smooth accelerations of a
+#: calibration motion, which the ML step absorbs in Σ_a instead. Spreading distrust over
+#: smooth accelerations too was measured to make the misalignment worse, not better.
+BUMP_THRESHOLD_M_S2 = 0.5
+#: Half-width of the window over which a bump's inflation is spread, s: a knock rings for
+#: a few samples, and its norm deviation can pass through zero while it does.
+BUMP_WINDOW_S = 0.05
+#: Inflation per unit squared excess deviation. A horizontal knock of size b changes the
+#: norm by only ≈ b²/2g, far less than b, so the excess understates it: weight it up.
+BUMP_GAIN = 10.0
 
-    The model ``y_a = −R_bn g_n + e_a`` has no translational acceleration; a filter that
-    trusts such samples tilts its attitude and, through it, the misalignment estimate. The
-    norm deviation ``‖y_a‖ − g`` is a lower bound on the acceleration along gravity. A hand
-    or vehicle acceleration lasts a fraction of a second while its direction turns, so at
-    some instant of it the norm shows its size: ``c_t`` is the largest squared deviation
-    within ±window_s, less a 3σ noise allowance (clean samples get 0).
-    It depends on the data only, never on θ, so the cost stays smooth in θ.
+
+def accelerometer_extra_variance(
+    acc: np.ndarray, g: float, sigma_acc: float, rate_hz: float
+) -> np.ndarray:
+    """Data-only inflation ``c_t`` (m/s²)² of Σ_a for accelerometer outliers (bumps).
+
+    The model ``y_a = −R_bn g_n + e_a`` has no room for a knock: a filter that trusts such a
+    sample tilts its attitude and, through it, the misalignment estimate. ``c_t`` is
+    ``BUMP_GAIN`` times the largest squared excess of ``|‖y_a‖ − g|`` over
+    ``3σ + BUMP_THRESHOLD_M_S2`` within ±``BUMP_WINDOW_S``; clean samples get 0. It
+    depends on the data only, never on θ, so the cost stays smooth in θ.
 
     acc : (N, 3) m/s²; g : m/s²; sigma_acc : accelerometer noise std, m/s²; rate_hz : Hz.
     Returns (N,) (m/s²)².
     """
     dev = np.abs(np.linalg.norm(acc, axis=1) - g)
-    excess = np.maximum(dev - 3.0 * sigma_acc, 0.0)
-    half = max(1, int(round(window_s * rate_hz)))
+    excess = np.maximum(dev - (3.0 * sigma_acc + BUMP_THRESHOLD_M_S2), 0.0)
+    half = max(1, int(round(BUMP_WINDOW_S * rate_hz)))
     padded = np.pad(excess, half, mode="edge")
     windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
-    # Three axes can carry acceleration, the norm shows about one: scale by 3.
-    return 3.0 * windows.max(axis=1) ** 2
+    return BUMP_GAIN * windows.max(axis=1) ** 2

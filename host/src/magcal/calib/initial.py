@@ -74,9 +74,12 @@ def inertial_attitude(
     return ekf.run_filter(p, data, use_mag=False).q_filt
 
 
-def initial_estimate(session: Session, force: bool = False) -> InitialEstimate:
+def initial_estimate(
+    session: Session, force: bool = False, fit: EllipsoidFit | None = None
+) -> InitialEstimate:
     """Algorithm 1 step 1 on a whole session. ``force`` accepts data that cannot determine
-    the ellipsoid (with a warning) instead of raising."""
+    the ellipsoid (with a warning) instead of raising; ``fit`` is step 1b's result when the
+    caller has it already."""
     seconds = {}
     t0 = time.perf_counter()
     still = stationary.find_stationary(session.t, session.gyr, session.acc, session.mag)
@@ -89,9 +92,10 @@ def initial_estimate(session: Session, force: bool = False) -> InitialEstimate:
     acc_extra_var = ekf.accelerometer_extra_variance(session.acc, g, sigma_acc, rate_hz)
     seconds["noise"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
-    fit = fit_ellipsoid_sdp(session.mag, force=force)
-    seconds["ellipsoid"] = time.perf_counter() - t0
+    if fit is None:
+        t0 = time.perf_counter()
+        fit = fit_ellipsoid_sdp(session.mag, force=force)
+        seconds["ellipsoid"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     q_inertial = inertial_attitude(session, noise, g, acc_extra_var)

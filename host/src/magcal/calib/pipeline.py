@@ -5,6 +5,7 @@ This is the one entry point the command line and the report scripts call.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -12,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.calib import ekf, observability, quality
+from magcal.calib.ellipsoid import fit_ellipsoid_sdp
 from magcal.calib.initial import InitialEstimate, initial_estimate
 from magcal.calib.ml import MLEstimate, filter_data_for, maximum_likelihood, normalisation_for
 from magcal.calib.optimize import OptimizeOptions
@@ -21,6 +23,13 @@ from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
 
 METHODS = ("ml", "init")
+
+NOISY_ELLIPSOID_WARNING = (
+    "the ellipsoid fit reached the edge of positive definiteness although the data cover "
+    "all orientations: the magnetometer is very noisy for its field. The initial estimate "
+    "was regularised towards a sphere; the ML step refines it, but check the result's "
+    "normalised innovations and field norm"
+)
 
 #: RMS of ‖y_a‖ − g (m/s²) above which the inclination from the accelerometer, and with it
 #: the misalignment between magnetometer and inertial axes, cannot be trusted: at 0.5 m/s²
@@ -48,12 +57,15 @@ def _filter_at(session: Session, init: InitialEstimate, p: ModelParams) -> ekf.F
 
 def _alignment_warnings(session: Session, g: float) -> list[str]:
     dev = np.linalg.norm(session.acc, axis=1) - g
-    rms = float(np.sqrt(np.mean(dev * dev)))
+    # A robust spread (1.4826 × median |dev| equals the RMS for Gaussian deviations): a
+    # few knocks must not raise this warning; they are handled as outliers.
+    rms = float(1.4826 * np.median(np.abs(dev)))
     if rms > MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2:
         return [
-            f"accelerations too large to trust the inclination (RMS |‖acc‖ − g| = {rms:.2f} "
-            f"m/s², limit {MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2} m/s²): the misalignment between "
-            "magnetometer and inertial axes is poorly determined; rotate more slowly"
+            "accelerations too large to trust the inclination (robust RMS of ‖acc‖ − g = "
+            f"{rms:.2f} m/s², limit {MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2} m/s²): the "
+            "misalignment between magnetometer and inertial axes is poorly determined; "
+            "rotate more slowly"
         ]
     return []
 
@@ -71,12 +83,24 @@ def calibrate(
     if method not in METHODS:
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     seconds = {}
+    # The ellipsoid first: the coverage check is judged on its unit sphere. It may not
+    # raise here (degenerate A from heavy noise on well-covered data is not a refusal; the
+    # checks decide whether the data cover enough); its warnings go into the result.
     t0 = time.perf_counter()
-    report = observability.check_observability(session.gyr, session.acc, session.mag, session.t)
+    fit = fit_ellipsoid_sdp(session.mag, force=True)
+    seconds["ellipsoid"] = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    report = observability.check_observability(
+        session.gyr, session.acc, session.mag, session.t, mag_shape=(fit.o, fit.D_tilde)
+    )
     warnings = observability.raise_if_unobservable(report, force)
     seconds["checks"] = time.perf_counter() - t0
+    if report.ok and fit.warnings:
+        # The data cover the sphere, so a degenerate fit comes from noise, not from too
+        # little rotation: say that instead of the fit's own advice to rotate more.
+        fit = dataclasses.replace(fit, warnings=(NOISY_ELLIPSOID_WARNING,))
 
-    init = initial_estimate(session, force)
+    init = initial_estimate(session, force, fit)
     seconds.update(init.seconds)
     warnings += list(init.warnings)
     warnings += _alignment_warnings(session, init.g)

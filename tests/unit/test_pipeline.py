@@ -89,9 +89,11 @@ def test_unknown_method_is_rejected():
         calibrate(session, "magic")
 
 
-def test_dip_twin_is_mapped_to_the_north_pointing_branch():
-    from magcal.calib.ml import canonical_dip
-    from magcal.calib.params import INDEX_DIP
+def test_likelihood_twins_are_mapped_to_the_canonical_branch():
+    from magcal.calib import cost
+    from magcal.calib.ml import canonical_twin
+    from magcal.calib.params import INDEX_DIP, SLICE_D, pack
+    from tests.conftest import synthetic_filter_problem
 
     for dip, expected in (
         (np.deg2rad(110), np.deg2rad(70)),
@@ -99,5 +101,14 @@ def test_dip_twin_is_mapped_to_the_north_pointing_branch():
         (np.deg2rad(60 + 360), np.deg2rad(60)),
     ):
         theta = np.zeros(34)
+        theta[SLICE_D] = np.eye(3).ravel()
         theta[INDEX_DIP] = dip
-        assert canonical_dip(theta)[INDEX_DIP] == pytest.approx(expected)
+        assert canonical_twin(theta)[INDEX_DIP] == pytest.approx(expected)
+    # (D, m_n) → (−D, −m_n) leaves the likelihood exactly unchanged; the twin is undone.
+    p, data, _ = synthetic_filter_problem(n=200)
+    theta = pack(p)
+    mirrored = theta.copy()
+    mirrored[SLICE_D] *= -1
+    mirrored[INDEX_DIP] += np.pi
+    assert cost.cost(mirrored, data) == pytest.approx(cost.cost(theta, data), rel=1e-12)
+    np.testing.assert_allclose(canonical_twin(mirrored), theta, atol=1e-12)

@@ -161,14 +161,20 @@ def penalised_cost_functions(
     return fg, f
 
 
-def canonical_dip(theta: np.ndarray) -> np.ndarray:
-    """θ with the dip mapped onto the branch m_x = cos δ > 0 (paper eq. 17c).
+def canonical_twin(theta: np.ndarray) -> np.ndarray:
+    """θ moved onto the branch det D > 0, m_x = cos δ > 0 by the likelihood's symmetries.
 
-    The parametrisation (8b) also allows δ' = π − δ, i.e. ``m_n' = Rz(π) m_n``: the same
-    likelihood with the navigation frame turned by 180° in heading, D and o unchanged. Map
-    it back so that m_n points north and the dip is the usual one."""
+    The cost is exactly invariant under (D, δ) → (−D, δ + π), i.e. ``(D, m_n) → (−D, −m_n)``
+    (the filter never inverts D, so BFGS can cross det D = 0 from a poor start), and,
+    with the navigation frame turned 180° in heading, under δ → π − δ (parametrisation 8b
+    drops eq. 17c's m_x > 0). The paper's Assumption 1 (magnetometer axes rotated, not
+    mirrored, against the inertial ones) picks det D > 0; eq. 17c picks the dip."""
     theta = np.array(theta, dtype=float)
-    dip = float(np.arctan2(np.sin(theta[params.INDEX_DIP]), np.cos(theta[params.INDEX_DIP])))
+    dip = theta[params.INDEX_DIP]
+    if np.linalg.det(theta[params.SLICE_D].reshape(3, 3)) < 0.0:
+        theta[params.SLICE_D] = -theta[params.SLICE_D]
+        dip += np.pi
+    dip = float(np.arctan2(np.sin(dip), np.cos(dip)))
     if np.cos(dip) < 0.0:
         dip = float(np.arctan2(np.sin(np.pi - dip), np.cos(np.pi - dip)))
     theta[params.INDEX_DIP] = dip
@@ -203,7 +209,7 @@ def maximum_likelihood(
         fun=line_search_cost,
         progress=progress,
     )
-    theta = canonical_dip(report.x)
+    theta = canonical_twin(report.x)
     p_hat = params.unpack(theta).unscaled_magnetometer(norm.centre, norm.scale)
     return MLEstimate(
         params=p_hat,

@@ -19,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.calib import frames
+from magcal.calib.params import ModelParams
 from magcal.errors import MagcalError
 
 # Dip angle in Linköping, Sweden (58.41° N, 15.62° E). The paper's simulation (Section 8) only
@@ -35,30 +36,10 @@ MEMS_GYRO_BIAS_DEG_S = 1.0  # typical magnitude of the gyroscope bias
 
 
 @dataclass(frozen=True)
-class SensorTruth:
-    """True parameters of one simulated sensor unit.
-
-    D         : (3, 3) float, magnetometer units per unit field (carries the field magnitude)
-    o         : (3,) float, magnetometer units
-    dip_rad   : float, rad, positive down; ``m_n = frames.field_direction(dip_rad)``
-    gyro_bias : (3,) float, rad/s
-    Sigma_gyr : (3, 3) float, (rad/s)²
-    Sigma_acc : (3, 3) float, (m/s²)²
-    Sigma_mag : (3, 3) float, (magnetometer unit)²
-    """
-
-    D: np.ndarray
-    o: np.ndarray
-    dip_rad: float
-    gyro_bias: np.ndarray
-    Sigma_gyr: np.ndarray
-    Sigma_acc: np.ndarray
-    Sigma_mag: np.ndarray
-
-    @property
-    def m_n(self) -> np.ndarray:
-        """(3,) unit local field in n."""
-        return frames.field_direction(self.dip_rad)
+class SensorTruth(ModelParams):
+    """True parameters of one simulated sensor unit: the calibration model's own
+    quantities (:class:`magcal.calib.params.ModelParams`, same fields and units), with D
+    carrying the field magnitude in magnetometer units."""
 
     @property
     def field_norm(self) -> float:

@@ -150,7 +150,7 @@ static PyObject *py_cost_grad(PyObject *self, PyObject *args)
     mc_mekf_data_t data;
     PyObject *result = NULL;
     if (prepare(&in, g, use_mag, &model, &data) &&
-        check_len(&tape, 10 * (Py_ssize_t)data.n, "tape") &&
+        check_len(&tape, MC_MEKF_TAPE_DOUBLES * (Py_ssize_t)data.n, "tape") &&
         check_len(&gradb, MODEL_DOUBLES, "grad")) {
         double cost, acc_scale_grad = 0.0;
         double *tape_buf = (double *)tape.buf;
@@ -179,4 +179,13 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_mekf",
                                     "Native MEKF likelihood and gradient.", -1, methods,
                                     NULL, NULL, NULL, NULL};
 
-PyMODINIT_FUNC PyInit__mekf(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__mekf(void)
+{
+    PyObject *mod = PyModule_Create(&module);
+    /* The tape size per sample, so the Python side never hard-codes the layout. */
+    if (mod && PyModule_AddIntConstant(mod, "TAPE_DOUBLES_PER_SAMPLE", MC_MEKF_TAPE_DOUBLES) < 0) {
+        Py_DECREF(mod);
+        return NULL;
+    }
+    return mod;
+}

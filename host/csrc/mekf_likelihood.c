@@ -9,199 +9,228 @@
  *     log det S = log det R + log det P + log det Λ,
  *   and the posterior is P⁺ = Λ⁻¹, η = Λ⁻¹u (matrix inversion and determinant lemmas).
  *   Every inverse is then 3×3 and symmetric positive definite.
+ * - The information J = HᵀR⁻¹H and u are formed in the navigation frame without building H:
+ *   with Ha = −Rᵀ[g_n×] and Hm = D Rᵀ[m×],
+ *     J = [g_n×]ᵀ (R Ai Rᵀ) [g_n×] + [m×]ᵀ (R K Rᵀ) [m×],   K = Dᵀ Sm⁻¹ D (once per pass),
+ *     u = g_n × (R za) + (R Dᵀ zm) × m,                       za = Ai εa, zm = Sm⁻¹ εm.
+ *   g_n = (0, 0, −g), so the accelerometer term only fills the upper-left 2×2 block.
+ * - Ai = (Sa + c_t I)⁻¹ is the constant Sa⁻¹ for the (many) samples with c_t = 0: it is
+ *   inverted once per pass, and in the reverse pass its adjoint is summed over those samples
+ *   and turned into a Sa adjoint once at the end.
  * - The quaternion is renormalised after each update. Parameter perturbations move it only
  *   along the unit sphere, where renormalisation is the identity to first order, so the
  *   reverse pass omits it and stays exact.
- * - The reverse pass recomputes each step's intermediates from the taped attitude and
- *   covariance (10 doubles per sample) instead of storing them: memory is O(n · state).
+ * - Adjoints of symmetric matrices are kept symmetric. Every perturbation of a symmetric
+ *   quantity (P, the noise covariances) is symmetric, so only the symmetric part of its
+ *   adjoint is ever contracted: dropping the skew part is exact and halves the work.
+ * - The forward pass tapes, per sample, what the reverse pass cannot recompute cheaply: the
+ *   attitude before the step, Pp⁻¹, Λ⁻¹ and u, η (MC_MEKF_TAPE_DOUBLES doubles). The reverse
+ *   pass recomputes the rest (rotation, innovations, information) from them; memory is
+ *   O(n · state) and independent of the number of parameters.
  */
 #include "mekf_likelihood.h"
 
 #include <math.h>
 #include <string.h>
 
-/* ---------------------------------------------------------------- 3×3 helpers */
+/* ---------------------------------------------------------------- 3×3 helpers
+ * Matrices are row-major double[9]; symmetric ones are stored in full with both triangles
+ * set. Outputs never alias inputs (restrict), so the compiler keeps everything in
+ * registers. */
 
-static void mat_mul(const double *a, const double *b, double *c) /* c = a b */
-{
-    double r[9];
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            r[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
-    memcpy(c, r, sizeof r);
-}
-
-static void mat_mul_tn(const double *a, const double *b, double *c) /* c = aᵀ b */
-{
-    double r[9];
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            r[3 * i + j] = a[i] * b[j] + a[3 + i] * b[3 + j] + a[6 + i] * b[6 + j];
-    memcpy(c, r, sizeof r);
-}
-
-static void mat_mul_nt(const double *a, const double *b, double *c) /* c = a bᵀ */
-{
-    double r[9];
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j)
-            r[3 * i + j] =
-                a[3 * i] * b[3 * j] + a[3 * i + 1] * b[3 * j + 1] + a[3 * i + 2] * b[3 * j + 2];
-    memcpy(c, r, sizeof r);
-}
-
-static void mat_vec(const double *a, const double *x, double *y) /* y = a x */
-{
-    double r[3];
-    for (int i = 0; i < 3; ++i) r[i] = a[3 * i] * x[0] + a[3 * i + 1] * x[1] + a[3 * i + 2] * x[2];
-    memcpy(y, r, sizeof r);
-}
-
-static void mat_tvec(const double *a, const double *x, double *y) /* y = aᵀ x */
-{
-    double r[3];
-    for (int i = 0; i < 3; ++i) r[i] = a[i] * x[0] + a[3 + i] * x[1] + a[6 + i] * x[2];
-    memcpy(y, r, sizeof r);
-}
-
-static void mat_add_outer(double *a, double s, const double *x, const double *y) /* a += s x yᵀ */
-{
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) a[3 * i + j] += s * x[i] * y[j];
-}
-
-static void mat_axpy(double *a, double s, const double *b) /* a += s b */
-{
-    for (int i = 0; i < 9; ++i) a[i] += s * b[i];
-}
-
-static double dot3(const double *a, const double *b)
+static inline double dot3(const double *restrict a, const double *restrict b)
 {
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
 }
 
-static void skew3(const double *v, double *s)
+static inline void cross3(const double *restrict a, const double *restrict b, double *restrict c)
 {
-    s[0] = 0.0;   s[1] = -v[2]; s[2] = v[1];
-    s[3] = v[2];  s[4] = 0.0;   s[5] = -v[0];
-    s[6] = -v[1]; s[7] = v[0];  s[8] = 0.0;
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
 }
 
-/* Adjoint of v ↦ [v×]: accumulate into v̄ from S̄. */
-static void skew3_adjoint(const double *s_bar, double *v_bar)
+static inline void mat_vec(const double *restrict a, const double *restrict x,
+                           double *restrict y) /* y = a x */
 {
-    v_bar[0] += s_bar[7] - s_bar[5];
-    v_bar[1] += s_bar[2] - s_bar[6];
-    v_bar[2] += s_bar[3] - s_bar[1];
+    for (int i = 0; i < 3; ++i) y[i] = a[3 * i] * x[0] + a[3 * i + 1] * x[1] + a[3 * i + 2] * x[2];
 }
 
-/* Inverse of a symmetric positive definite 3×3 matrix and its log-determinant. Returns 0
- * when the matrix is not positive definite (a leading minor ≤ 0). */
-static int spd_inverse(const double *a, double *inv, double *logdet)
+static inline void mat_tvec(const double *restrict a, const double *restrict x,
+                            double *restrict y) /* y = aᵀ x */
 {
-    const double m1 = a[0];
-    const double m2 = a[0] * a[4] - a[1] * a[3];
-    const double c00 = a[4] * a[8] - a[5] * a[7];
-    const double c01 = a[2] * a[7] - a[1] * a[8];
-    const double c02 = a[1] * a[5] - a[2] * a[4];
-    const double det = a[0] * c00 + a[3] * c01 + a[6] * c02;
-    if (!(m1 > 0.0) || !(m2 > 0.0) || !(det > 0.0)) return 0;
-    const double r = 1.0 / det;
+    for (int i = 0; i < 3; ++i) y[i] = a[i] * x[0] + a[3 + i] * x[1] + a[6 + i] * x[2];
+}
+
+static inline void mat_mul(const double *restrict a, const double *restrict b,
+                           double *restrict c) /* c = a b */
+{
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j)
+            c[3 * i + j] = a[3 * i] * b[j] + a[3 * i + 1] * b[3 + j] + a[3 * i + 2] * b[6 + j];
+}
+
+/* Mirror the upper triangle into the lower one. */
+static inline void sym_fill(double *s)
+{
+    s[3] = s[1];
+    s[6] = s[2];
+    s[7] = s[5];
+}
+
+/* c = a bᵀ where the result is known to be symmetric: upper triangle only. */
+static inline void sym_mul_nt(const double *restrict a, const double *restrict b, double *restrict c)
+{
+    for (int i = 0; i < 3; ++i)
+        for (int j = i; j < 3; ++j) c[3 * i + j] = dot3(a + 3 * i, b + 3 * j);
+    sym_fill(c);
+}
+
+/* c = a S aᵀ, S symmetric. */
+static inline void sym_sandwich(const double *restrict a, const double *restrict s,
+                                double *restrict c)
+{
+    double t[9];
+    mat_mul(a, s, t);
+    sym_mul_nt(t, a, c);
+}
+
+/* c = aᵀ S a, S symmetric. */
+static inline void sym_sandwich_t(const double *restrict a, const double *restrict s,
+                                  double *restrict c)
+{
+    double t[9]; /* t = S a, c_ij = Σ_k a_ki t_kj */
+    mat_mul(s, a, t);
+    for (int i = 0; i < 3; ++i)
+        for (int j = i; j < 3; ++j) c[3 * i + j] = a[i] * t[j] + a[3 + i] * t[3 + j] + a[6 + i] * t[6 + j];
+    sym_fill(c);
+}
+
+/* c = [m×]ᵀ S [m×] (= [m×] S [m×]ᵀ), S symmetric. Row i of S [m×] is s_i × m, and
+ * column j of −[m×] T is t_j × m. */
+static inline void skew_sandwich(const double *restrict m, const double *restrict s,
+                                 double *restrict c)
+{
+    double t[9];
+    for (int i = 0; i < 3; ++i) cross3(s + 3 * i, m, t + 3 * i);
+    for (int j = 0; j < 3; ++j) {
+        const double t0 = t[j], t1 = t[3 + j], t2 = t[6 + j];
+        const double col[3] = {t1 * m[2] - t2 * m[1], t2 * m[0] - t0 * m[2], t0 * m[1] - t1 * m[0]};
+        for (int i = 0; i <= j; ++i) c[3 * i + j] = col[i];
+    }
+    sym_fill(c);
+}
+
+/* s += ½ (x yᵀ + y xᵀ): the symmetric part of an outer-product adjoint. */
+static inline void sym_add_outer(double *restrict s, const double *restrict x, const double *restrict y)
+{
+    for (int i = 0; i < 3; ++i)
+        for (int j = i; j < 3; ++j) s[3 * i + j] += 0.5 * (x[i] * y[j] + y[i] * x[j]);
+    sym_fill(s);
+}
+
+/* Inverse of a symmetric positive definite 3×3 matrix (only the upper triangle is read)
+ * and its determinant. Returns 0 when the matrix is not positive definite (a leading
+ * minor ≤ 0). The caller takes the logarithm, so that several determinants can share
+ * one log. */
+static inline int sym_inverse(const double *restrict a, double *restrict inv, double *restrict det)
+{
+    const double a00 = a[0], a01 = a[1], a02 = a[2], a11 = a[4], a12 = a[5], a22 = a[8];
+    const double c00 = a11 * a22 - a12 * a12;
+    const double c01 = a02 * a12 - a01 * a22;
+    const double c02 = a01 * a12 - a02 * a11;
+    const double d = a00 * c00 + a01 * c01 + a02 * c02;
+    const double m2 = a00 * a11 - a01 * a01;
+    if (!(a00 > 0.0) || !(m2 > 0.0) || !(d > 0.0)) return 0;
+    const double r = 1.0 / d;
     inv[0] = c00 * r;
     inv[1] = c01 * r;
     inv[2] = c02 * r;
-    inv[3] = (a[5] * a[6] - a[3] * a[8]) * r;
-    inv[4] = (a[0] * a[8] - a[2] * a[6]) * r;
-    inv[5] = (a[2] * a[3] - a[0] * a[5]) * r;
-    inv[6] = (a[3] * a[7] - a[4] * a[6]) * r;
-    inv[7] = (a[1] * a[6] - a[0] * a[7]) * r;
-    inv[8] = (a[0] * a[4] - a[1] * a[3]) * r;
-    /* Symmetrise: the cofactor formula is symmetric only up to rounding. */
-    inv[1] = inv[3] = 0.5 * (inv[1] + inv[3]);
-    inv[2] = inv[6] = 0.5 * (inv[2] + inv[6]);
-    inv[5] = inv[7] = 0.5 * (inv[5] + inv[7]);
-    *logdet = log(det);
+    inv[4] = (a00 * a22 - a02 * a02) * r;
+    inv[5] = (a01 * a02 - a00 * a12) * r;
+    inv[8] = m2 * r;
+    sym_fill(inv);
+    *det = d;
     return 1;
 }
 
-/* Adjoint of B = A⁻¹ (A symmetric): Ā += −B B̄ B. */
-static void inverse_adjoint(const double *B, const double *B_bar, double *A_bar)
+/* Symmetric 3×3 packed as (xx, xy, xz, yy, yz, zz), for the tape. */
+static inline void sym_pack(const double *restrict s, double *restrict p)
 {
-    double t[9];
-    mat_mul(B, B_bar, t);
-    mat_mul(t, B, t);
-    mat_axpy(A_bar, -1.0, t);
+    p[0] = s[0]; p[1] = s[1]; p[2] = s[2]; p[3] = s[4]; p[4] = s[5]; p[5] = s[8];
+}
+
+static inline void sym_unpack(const double *restrict p, double *restrict s)
+{
+    s[0] = p[0]; s[1] = s[3] = p[1]; s[2] = s[6] = p[2];
+    s[4] = p[3]; s[5] = s[7] = p[4]; s[8] = p[5];
 }
 
 /* ---------------------------------------------------------------- quaternions */
 
-static void quat_mul(const double *p, const double *q, double *r)
+static inline void quat_mul(const double *restrict p, const double *restrict q, double *restrict r)
 {
-    double t[4];
-    t[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3];
-    t[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2];
-    t[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1];
-    t[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0];
-    memcpy(r, t, sizeof t);
+    r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3];
+    r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2];
+    r[2] = p[0] * q[2] - p[1] * q[3] + p[2] * q[0] + p[3] * q[1];
+    r[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0];
 }
 
-static void quat_conj(const double *q, double *c)
+/* Adjoint of r = p ⊙ q: p̄ = r̄ ⊙ q*, q̄ = p* ⊙ r̄ (the transpose of left/right
+ * multiplication by a quaternion is multiplication by its conjugate). Assigns. */
+static inline void quat_mul_adjoint(const double *restrict p, const double *restrict q,
+                                    const double *restrict r_bar, double *restrict p_bar,
+                                    double *restrict q_bar)
 {
-    c[0] = q[0];
-    c[1] = -q[1];
-    c[2] = -q[2];
-    c[3] = -q[3];
+    const double qc[4] = {q[0], -q[1], -q[2], -q[3]};
+    const double pc[4] = {p[0], -p[1], -p[2], -p[3]};
+    quat_mul(r_bar, qc, p_bar);
+    quat_mul(pc, r_bar, q_bar);
 }
 
-/* Adjoint of r = p ⊙ q: p̄ += r̄ ⊙ q*, q̄ += p* ⊙ r̄ (the transpose of left/right
- * multiplication by a quaternion is multiplication by its conjugate). */
-static void quat_mul_adjoint(const double *p, const double *q, const double *r_bar, double *p_bar,
-                             double *q_bar)
-{
-    double c[4], t[4];
-    if (p_bar) {
-        quat_conj(q, c);
-        quat_mul(r_bar, c, t);
-        for (int i = 0; i < 4; ++i) p_bar[i] += t[i];
-    }
-    if (q_bar) {
-        quat_conj(p, c);
-        quat_mul(c, r_bar, t);
-        for (int i = 0; i < 4; ++i) q_bar[i] += t[i];
-    }
-}
+/* Series below |v| = 1e-2, where the direct formulas lose digits to cancellation. The
+ * truncation errors are below 1e-20 relative there, and no sqrt or trigonometric call is
+ * needed: gyroscope increments and filter corrections are almost always this small. */
+#define QUAT_EXP_SERIES_A2 1e-4
 
-/* exp_q(v) = (cos|v|, sin|v| v/|v|), with series near 0. */
-static void quat_exp(const double *v, double *q)
+/* exp_q(v) = (cos|v|, sin|v| v/|v|). */
+static inline void quat_exp(const double *restrict v, double *restrict q)
 {
     const double a2 = dot3(v, v);
-    const double a = sqrt(a2);
-    /* Series below 1e-2: the direct formulas lose digits to cancellation there. */
-    const double s = a < 1e-2 ? 1.0 - a2 / 6.0 + a2 * a2 / 120.0 - a2 * a2 * a2 / 5040.0 : sin(a) / a;
-    q[0] = cos(a);
+    double c, s; /* cos a, sin a / a */
+    if (a2 < QUAT_EXP_SERIES_A2) {
+        c = 1.0 - a2 / 2.0 + a2 * a2 / 24.0 - a2 * a2 * a2 / 720.0 + a2 * a2 * a2 * a2 / 40320.0;
+        s = 1.0 - a2 / 6.0 + a2 * a2 / 120.0 - a2 * a2 * a2 / 5040.0;
+    } else {
+        const double a = sqrt(a2);
+        c = cos(a);
+        s = sin(a) / a;
+    }
+    q[0] = c;
     q[1] = s * v[0];
     q[2] = s * v[1];
     q[3] = s * v[2];
 }
 
-/* Adjoint of q = exp_q(v): v̄ += Jᵀ q̄. */
-static void quat_exp_adjoint(const double *v, const double *q_bar, double *v_bar)
+/* Adjoint of q = exp_q(v): v̄ = Jᵀ q̄ (assigns). */
+static inline void quat_exp_adjoint(const double *restrict v, const double *restrict q_bar,
+                                    double *restrict v_bar)
 {
     const double a2 = dot3(v, v);
-    const double a = sqrt(a2);
     double s, k; /* s = sin a / a, k = (a cos a − sin a) / a³ = (ds/da) / a */
-    if (a < 1e-2) {
+    if (a2 < QUAT_EXP_SERIES_A2) {
         s = 1.0 - a2 / 6.0 + a2 * a2 / 120.0 - a2 * a2 * a2 / 5040.0;
         k = -1.0 / 3.0 + a2 / 30.0 - a2 * a2 / 840.0;
     } else {
+        const double a = sqrt(a2);
         s = sin(a) / a;
         k = (a * cos(a) - sin(a)) / (a2 * a);
     }
-    const double vq = dot3(v, q_bar + 1);
-    for (int i = 0; i < 3; ++i) v_bar[i] += -s * v[i] * q_bar[0] + s * q_bar[1 + i] + k * v[i] * vq;
+    const double vq = k * dot3(v, q_bar + 1) - s * q_bar[0];
+    for (int i = 0; i < 3; ++i) v_bar[i] = s * q_bar[1 + i] + vq * v[i];
 }
 
-static void quat_to_mat(const double *q, double *R)
+static inline void quat_to_mat(const double *restrict q, double *restrict R)
 {
     const double w = q[0], x = q[1], y = q[2], z = q[3];
     R[0] = 1 - 2 * (y * y + z * z);
@@ -216,7 +245,8 @@ static void quat_to_mat(const double *q, double *R)
 }
 
 /* Adjoint of R = quat_to_mat(q): q̄ += Σ R̄ ⊙ ∂R/∂q. */
-static void quat_to_mat_adjoint(const double *q, const double *Rb, double *q_bar)
+static inline void quat_to_mat_adjoint(const double *restrict q, const double *restrict Rb,
+                                       double *restrict q_bar)
 {
     const double w = q[0], x = q[1], y = q[2], z = q[3];
     q_bar[0] += 2 * (-z * Rb[1] + y * Rb[2] + z * Rb[3] - x * Rb[5] - y * Rb[6] + x * Rb[7]);
@@ -228,298 +258,426 @@ static void quat_to_mat_adjoint(const double *q, const double *Rb, double *q_bar
                      x * Rb[6] + y * Rb[7]);
 }
 
-/* ---------------------------------------------------------------- one filter step */
-
-/* Constants of a pass that do not change from sample to sample. */
-typedef struct {
-    double gn[3];  /* gravity in n            */
-    double Gx[9];  /* [g_n×]                  */
-    double Mx[9];  /* [m_n×]                  */
-    double Mi[9];  /* Sm⁻¹                    */
-    double ld_Sm;  /* log det Sm              */
-} pass_consts_t;
-
-/* Every intermediate of one step, kept so the reverse pass can use them. */
-typedef struct {
-    int predicted;
-    double phi[3], Delta[4], q1[4], R[9], Pp[9];
-    double gb[3], mb[3], Ha[9], Hm[9], ea[3], em[3];
-    double Sa_t[9], Ai[9], ld_Sa;
-    double za[3], zm[3]; /* Ai εa, Mi εm */
-    double J[9], u[3], e2;
-    double Y[9], ld_Pp, Lam[9], Pu[9], ld_Lam, eta[3], half_eta[3], E[4];
-    double q_out[4], cost;
-} step_t;
-
-static int step_forward(const mc_mekf_model_t *m, const mc_mekf_data_t *d, const pass_consts_t *c,
-                        size_t k, const double *q, const double *P, step_t *s)
-{
-    const int use_mag = d->use_mag;
-    s->predicted = k > 0;
-    if (s->predicted) {
-        const double dt = d->dt[k];
-        const double *w = d->gyr + 3 * (k - 1);
-        for (int i = 0; i < 3; ++i) s->phi[i] = 0.5 * dt * (w[i] - m->bias[i]);
-        quat_exp(s->phi, s->Delta);
-        quat_mul(q, s->Delta, s->q1);
-        quat_to_mat(s->q1, s->R);
-        double t[9];
-        mat_mul(s->R, m->Sw, t);
-        mat_mul_nt(t, s->R, t);
-        for (int i = 0; i < 9; ++i) s->Pp[i] = P[i] + dt * dt * t[i];
-    } else {
-        memcpy(s->q1, q, sizeof s->q1);
-        quat_to_mat(s->q1, s->R);
-        memcpy(s->Pp, P, sizeof s->Pp);
-    }
-    /* Predicted measurements and Jacobians (nav-frame error: R_bn = R̃_bn (I − [η×])). */
-    mat_tvec(s->R, c->gn, s->gb);
-    mat_tvec(s->R, m->m, s->mb);
-    mat_mul_tn(s->R, c->Gx, s->Ha);
-    for (int i = 0; i < 9; ++i) s->Ha[i] = -s->Ha[i];
-    {
-        double t[9];
-        mat_mul_tn(s->R, c->Mx, t);
-        mat_mul(m->D, t, s->Hm);
-    }
-    const double *ya = d->acc + 3 * k;
-    const double *ym = d->mag + 3 * k;
-    double ym_pred[3];
-    mat_vec(m->D, s->mb, ym_pred);
-    for (int i = 0; i < 3; ++i) {
-        s->ea[i] = ya[i] + s->gb[i]; /* ŷ_a = −R_bn g_n */
-        s->em[i] = ym[i] - ym_pred[i] - m->o[i];
-    }
-    memcpy(s->Sa_t, m->Sa, sizeof s->Sa_t);
-    const double cx = d->acc_extra_var ? d->acc_extra_var[k] : 0.0;
-    s->Sa_t[0] += cx;
-    s->Sa_t[4] += cx;
-    s->Sa_t[8] += cx;
-    if (!spd_inverse(s->Sa_t, s->Ai, &s->ld_Sa)) return 0;
-
-    /* Information-form update. */
-    double t[9];
-    mat_vec(s->Ai, s->ea, s->za);
-    mat_tvec(s->Ha, s->za, s->u);
-    mat_mul(s->Ai, s->Ha, t);
-    mat_mul_tn(s->Ha, t, s->J);
-    s->e2 = dot3(s->ea, s->za);
-    if (use_mag) {
-        double um[3];
-        mat_vec(c->Mi, s->em, s->zm);
-        mat_tvec(s->Hm, s->zm, um);
-        for (int i = 0; i < 3; ++i) s->u[i] += um[i];
-        mat_mul(c->Mi, s->Hm, t);
-        double Jm[9];
-        mat_mul_tn(s->Hm, t, Jm);
-        mat_axpy(s->J, 1.0, Jm);
-        s->e2 += dot3(s->em, s->zm);
-    }
-    if (!spd_inverse(s->Pp, s->Y, &s->ld_Pp)) return 0;
-    for (int i = 0; i < 9; ++i) s->Lam[i] = s->Y[i] + s->J[i];
-    if (!spd_inverse(s->Lam, s->Pu, &s->ld_Lam)) return 0;
-    mat_vec(s->Pu, s->u, s->eta);
-    double ld_S = s->ld_Sa + s->ld_Pp + s->ld_Lam + (use_mag ? c->ld_Sm : 0.0);
-    s->cost = 0.5 * (s->e2 - dot3(s->u, s->eta) + ld_S);
-
-    for (int i = 0; i < 3; ++i) s->half_eta[i] = 0.5 * s->eta[i];
-    quat_exp(s->half_eta, s->E);
-    quat_mul(s->E, s->q1, s->q_out);
-    return 1;
-}
-
-/* Reverse of step_forward. Inputs: q̄_out (4) and P̄_out (= P̄u) accumulated from later steps.
- * Outputs: q̄ and P̄ of the step's inputs; model adjoints are accumulated into g, the adjoint
- * of Sm⁻¹ into Mi_bar (converted once at the end), and dV/dc_k is returned. */
-static double step_reverse(const mc_mekf_model_t *m, const mc_mekf_data_t *d, const pass_consts_t *c,
-                           size_t k, const step_t *s, const double *q, const double *q_out_bar,
-                           const double *P_out_bar, double *q_bar, double *P_bar,
-                           mc_mekf_model_t *g, double *Mi_bar)
-{
-    const int use_mag = d->use_mag;
-    double q1_bar[4] = {0, 0, 0, 0}, E_bar[4] = {0, 0, 0, 0};
-    double R_bar[9] = {0}, Pu_bar[9], Lam_bar[9] = {0}, Pp_bar[9] = {0}, Ai_bar[9] = {0};
-    double Ha_bar[9] = {0}, Hm_bar[9] = {0};
-    double eta_bar[3] = {0, 0, 0}, u_bar[3] = {0, 0, 0}, ea_bar[3] = {0, 0, 0},
-           em_bar[3] = {0, 0, 0};
-    double t[9];
-
-    memcpy(Pu_bar, P_out_bar, sizeof Pu_bar);
-
-    /* q_out = E ⊙ q1, E = exp_q(η/2) */
-    quat_mul_adjoint(s->E, s->q1, q_out_bar, E_bar, q1_bar);
-    {
-        double he_bar[3] = {0, 0, 0};
-        quat_exp_adjoint(s->half_eta, E_bar, he_bar);
-        for (int i = 0; i < 3; ++i) eta_bar[i] = 0.5 * he_bar[i];
-    }
-    /* cost = ½(e2 − uᵀη + ld_Sa + ld_Pp + ld_Λ [+ ld_Sm]) */
-    const double e2_bar = 0.5;
-    for (int i = 0; i < 3; ++i) {
-        eta_bar[i] += -0.5 * s->u[i];
-        u_bar[i] += -0.5 * s->eta[i];
-    }
-    /* η = Pu u */
-    mat_add_outer(Pu_bar, 1.0, eta_bar, s->u);
-    {
-        double v[3];
-        mat_vec(s->Pu, eta_bar, v); /* Pu symmetric */
-        for (int i = 0; i < 3; ++i) u_bar[i] += v[i];
-    }
-    /* Pu = Λ⁻¹, ld_Λ: Λ̄ += −Pu P̄u Pu + ½ Pu */
-    inverse_adjoint(s->Pu, Pu_bar, Lam_bar);
-    mat_axpy(Lam_bar, 0.5, s->Pu);
-    /* Λ = Y + J; Y = Pp⁻¹; ld_Pp */
-    inverse_adjoint(s->Y, Lam_bar, Pp_bar);
-    mat_axpy(Pp_bar, 0.5, s->Y);
-    const double *J_bar = Lam_bar;
-    double Js[9]; /* J̄ + J̄ᵀ */
-    for (int i = 0; i < 3; ++i)
-        for (int j = 0; j < 3; ++j) Js[3 * i + j] = J_bar[3 * i + j] + J_bar[3 * j + i];
-
-    /* Accelerometer block: J_a = Haᵀ Ai Ha, u_a = Haᵀ za, za = Ai εa, e2_a = εaᵀ za. */
-    {
-        double AH[9];
-        mat_mul(s->Ai, s->Ha, AH);
-        mat_mul(AH, Js, t);
-        mat_axpy(Ha_bar, 1.0, t);          /* H̄a += Ai Ha (J̄ + J̄ᵀ) */
-        mat_mul(s->Ha, J_bar, t);
-        mat_mul_nt(t, s->Ha, t);
-        mat_axpy(Ai_bar, 1.0, t);          /* Āi += Ha J̄ Haᵀ */
-        mat_add_outer(Ha_bar, 1.0, s->za, u_bar); /* H̄a += za ūᵀ */
-        double za_bar[3];
-        mat_vec(s->Ha, u_bar, za_bar);
-        for (int i = 0; i < 3; ++i) za_bar[i] += e2_bar * s->ea[i];
-        /* za = Ai εa; e2 also reads εa directly */
-        mat_add_outer(Ai_bar, 1.0, za_bar, s->ea);
-        double v[3];
-        mat_vec(s->Ai, za_bar, v);
-        for (int i = 0; i < 3; ++i) ea_bar[i] += v[i] + e2_bar * s->za[i];
-    }
-    if (use_mag) {
-        double MH[9];
-        mat_mul(c->Mi, s->Hm, MH);
-        mat_mul(MH, Js, t);
-        mat_axpy(Hm_bar, 1.0, t);
-        mat_mul(s->Hm, J_bar, t);
-        mat_mul_nt(t, s->Hm, t);
-        mat_axpy(Mi_bar, 1.0, t);
-        mat_add_outer(Hm_bar, 1.0, s->zm, u_bar);
-        double zm_bar[3];
-        mat_vec(s->Hm, u_bar, zm_bar);
-        for (int i = 0; i < 3; ++i) zm_bar[i] += e2_bar * s->em[i];
-        mat_add_outer(Mi_bar, 1.0, zm_bar, s->em);
-        double v[3];
-        mat_vec(c->Mi, zm_bar, v);
-        for (int i = 0; i < 3; ++i) em_bar[i] += v[i] + e2_bar * s->zm[i];
-    }
-    /* Ai = Sa_t⁻¹ and ½ ld_Sa: Σ̄a += −Ai Āi Ai + ½ Ai */
-    double Sa_bar[9] = {0};
-    inverse_adjoint(s->Ai, Ai_bar, Sa_bar);
-    mat_axpy(Sa_bar, 0.5, s->Ai);
-    mat_axpy(g->Sa, 1.0, Sa_bar);
-    const double c_bar = Sa_bar[0] + Sa_bar[4] + Sa_bar[8];
-
-    /* εa = ya + gb, gb = Rᵀ g_n: R̄ += g_n ḡbᵀ */
-    mat_add_outer(R_bar, 1.0, c->gn, ea_bar);
-    if (use_mag) {
-        /* εm = ym − D mb − o, mb = Rᵀ m */
-        double mb_bar[3];
-        for (int i = 0; i < 3; ++i) g->o[i] -= em_bar[i];
-        mat_add_outer(g->D, -1.0, em_bar, s->mb);
-        mat_tvec(m->D, em_bar, mb_bar);
-        for (int i = 0; i < 3; ++i) mb_bar[i] = -mb_bar[i];
-        mat_add_outer(R_bar, 1.0, m->m, mb_bar);
-        double v[3];
-        mat_vec(s->R, mb_bar, v);
-        for (int i = 0; i < 3; ++i) g->m[i] += v[i];
-        /* Hm = D Rᵀ [m×] */
-        double RtMx[9], Mx_bar[9], DRt[9];
-        mat_mul_tn(s->R, c->Mx, RtMx);
-        mat_mul_nt(Hm_bar, RtMx, t);
-        mat_axpy(g->D, 1.0, t);            /* D̄ += H̄m (Rᵀ Mx)ᵀ */
-        mat_mul_nt(m->D, s->R, DRt);       /* D Rᵀ */
-        mat_mul_nt(c->Mx, Hm_bar, t);      /* Mx H̄mᵀ */
-        mat_mul(t, m->D, t);
-        mat_axpy(R_bar, 1.0, t);           /* R̄ += Mx H̄mᵀ D */
-        mat_mul_tn(DRt, Hm_bar, Mx_bar);   /* [m×]‾ = (D Rᵀ)ᵀ H̄m */
-        skew3_adjoint(Mx_bar, g->m);
-    }
-    /* Ha = −Rᵀ [g_n×]: R̄ += −G H̄aᵀ */
-    mat_mul_nt(c->Gx, Ha_bar, t);
-    mat_axpy(R_bar, -1.0, t);
-
-    /* Prediction */
-    for (int i = 0; i < 9; ++i) P_bar[i] = Pp_bar[i];
-    if (s->predicted) {
-        const double dt = d->dt[k];
-        /* Pp = P + dt² R Σω Rᵀ */
-        double RS[9], Rt_Q_R[9];
-        mat_mul(s->R, m->Sw, RS);
-        mat_mul_tn(s->R, Pp_bar, t);
-        mat_mul(t, s->R, Rt_Q_R);
-        mat_axpy(g->Sw, dt * dt, Rt_Q_R);  /* Σ̄ω += dt² Rᵀ Q̄ R */
-        double RSt[9];
-        mat_mul_nt(s->R, m->Sw, RSt);      /* R Σωᵀ */
-        mat_mul(Pp_bar, RSt, t);
-        mat_axpy(R_bar, dt * dt, t);       /* R̄ += dt² Q̄ R Σωᵀ */
-        mat_mul_tn(Pp_bar, RS, t);
-        mat_axpy(R_bar, dt * dt, t);       /* R̄ += dt² Q̄ᵀ R Σω */
-    }
-    quat_to_mat_adjoint(s->q1, R_bar, q1_bar);
-    if (s->predicted) {
-        double Delta_bar[4] = {0, 0, 0, 0};
-        for (int i = 0; i < 4; ++i) q_bar[i] = 0.0;
-        quat_mul_adjoint(q, s->Delta, q1_bar, q_bar, Delta_bar);
-        double phi_bar[3] = {0, 0, 0};
-        quat_exp_adjoint(s->phi, Delta_bar, phi_bar);
-        const double dt = d->dt[k];
-        for (int i = 0; i < 3; ++i) g->bias[i] -= 0.5 * dt * phi_bar[i];
-    } else {
-        memcpy(q_bar, q1_bar, 4 * sizeof(double));
-    }
-    return c_bar;
-}
-
-/* ---------------------------------------------------------------- passes */
-
-static int make_consts(const mc_mekf_model_t *m, const mc_mekf_data_t *d, pass_consts_t *c)
-{
-    c->gn[0] = 0.0;
-    c->gn[1] = 0.0;
-    c->gn[2] = -d->g;
-    skew3(c->gn, c->Gx);
-    skew3(m->m, c->Mx);
-    if (d->use_mag) return spd_inverse(m->Sm, c->Mi, &c->ld_Sm);
-    memset(c->Mi, 0, sizeof c->Mi);
-    c->ld_Sm = 0.0;
-    return 1;
-}
-
-static void normalise_quat(double *q)
+static inline void normalise_quat(double *q)
 {
     const double r = 1.0 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     for (int i = 0; i < 4; ++i) q[i] *= r;
 }
 
-/* Cholesky-whitened innovation L⁻¹ε with S = H Pp Hᵀ + R = L Lᵀ (6×6 or 3×3). */
-static void whiten(const mc_mekf_model_t *m, const step_t *s, int ny, double *out)
+/* ---------------------------------------------------------------- one filter step */
+
+/* Everything a pass needs besides the running state. */
+typedef struct {
+    const mc_mekf_model_t *m;
+    const mc_mekf_data_t *d;
+    double g;       /* gravity magnitude; g_n = (0, 0, −g)          */
+    double Sw[9];   /* symmetrised Σω                               */
+    double Sa[9];   /* symmetrised Σa                               */
+    double Ai0[9];  /* Σa⁻¹: the accelerometer information at c_t = 0 */
+    double ld_Sa0;  /* log det Σa                                   */
+    double Mi[9];   /* Σm⁻¹                                         */
+    double ld_Sm;   /* log det Σm (0 without magnetometer)          */
+    double K[9];    /* Dᵀ Σm⁻¹ D                                    */
+} pass_t;
+
+static int make_pass(const mc_mekf_model_t *m, const mc_mekf_data_t *d, pass_t *p)
 {
+    p->m = m;
+    p->d = d;
+    p->g = d->g;
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) {
+            p->Sw[3 * i + j] = 0.5 * (m->Sw[3 * i + j] + m->Sw[3 * j + i]);
+            p->Sa[3 * i + j] = 0.5 * (m->Sa[3 * i + j] + m->Sa[3 * j + i]);
+        }
+    double det;
+    if (!sym_inverse(p->Sa, p->Ai0, &det)) return 0;
+    p->ld_Sa0 = log(det);
+    if (d->use_mag) {
+        double Sm[9];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j) Sm[3 * i + j] = 0.5 * (m->Sm[3 * i + j] + m->Sm[3 * j + i]);
+        if (!sym_inverse(Sm, p->Mi, &det)) return 0;
+        p->ld_Sm = log(det);
+        sym_sandwich_t(m->D, p->Mi, p->K);
+    } else {
+        memset(p->Mi, 0, sizeof p->Mi);
+        memset(p->K, 0, sizeof p->K);
+        p->ld_Sm = 0.0;
+    }
+    return 1;
+}
+
+static inline double acc_extra(const mc_mekf_data_t *d, size_t k)
+{
+    return d->acc_extra_var ? d->acc_extra_var[k] : 0.0;
+}
+
+/* Accelerometer information Ai = (Σa + c I)⁻¹ into buf, or the pass constant when c = 0.
+ * Returns NULL when Σa + c I is not positive definite; *det receives its determinant. */
+static inline const double *acc_information(const pass_t *p, double c, double *restrict buf,
+                                            double *restrict det)
+{
+    if (c == 0.0) return p->Ai0;
+    double S[9];
+    memcpy(S, p->Sa, sizeof S);
+    S[0] += c;
+    S[4] += c;
+    S[8] += c;
+    return sym_inverse(S, buf, det) ? buf : NULL;
+}
+
+/* Time update of the attitude, sample k−1 → k: φ = ½ T (ω − δω), Δ = exp_q(φ), q1 = q ⊙ Δ. */
+static inline void predict_attitude(const pass_t *p, size_t k, const double *restrict q,
+                                    double *restrict phi, double *restrict Delta,
+                                    double *restrict q1)
+{
+    const double dt = p->d->dt[k];
+    const double *w = p->d->gyr + 3 * (k - 1);
+    for (int i = 0; i < 3; ++i) phi[i] = 0.5 * dt * (w[i] - p->m->bias[i]);
+    quat_exp(phi, Delta);
+    quat_mul(q, Delta, q1);
+}
+
+/* The intermediates of one step that the callers use. */
+typedef struct {
+    double q1[4], R[9], Pp[9]; /* predicted attitude, its rotation, predicted covariance */
+    double ea[3], em[3];       /* innovations                                           */
+    double Y[9], Pu[9];        /* Pp⁻¹ and the posterior covariance Λ⁻¹                  */
+    double u[3], eta[3];       /* information vector and correction η = Λ⁻¹ u           */
+    double q_out[4];           /* exp_q(η/2) ⊙ q1 (not yet renormalised)                 */
+    double cost;
+} step_t;
+
+/* One step from (q, P) before sample k. Returns 0 when a covariance is not positive
+ * definite. Inlined into both passes, so the fields a pass does not read cost nothing. */
+static inline int step_forward(const pass_t *p, size_t k, const double *restrict q,
+                               const double *restrict P, step_t *restrict s)
+{
+    const mc_mekf_model_t *m = p->m;
+    const mc_mekf_data_t *d = p->d;
+    const double g = p->g;
+    if (k > 0) {
+        double phi[3], Delta[4], RS[9], Q[9];
+        predict_attitude(p, k, q, phi, Delta, s->q1);
+        quat_to_mat(s->q1, s->R);
+        const double dt2 = d->dt[k] * d->dt[k];
+        mat_mul(s->R, p->Sw, RS);
+        sym_mul_nt(RS, s->R, Q); /* R Σω Rᵀ */
+        for (int i = 0; i < 9; ++i) s->Pp[i] = P[i] + dt2 * Q[i];
+    } else {
+        memcpy(s->q1, q, sizeof s->q1);
+        quat_to_mat(s->q1, s->R);
+        memcpy(s->Pp, P, sizeof s->Pp);
+    }
+    const double *r0 = s->R, *r1 = s->R + 3, *r2 = s->R + 6;
+
+    /* Accelerometer: εa = ya + Rᵀ g_n = ya − g r2 (r_i: rows of R). */
+    double Ai_buf[9], det_Sa = 1.0;
+    const double cx = acc_extra(d, k);
+    const double *Ai = acc_information(p, cx, Ai_buf, &det_Sa);
+    if (!Ai) return 0;
+    const double *ya = d->acc + 3 * k;
+    double za[3], s0[3], s1[3], J[9];
+    for (int i = 0; i < 3; ++i) s->ea[i] = ya[i] - g * r2[i];
+    mat_vec(Ai, s->ea, za);
+    /* u_a = g_n × (R za); J_a = [g_n×]ᵀ (R Ai Rᵀ) [g_n×] needs rows 0 and 1 of R only. */
+    s->u[0] = g * dot3(r1, za);
+    s->u[1] = -g * dot3(r0, za);
+    s->u[2] = 0.0;
+    mat_vec(Ai, r0, s0);
+    mat_vec(Ai, r1, s1);
+    const double g2 = g * g;
+    J[0] = g2 * dot3(r1, s1);
+    J[1] = -g2 * dot3(r1, s0);
+    J[4] = g2 * dot3(r0, s0);
+    J[2] = J[5] = J[8] = 0.0;
+
+    if (d->use_mag) {
+        /* εm = ym − D Rᵀ m − o; u_m = (R Dᵀ zm) × m; J_m = [m×]ᵀ (R K Rᵀ) [m×]. */
+        const double *ym = d->mag + 3 * k;
+        double mb[3], ym_pred[3], zm[3], xm[3], vm[3], um[3], RK[9], Kn[9], Jm[9];
+        mat_tvec(s->R, m->m, mb);
+        mat_vec(m->D, mb, ym_pred);
+        for (int i = 0; i < 3; ++i) s->em[i] = ym[i] - ym_pred[i] - m->o[i];
+        mat_vec(p->Mi, s->em, zm);
+        mat_tvec(m->D, zm, xm);
+        mat_vec(s->R, xm, vm);
+        cross3(vm, m->m, um);
+        for (int i = 0; i < 3; ++i) s->u[i] += um[i];
+        mat_mul(s->R, p->K, RK);
+        sym_mul_nt(RK, s->R, Kn);
+        skew_sandwich(m->m, Kn, Jm);
+        J[0] += Jm[0];
+        J[1] += Jm[1];
+        J[2] += Jm[2];
+        J[4] += Jm[4];
+        J[5] += Jm[5];
+        J[8] += Jm[8];
+    } else {
+        memset(s->em, 0, sizeof s->em);
+    }
+    sym_fill(J);
+
+    double det_Pp, det_Lam, Lam[9];
+    if (!sym_inverse(s->Pp, s->Y, &det_Pp)) return 0;
+    for (int i = 0; i < 9; ++i) Lam[i] = s->Y[i] + J[i];
+    if (!sym_inverse(Lam, s->Pu, &det_Lam)) return 0;
+    mat_vec(s->Pu, s->u, s->eta);
+    /* One log for log det Sa_t + log det Pp + log det Λ (det Pp · det Λ = det(I + Pp J)
+     * is ≥ 1 and the product cannot underflow). */
+    const double ld = cx == 0.0 ? p->ld_Sa0 + log(det_Pp * det_Lam) : log(det_Sa * det_Pp * det_Lam);
+    /* εᵀS⁻¹ε = εᵀR⁻¹ε − uᵀη cancels catastrophically when a noise covariance is nearly
+     * singular (an optimiser's trial point can make it so) and can then even go negative.
+     * The same value as a sum of non-negative terms, the minimum of the information form:
+     *   εᵀS⁻¹ε = rᵀR⁻¹r + ηᵀPp⁻¹η,   r = ε − Hη (the posterior residual).
+     * Mathematically identical, so the reverse pass differentiates the simpler form. */
+    const double *eta = s->eta;
+    double ra[3], t[3], quad;
+    for (int i = 0; i < 3; ++i) ra[i] = s->ea[i] + g * (eta[1] * r0[i] - eta[0] * r1[i]);
+    mat_vec(Ai, ra, t);
+    quad = dot3(ra, t);
+    if (d->use_mag) {
+        double w[3], Rtw[3], Hmeta[3], rm[3];
+        cross3(m->m, eta, w); /* Hm η = D Rᵀ (m × η) */
+        mat_tvec(s->R, w, Rtw);
+        mat_vec(m->D, Rtw, Hmeta);
+        for (int i = 0; i < 3; ++i) rm[i] = s->em[i] - Hmeta[i];
+        mat_vec(p->Mi, rm, t);
+        quad += dot3(rm, t);
+    }
+    mat_vec(s->Y, eta, t);
+    quad += dot3(eta, t);
+    s->cost = 0.5 * (quad + ld + p->ld_Sm);
+
+    double half_eta[3], E[4];
+    for (int i = 0; i < 3; ++i) half_eta[i] = 0.5 * s->eta[i];
+    quat_exp(half_eta, E);
+    quat_mul(E, s->q1, s->q_out);
+    return 1;
+}
+
+/* Layout of one sample's tape record. */
+enum {
+    TAPE_Q = 0,    /* attitude before the step (4)  */
+    TAPE_Y = 4,    /* Pp⁻¹, packed (6)              */
+    TAPE_PU = 10,  /* Λ⁻¹, packed (6)               */
+    TAPE_U = 16,   /* u (3)                         */
+    TAPE_ETA = 19, /* η (3)                         */
+    TAPE_END = 22
+};
+typedef char tape_size_matches_header[TAPE_END == MC_MEKF_TAPE_DOUBLES ? 1 : -1];
+
+/* Adjoints summed over the samples. */
+typedef struct {
+    mc_mekf_model_t g; /* D, o, m, bias, Sw and the Sa of samples with c_t ≠ 0 */
+    double Ai0_bar[9]; /* Σ of Āi over the samples with c_t = 0 */
+    double Mi_bar[9];  /* Σ m̄ of Σm⁻¹ (besides K)              */
+    double K_bar[9];   /* Σ of K̄                                */
+    double acc_scale;  /* Σ_t dV/dc_t · c_t                      */
+    size_t n0;         /* samples with c_t = 0                   */
+} grad_acc_t;
+
+/* Reverse of step_forward for sample k from its tape record. q̄_out and P̄_out (= P̄u)
+ * arrive from later steps; q̄ and P̄ of the step's inputs are assigned. */
+static inline void step_reverse(const pass_t *p, size_t k, const double *restrict rec,
+                                const double *restrict qo_bar, const double *restrict Pu_bar_in,
+                                double *restrict q_bar, double *restrict P_bar,
+                                grad_acc_t *restrict acc)
+{
+    const mc_mekf_model_t *m = p->m;
+    const mc_mekf_data_t *d = p->d;
+    mc_mekf_model_t *gm = &acc->g;
+    const double g = p->g;
+    const double *q = rec + TAPE_Q, *u = rec + TAPE_U, *eta = rec + TAPE_ETA;
+    double Y[9], Pu[9];
+    sym_unpack(rec + TAPE_Y, Y);
+    sym_unpack(rec + TAPE_PU, Pu);
+
+    /* Recompute the cheap intermediates. */
+    double phi[3], Delta[4], q1[4], R[9];
+    if (k > 0) {
+        predict_attitude(p, k, q, phi, Delta, q1);
+    } else {
+        memcpy(q1, q, sizeof q1);
+    }
+    quat_to_mat(q1, R);
+    const double *r0 = R, *r1 = R + 3, *r2 = R + 6;
+    const double cx = acc_extra(d, k);
+    double Ai_buf[9], det_Sa;
+    const double *Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
+    const double *ya = d->acc + 3 * k;
+    double ea[3], za[3], s0[3], s1[3];
+    for (int i = 0; i < 3; ++i) ea[i] = ya[i] - g * r2[i];
+    mat_vec(Ai, ea, za);
+    mat_vec(Ai, r0, s0);
+    mat_vec(Ai, r1, s1);
+
+    /* q_out = E ⊙ q1, E = exp_q(η/2) */
+    double half_eta[3], E[4], E_bar[4], q1_bar[4], he_bar[3];
+    for (int i = 0; i < 3; ++i) half_eta[i] = 0.5 * eta[i];
+    quat_exp(half_eta, E);
+    quat_mul_adjoint(E, q1, qo_bar, E_bar, q1_bar);
+    quat_exp_adjoint(half_eta, E_bar, he_bar);
+    /* cost = ½(e2 − uᵀη + log dets); η = Pu u */
+    double eta_bar[3], u_bar[3], Pu_bar[9], Lam_bar[9], Pp_bar[9];
+    for (int i = 0; i < 3; ++i) eta_bar[i] = 0.5 * he_bar[i] - 0.5 * u[i];
+    mat_vec(Pu, eta_bar, u_bar);
+    for (int i = 0; i < 3; ++i) u_bar[i] -= 0.5 * eta[i];
+    memcpy(Pu_bar, Pu_bar_in, sizeof Pu_bar);
+    sym_add_outer(Pu_bar, eta_bar, u);
+    /* Pu = Λ⁻¹ and ½ log det Λ: Λ̄ = −Pu P̄u Pu + ½ Pu; J̄ = Λ̄ */
+    sym_sandwich(Pu, Pu_bar, Lam_bar);
+    for (int i = 0; i < 9; ++i) Lam_bar[i] = 0.5 * Pu[i] - Lam_bar[i];
+    /* Λ = Y + J, Y = Pp⁻¹ and ½ log det Pp: P̄p = −Y Λ̄ Y + ½ Y */
+    sym_sandwich(Y, Lam_bar, Pp_bar);
+    for (int i = 0; i < 9; ++i) P_bar[i] = 0.5 * Y[i] - Pp_bar[i];
+    const double *Jb = Lam_bar;
+
+    double R_bar[9];
+    /* J_a = g² [[r1ᵀAi r1, −r1ᵀAi r0], [·, r0ᵀAi r0]] (upper-left block):
+     * R̄ rows 0, 1 += 2 Āᵢⱼ Ai r_j and Āi += Σ Āᵢⱼ r_i r_jᵀ with Ā the block's adjoint. */
+    const double g2 = g * g;
+    const double A00 = g2 * Jb[4], A01 = -g2 * Jb[1], A11 = g2 * Jb[0];
+    /* u_a = (g r1·za, −g r0·za, 0): v̄a = (−g ū1, g ū0) on rows 0, 1 of R */
+    const double va0 = -g * u_bar[1], va1 = g * u_bar[0];
+    double za_bar[3], ea_bar[3], Ai_bar[9];
+    for (int i = 0; i < 3; ++i) {
+        R_bar[i] = 2.0 * (A00 * s0[i] + A01 * s1[i]) + va0 * za[i];
+        R_bar[3 + i] = 2.0 * (A01 * s0[i] + A11 * s1[i]) + va1 * za[i];
+        za_bar[i] = va0 * r0[i] + va1 * r1[i] + 0.5 * ea[i];
+    }
+    for (int i = 0; i < 3; ++i)
+        for (int j = i; j < 3; ++j)
+            Ai_bar[3 * i + j] = A00 * r0[i] * r0[j] + A01 * (r0[i] * r1[j] + r1[i] * r0[j]) +
+                                A11 * r1[i] * r1[j] + 0.5 * (za_bar[i] * ea[j] + ea[i] * za_bar[j]);
+    sym_fill(Ai_bar);
+    /* za = Ai εa (and e2 reads εa); εa = ya − g r2 */
+    mat_vec(Ai, za_bar, ea_bar);
+    for (int i = 0; i < 3; ++i) R_bar[6 + i] = -g * (ea_bar[i] + 0.5 * za[i]);
+
+    if (d->use_mag) {
+        const double *ym = d->mag + 3 * k;
+        double mb[3], ym_pred[3], em[3], zm[3], xm[3], vm[3], RK[9], Kn[9];
+        mat_tvec(R, m->m, mb);
+        mat_vec(m->D, mb, ym_pred);
+        for (int i = 0; i < 3; ++i) em[i] = ym[i] - ym_pred[i] - m->o[i];
+        mat_vec(p->Mi, em, zm);
+        mat_tvec(m->D, zm, xm);
+        mat_vec(R, xm, vm);
+        mat_mul(R, p->K, RK);
+        sym_mul_nt(RK, R, Kn);
+
+        /* u_m = vm × m: v̄m = m × ū, m̄ += ū × vm; vm = R xm, xm = Dᵀ zm */
+        double vm_bar[3], xm_bar[3], zm_bar[3], em_bar[3], mb_bar[3], t3[3];
+        cross3(m->m, u_bar, vm_bar);
+        cross3(u_bar, vm, t3);
+        for (int i = 0; i < 3; ++i) gm->m[i] += t3[i];
+        mat_tvec(R, vm_bar, xm_bar);
+        mat_vec(m->D, xm_bar, zm_bar);
+        for (int i = 0; i < 3; ++i) zm_bar[i] += 0.5 * em[i];
+        /* zm = Mi εm (and e2 reads εm) */
+        sym_add_outer(acc->Mi_bar, zm_bar, em);
+        mat_vec(p->Mi, zm_bar, em_bar);
+        for (int i = 0; i < 3; ++i) em_bar[i] += 0.5 * zm[i];
+        /* εm = ym − D mb − o, mb = Rᵀ m */
+        mat_tvec(m->D, em_bar, mb_bar);
+        for (int i = 0; i < 3; ++i) {
+            gm->o[i] -= em_bar[i];
+            for (int j = 0; j < 3; ++j) gm->D[3 * i + j] += zm[i] * xm_bar[j] - em_bar[i] * mb[j];
+        }
+        mat_vec(R, mb_bar, t3);
+        for (int i = 0; i < 3; ++i) gm->m[i] -= t3[i];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                R_bar[3 * i + j] += vm_bar[i] * xm[j] - m->m[i] * mb_bar[j];
+
+        /* J_m = [m×]ᵀ Kn [m×]: K̄n = [m×] J̄ [m×]ᵀ, [m×]‾ = 2 Kn [m×] J̄ */
+        double Kn_bar[9], T[9], F[9], KbRK[9], RtKbR[9];
+        skew_sandwich(m->m, Jb, Kn_bar);
+        for (int i = 0; i < 3; ++i) cross3(Kn + 3 * i, m->m, T + 3 * i); /* Kn [m×] */
+        mat_mul(T, Jb, F);
+        gm->m[0] += 2.0 * (F[7] - F[5]);
+        gm->m[1] += 2.0 * (F[2] - F[6]);
+        gm->m[2] += 2.0 * (F[3] - F[1]);
+        /* Kn = R K Rᵀ: R̄ += 2 K̄n R K, K̄ += Rᵀ K̄n R */
+        mat_mul(Kn_bar, RK, KbRK);
+        for (int i = 0; i < 9; ++i) R_bar[i] += 2.0 * KbRK[i];
+        sym_sandwich_t(R, Kn_bar, RtKbR);
+        for (int i = 0; i < 9; ++i) acc->K_bar[i] += RtKbR[i];
+    }
+
+    /* Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I) */
+    if (cx == 0.0) {
+        for (int i = 0; i < 9; ++i) acc->Ai0_bar[i] += Ai_bar[i];
+        acc->n0 += 1;
+    } else {
+        double Sa_bar[9];
+        sym_sandwich(Ai, Ai_bar, Sa_bar);
+        for (int i = 0; i < 9; ++i) {
+            Sa_bar[i] = 0.5 * Ai[i] - Sa_bar[i];
+            gm->Sa[i] += Sa_bar[i];
+        }
+        acc->acc_scale += cx * (Sa_bar[0] + Sa_bar[4] + Sa_bar[8]);
+    }
+
+    if (k > 0) {
+        /* Pp = P + T² R Σω Rᵀ: Σ̄ω += T² Rᵀ P̄p R, R̄ += 2 T² P̄p R Σω */
+        const double dt = d->dt[k], dt2 = dt * dt;
+        double RS[9], PbRS[9], RtPbR[9];
+        mat_mul(R, p->Sw, RS);
+        mat_mul(P_bar, RS, PbRS);
+        for (int i = 0; i < 9; ++i) R_bar[i] += 2.0 * dt2 * PbRS[i];
+        sym_sandwich_t(R, P_bar, RtPbR);
+        for (int i = 0; i < 9; ++i) gm->Sw[i] += dt2 * RtPbR[i];
+        quat_to_mat_adjoint(q1, R_bar, q1_bar);
+        /* q1 = q ⊙ Δ, Δ = exp_q(φ), φ = ½ T (ω − δω) */
+        double Delta_bar[4], phi_bar[3];
+        quat_mul_adjoint(q, Delta, q1_bar, q_bar, Delta_bar);
+        quat_exp_adjoint(phi, Delta_bar, phi_bar);
+        for (int i = 0; i < 3; ++i) gm->bias[i] -= 0.5 * dt * phi_bar[i];
+    } else {
+        quat_to_mat_adjoint(q1, R_bar, q1_bar);
+        memcpy(q_bar, q1_bar, sizeof q1_bar);
+    }
+}
+
+/* ---------------------------------------------------------------- passes */
+
+/* Cholesky-whitened innovation L⁻¹ε with S = H Pp Hᵀ + R = L Lᵀ (6×6 or 3×3). Diagnostics
+ * only: H is rebuilt here, Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×]. */
+static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *out)
+{
+    const mc_mekf_model_t *m = p->m;
+    const double g = p->g;
+    const double *R = s->R;
     double H[18], S[36], L[36], eps[6], w[6];
-    for (int i = 0; i < 9; ++i) {
-        H[i] = s->Ha[i];
-        H[9 + i] = s->Hm[i];
+    for (int i = 0; i < 3; ++i) {
+        /* [g_n×] = [[0, g, 0], [−g, 0, 0], [0, 0, 0]] */
+        H[3 * i + 0] = -(-g * R[3 + i]);
+        H[3 * i + 1] = -(g * R[i]);
+        H[3 * i + 2] = 0.0;
+    }
+    {
+        const double *mm = m->m;
+        const double Mx[9] = {0.0, -mm[2], mm[1], mm[2], 0.0, -mm[0], -mm[1], mm[0], 0.0};
+        double RtMx[9];
+        for (int i = 0; i < 3; ++i)
+            for (int j = 0; j < 3; ++j)
+                RtMx[3 * i + j] = R[i] * Mx[j] + R[3 + i] * Mx[3 + j] + R[6 + i] * Mx[6 + j];
+        mat_mul(m->D, RtMx, H + 9);
     }
     for (int i = 0; i < 3; ++i) {
         eps[i] = s->ea[i];
         eps[3 + i] = s->em[i];
     }
+    const double cx = acc_extra(p->d, k);
     for (int i = 0; i < ny; ++i)
         for (int j = 0; j < ny; ++j) {
             double v = 0.0;
             for (int a = 0; a < 3; ++a)
                 for (int b = 0; b < 3; ++b) v += H[3 * i + a] * s->Pp[3 * a + b] * H[3 * j + b];
-            if (i < 3 && j < 3) v += s->Sa_t[3 * i + j];
+            if (i < 3 && j < 3) v += p->Sa[3 * i + j] + (i == j ? cx : 0.0);
             if (i >= 3 && j >= 3) v += m->Sm[3 * (i - 3) + (j - 3)];
             S[ny * i + j] = v;
         }
@@ -541,32 +699,39 @@ static void whiten(const mc_mekf_model_t *m, const step_t *s, int ny, double *ou
     for (int i = 0; i < 6; ++i) out[i] = i < ny ? w[i] : 0.0;
 }
 
+static void load_prior(const mc_mekf_data_t *d, double *q, double *P)
+{
+    memcpy(q, d->q0, 4 * sizeof(double));
+    for (int i = 0; i < 3; ++i)
+        for (int j = 0; j < 3; ++j) P[3 * i + j] = 0.5 * (d->P0[3 * i + j] + d->P0[3 * j + i]);
+}
+
 double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                     const mc_mekf_outputs_t *out)
 {
     if (!model || !data || data->n == 0) return NAN;
-    pass_consts_t c;
-    if (!make_consts(model, data, &c)) return NAN;
+    pass_t p;
+    if (!make_pass(model, data, &p)) return NAN;
     double q[4], P[9];
-    memcpy(q, data->q0, sizeof q);
-    memcpy(P, data->P0, sizeof P);
+    load_prior(data, q, P);
     double cost = 0.0;
     step_t s;
+    const int want = out && (out->q_filt || out->innov || out->normalised);
     for (size_t k = 0; k < data->n; ++k) {
-        if (!step_forward(model, data, &c, k, q, P, &s)) return NAN;
+        if (!step_forward(&p, k, q, P, &s)) return NAN;
         cost += s.cost;
         memcpy(q, s.q_out, sizeof q);
         normalise_quat(q);
         memcpy(P, s.Pu, sizeof P);
-        if (out) {
+        if (want) {
             if (out->q_filt) memcpy(out->q_filt + 4 * k, q, sizeof q);
             if (out->innov) {
                 for (int i = 0; i < 3; ++i) {
                     out->innov[6 * k + i] = s.ea[i];
-                    out->innov[6 * k + 3 + i] = data->use_mag ? s.em[i] : 0.0;
+                    out->innov[6 * k + 3 + i] = s.em[i];
                 }
             }
-            if (out->normalised) whiten(model, &s, data->use_mag ? 6 : 3, out->normalised + 6 * k);
+            if (out->normalised) whiten(&p, &s, k, data->use_mag ? 6 : 3, out->normalised + 6 * k);
         }
     }
     return cost;
@@ -576,49 +741,57 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
                          mc_mekf_model_t *grad, double *grad_acc_scale)
 {
     if (!model || !data || !tape || !grad || data->n == 0) return NAN;
-    pass_consts_t c;
-    if (!make_consts(model, data, &c)) return NAN;
+    /* A zero gradient on failure: callers that test only the cost never see garbage. */
     memset(grad, 0, sizeof *grad);
+    if (grad_acc_scale) *grad_acc_scale = 0.0;
+    pass_t p;
+    if (!make_pass(model, data, &p)) return NAN;
     double q[4], P[9];
-    memcpy(q, data->q0, sizeof q);
-    memcpy(P, data->P0, sizeof P);
+    load_prior(data, q, P);
     double cost = 0.0;
     step_t s;
     const size_t n = data->n;
     for (size_t k = 0; k < n; ++k) {
-        double *rec = tape + 10 * k;
-        memcpy(rec, q, 4 * sizeof(double));
-        rec[4] = P[0]; rec[5] = P[1]; rec[6] = P[2];
-        rec[7] = P[4]; rec[8] = P[5]; rec[9] = P[8];
-        if (!step_forward(model, data, &c, k, q, P, &s)) return NAN;
+        double *rec = tape + MC_MEKF_TAPE_DOUBLES * k;
+        memcpy(rec + TAPE_Q, q, 4 * sizeof(double));
+        if (!step_forward(&p, k, q, P, &s)) return NAN;
+        sym_pack(s.Y, rec + TAPE_Y);
+        sym_pack(s.Pu, rec + TAPE_PU);
+        memcpy(rec + TAPE_U, s.u, 3 * sizeof(double));
+        memcpy(rec + TAPE_ETA, s.eta, 3 * sizeof(double));
         cost += s.cost;
         memcpy(q, s.q_out, sizeof q);
         normalise_quat(q);
         memcpy(P, s.Pu, sizeof P);
     }
     /* The final state does not enter the cost. */
+    grad_acc_t acc;
+    memset(&acc, 0, sizeof acc);
     double q_bar[4] = {0, 0, 0, 0}, P_bar[9] = {0};
-    double Mi_bar[9] = {0};
-    double acc_scale_bar = 0.0;
     for (size_t kk = n; kk-- > 0;) {
-        const double *rec = tape + 10 * kk;
-        double qk[4], Pk[9];
-        memcpy(qk, rec, 4 * sizeof(double));
-        Pk[0] = rec[4]; Pk[1] = Pk[3] = rec[5]; Pk[2] = Pk[6] = rec[6];
-        Pk[4] = rec[7]; Pk[5] = Pk[7] = rec[8]; Pk[8] = rec[9];
-        step_forward(model, data, &c, kk, qk, Pk, &s);
         double qb_in[4], Pb_in[9];
-        const double c_bar = step_reverse(model, data, &c, kk, &s, qk, q_bar, P_bar, qb_in, Pb_in,
-                                          grad, Mi_bar);
-        if (data->acc_extra_var) acc_scale_bar += c_bar * data->acc_extra_var[kk];
+        step_reverse(&p, kk, tape + MC_MEKF_TAPE_DOUBLES * kk, q_bar, P_bar, qb_in, Pb_in, &acc);
         memcpy(q_bar, qb_in, sizeof q_bar);
         memcpy(P_bar, Pb_in, sizeof P_bar);
     }
+
+    *grad = acc.g;
+    double t[9];
+    /* Samples with c_t = 0: Ai = Σa⁻¹ and n0 · ½ log det Σa */
+    sym_sandwich(p.Ai0, acc.Ai0_bar, t);
+    for (int i = 0; i < 9; ++i) grad->Sa[i] += 0.5 * (double)acc.n0 * p.Ai0[i] - t[i];
     if (data->use_mag) {
-        /* Mi = Sm⁻¹ and n·½ log det Sm */
-        inverse_adjoint(c.Mi, Mi_bar, grad->Sm);
-        mat_axpy(grad->Sm, 0.5 * (double)n, c.Mi);
+        /* K = Dᵀ Mi D: D̄ += 2 Mi D K̄, M̄i += D K̄ Dᵀ */
+        double MiD[9], DKb[9];
+        mat_mul(p.Mi, model->D, MiD);
+        mat_mul(MiD, acc.K_bar, t);
+        for (int i = 0; i < 9; ++i) grad->D[i] += 2.0 * t[i];
+        sym_sandwich(model->D, acc.K_bar, DKb);
+        for (int i = 0; i < 9; ++i) acc.Mi_bar[i] += DKb[i];
+        /* Mi = Σm⁻¹ and n · ½ log det Σm */
+        sym_sandwich(p.Mi, acc.Mi_bar, t);
+        for (int i = 0; i < 9; ++i) grad->Sm[i] = 0.5 * (double)n * p.Mi[i] - t[i];
     }
-    if (grad_acc_scale) *grad_acc_scale = acc_scale_bar;
+    if (grad_acc_scale) *grad_acc_scale = acc.acc_scale;
     return cost;
 }

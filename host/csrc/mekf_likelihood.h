@@ -44,8 +44,11 @@ typedef struct {
 double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                     const mc_mekf_outputs_t *out);
 
-/* Cost and gradient. `tape` is caller-owned workspace of 10*n doubles (the attitude and
- * covariance before each step). `grad_acc_extra` receives dV/dc summed with weights 1,
+/* Doubles of reverse-mode tape per sample (the attitude before the step, Pp⁻¹, Λ⁻¹, u, η). */
+#define MC_MEKF_TAPE_DOUBLES 22
+
+/* Cost and gradient. `tape` is caller-owned workspace of MC_MEKF_TAPE_DOUBLES*n doubles.
+ * `grad_acc_extra` receives dV/dc summed with weights 1,
  * i.e. sum_t dV/dc_t * acc_extra_var[t] / (sum over a unit scale), see the Python side.
  * Returns the cost, or NaN on failure (gradient then undefined). */
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data,

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib import cost, ekf, params
+from magcal.calib import cost, ekf, native, params
 from magcal.calib.initial import InitialEstimate, starting_attitude
 from magcal.calib.optimize import OptimizeOptions, OptimizeReport, minimize_bfgs
 from magcal.calib.params import ModelParams
@@ -131,7 +131,7 @@ def penalised_cost_functions(
 ) -> tuple[Callable, Callable]:
     """(θ ↦ (V + prior, ∇), θ ↦ V + prior) with the gradient exact or finite-difference."""
     mean, precision = gyro_noise_prior(theta0, stationary_samples)
-    tape = np.empty(10 * len(data))
+    tape = native.new_tape(len(data))
     typical = np.maximum(np.abs(theta0), 1e-3)
 
     def penalty(theta):

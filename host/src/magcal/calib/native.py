@@ -22,6 +22,15 @@ except ImportError as exc:  # pragma: no cover - depends on the build
         "`pip install -e host`) to compile it"
     ) from exc
 
+#: Doubles of reverse-mode workspace per sample (the C kernel's MC_MEKF_TAPE_DOUBLES): a
+#: tape for cost_and_model_gradient holds TAPE_DOUBLES_PER_SAMPLE · N float64.
+TAPE_DOUBLES_PER_SAMPLE: int = _mekf.TAPE_DOUBLES_PER_SAMPLE
+
+
+def new_tape(n_samples: int) -> np.ndarray:
+    """Workspace for :func:`cost_and_model_gradient` over ``n_samples`` samples."""
+    return np.empty(TAPE_DOUBLES_PER_SAMPLE * n_samples)
+
 
 @dataclass(frozen=True)
 class ModelGradient:
@@ -81,9 +90,9 @@ def cost_and_model_gradient(
     p: ModelParams, data: FilterData, use_mag: bool = True, tape: np.ndarray | None = None
 ) -> tuple[float, ModelGradient]:
     """V(θ) and its exact gradient w.r.t. the model quantities (one forward + one reverse
-    pass). ``tape`` (10·N,) may be passed in to reuse the workspace between calls."""
-    if tape is None or tape.shape != (10 * len(data),):
-        tape = np.empty(10 * len(data))
+    pass). ``tape`` (:func:`new_tape`) may be passed in to reuse the workspace between calls."""
+    if tape is None or tape.shape != (TAPE_DOUBLES_PER_SAMPLE * len(data),):
+        tape = new_tape(len(data))
     grad = np.empty(45)
     cost, acc_scale = _mekf.cost_grad(
         _model_buffer(p), *_data_args(data), bool(use_mag), tape, grad

@@ -33,36 +33,45 @@
 #include <math.h>
 #include <string.h>
 
+/* Everything below is inlined: the 3×3 helpers are a few instructions each, and the step
+ * functions are called from two passes each, so inlining lets each pass drop the stores it
+ * does not need. GCC's size limits would otherwise leave calls in the hot loops. */
+#if defined(__GNUC__)
+#define ALWAYS_INLINE inline __attribute__((always_inline))
+#else
+#define ALWAYS_INLINE inline
+#endif
+
 /* ---------------------------------------------------------------- 3×3 helpers
  * Matrices are row-major double[9]; symmetric ones are stored in full with both triangles
  * set. Outputs never alias inputs (restrict), so the compiler keeps everything in
  * registers. */
 
-static inline double dot3(const double *restrict a, const double *restrict b)
+static ALWAYS_INLINE double dot3(const double *restrict a, const double *restrict b)
 {
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2];
 }
 
-static inline void cross3(const double *restrict a, const double *restrict b, double *restrict c)
+static ALWAYS_INLINE void cross3(const double *restrict a, const double *restrict b, double *restrict c)
 {
     c[0] = a[1] * b[2] - a[2] * b[1];
     c[1] = a[2] * b[0] - a[0] * b[2];
     c[2] = a[0] * b[1] - a[1] * b[0];
 }
 
-static inline void mat_vec(const double *restrict a, const double *restrict x,
+static ALWAYS_INLINE void mat_vec(const double *restrict a, const double *restrict x,
                            double *restrict y) /* y = a x */
 {
     for (int i = 0; i < 3; ++i) y[i] = a[3 * i] * x[0] + a[3 * i + 1] * x[1] + a[3 * i + 2] * x[2];
 }
 
-static inline void mat_tvec(const double *restrict a, const double *restrict x,
+static ALWAYS_INLINE void mat_tvec(const double *restrict a, const double *restrict x,
                             double *restrict y) /* y = aᵀ x */
 {
     for (int i = 0; i < 3; ++i) y[i] = a[i] * x[0] + a[3 + i] * x[1] + a[6 + i] * x[2];
 }
 
-static inline void mat_mul(const double *restrict a, const double *restrict b,
+static ALWAYS_INLINE void mat_mul(const double *restrict a, const double *restrict b,
                            double *restrict c) /* c = a b */
 {
     for (int i = 0; i < 3; ++i)
@@ -71,7 +80,7 @@ static inline void mat_mul(const double *restrict a, const double *restrict b,
 }
 
 /* Mirror the upper triangle into the lower one. */
-static inline void sym_fill(double *s)
+static ALWAYS_INLINE void sym_fill(double *s)
 {
     s[3] = s[1];
     s[6] = s[2];
@@ -79,7 +88,7 @@ static inline void sym_fill(double *s)
 }
 
 /* c = a bᵀ where the result is known to be symmetric: upper triangle only. */
-static inline void sym_mul_nt(const double *restrict a, const double *restrict b, double *restrict c)
+static ALWAYS_INLINE void sym_mul_nt(const double *restrict a, const double *restrict b, double *restrict c)
 {
     for (int i = 0; i < 3; ++i)
         for (int j = i; j < 3; ++j) c[3 * i + j] = dot3(a + 3 * i, b + 3 * j);
@@ -87,7 +96,7 @@ static inline void sym_mul_nt(const double *restrict a, const double *restrict b
 }
 
 /* c = a S aᵀ, S symmetric. */
-static inline void sym_sandwich(const double *restrict a, const double *restrict s,
+static ALWAYS_INLINE void sym_sandwich(const double *restrict a, const double *restrict s,
                                 double *restrict c)
 {
     double t[9];
@@ -96,7 +105,7 @@ static inline void sym_sandwich(const double *restrict a, const double *restrict
 }
 
 /* c = aᵀ S a, S symmetric. */
-static inline void sym_sandwich_t(const double *restrict a, const double *restrict s,
+static ALWAYS_INLINE void sym_sandwich_t(const double *restrict a, const double *restrict s,
                                   double *restrict c)
 {
     double t[9]; /* t = S a, c_ij = Σ_k a_ki t_kj */
@@ -108,7 +117,7 @@ static inline void sym_sandwich_t(const double *restrict a, const double *restri
 
 /* c = [m×]ᵀ S [m×] (= [m×] S [m×]ᵀ), S symmetric. Row i of S [m×] is s_i × m, and
  * column j of −[m×] T is t_j × m. */
-static inline void skew_sandwich(const double *restrict m, const double *restrict s,
+static ALWAYS_INLINE void skew_sandwich(const double *restrict m, const double *restrict s,
                                  double *restrict c)
 {
     double t[9];
@@ -122,7 +131,7 @@ static inline void skew_sandwich(const double *restrict m, const double *restric
 }
 
 /* s += ½ (x yᵀ + y xᵀ): the symmetric part of an outer-product adjoint. */
-static inline void sym_add_outer(double *restrict s, const double *restrict x, const double *restrict y)
+static ALWAYS_INLINE void sym_add_outer(double *restrict s, const double *restrict x, const double *restrict y)
 {
     for (int i = 0; i < 3; ++i)
         for (int j = i; j < 3; ++j) s[3 * i + j] += 0.5 * (x[i] * y[j] + y[i] * x[j]);
@@ -133,7 +142,7 @@ static inline void sym_add_outer(double *restrict s, const double *restrict x, c
  * and its determinant. Returns 0 when the matrix is not positive definite (a leading
  * minor ≤ 0). The caller takes the logarithm, so that several determinants can share
  * one log. */
-static inline int sym_inverse(const double *restrict a, double *restrict inv, double *restrict det)
+static ALWAYS_INLINE int sym_inverse(const double *restrict a, double *restrict inv, double *restrict det)
 {
     const double a00 = a[0], a01 = a[1], a02 = a[2], a11 = a[4], a12 = a[5], a22 = a[8];
     const double c00 = a11 * a22 - a12 * a12;
@@ -155,12 +164,12 @@ static inline int sym_inverse(const double *restrict a, double *restrict inv, do
 }
 
 /* Symmetric 3×3 packed as (xx, xy, xz, yy, yz, zz), for the tape. */
-static inline void sym_pack(const double *restrict s, double *restrict p)
+static ALWAYS_INLINE void sym_pack(const double *restrict s, double *restrict p)
 {
     p[0] = s[0]; p[1] = s[1]; p[2] = s[2]; p[3] = s[4]; p[4] = s[5]; p[5] = s[8];
 }
 
-static inline void sym_unpack(const double *restrict p, double *restrict s)
+static ALWAYS_INLINE void sym_unpack(const double *restrict p, double *restrict s)
 {
     s[0] = p[0]; s[1] = s[3] = p[1]; s[2] = s[6] = p[2];
     s[4] = p[3]; s[5] = s[7] = p[4]; s[8] = p[5];
@@ -168,7 +177,7 @@ static inline void sym_unpack(const double *restrict p, double *restrict s)
 
 /* ---------------------------------------------------------------- quaternions */
 
-static inline void quat_mul(const double *restrict p, const double *restrict q, double *restrict r)
+static ALWAYS_INLINE void quat_mul(const double *restrict p, const double *restrict q, double *restrict r)
 {
     r[0] = p[0] * q[0] - p[1] * q[1] - p[2] * q[2] - p[3] * q[3];
     r[1] = p[0] * q[1] + p[1] * q[0] + p[2] * q[3] - p[3] * q[2];
@@ -176,31 +185,26 @@ static inline void quat_mul(const double *restrict p, const double *restrict q, 
     r[3] = p[0] * q[3] + p[1] * q[2] - p[2] * q[1] + p[3] * q[0];
 }
 
-/* Adjoint of r = p ⊙ q: p̄ = r̄ ⊙ q*, q̄ = p* ⊙ r̄ (the transpose of left/right
- * multiplication by a quaternion is multiplication by its conjugate). Assigns. */
-static inline void quat_mul_adjoint(const double *restrict p, const double *restrict q,
-                                    const double *restrict r_bar, double *restrict p_bar,
-                                    double *restrict q_bar)
-{
-    const double qc[4] = {q[0], -q[1], -q[2], -q[3]};
-    const double pc[4] = {p[0], -p[1], -p[2], -p[3]};
-    quat_mul(r_bar, qc, p_bar);
-    quat_mul(pc, r_bar, q_bar);
-}
-
 /* Series below |v| = 1e-2, where the direct formulas lose digits to cancellation. The
  * truncation errors are below 1e-20 relative there, and no sqrt or trigonometric call is
  * needed: gyroscope increments and filter corrections are almost always this small. */
 #define QUAT_EXP_SERIES_A2 1e-4
 
+/* Series coefficients as products, not quotients: x / 6.0 is a division (tens of cycles)
+ * because 1/6 is not exact, and the series run several times per sample. */
+static const double C_1_6 = 1.0 / 6.0, C_1_24 = 1.0 / 24.0, C_1_120 = 1.0 / 120.0,
+                    C_1_720 = 1.0 / 720.0, C_1_5040 = 1.0 / 5040.0, C_1_40320 = 1.0 / 40320.0,
+                    C_1_362880 = 1.0 / 362880.0, C_1_3628800 = 1.0 / 3628800.0,
+                    C_1_39916800 = 1.0 / 39916800.0, C_1_479001600 = 1.0 / 479001600.0;
+
 /* exp_q(v) = (cos|v|, sin|v| v/|v|). */
-static inline void quat_exp(const double *restrict v, double *restrict q)
+static ALWAYS_INLINE void quat_exp(const double *restrict v, double *restrict q)
 {
     const double a2 = dot3(v, v);
     double c, s; /* cos a, sin a / a */
     if (a2 < QUAT_EXP_SERIES_A2) {
-        c = 1.0 - a2 / 2.0 + a2 * a2 / 24.0 - a2 * a2 * a2 / 720.0 + a2 * a2 * a2 * a2 / 40320.0;
-        s = 1.0 - a2 / 6.0 + a2 * a2 / 120.0 - a2 * a2 * a2 / 5040.0;
+        c = 1.0 + a2 * (-0.5 + a2 * (C_1_24 + a2 * (-C_1_720 + a2 * C_1_40320)));
+        s = 1.0 + a2 * (-C_1_6 + a2 * (C_1_120 - a2 * C_1_5040));
     } else {
         const double a = sqrt(a2);
         c = cos(a);
@@ -212,25 +216,7 @@ static inline void quat_exp(const double *restrict v, double *restrict q)
     q[3] = s * v[2];
 }
 
-/* Adjoint of q = exp_q(v): v̄ = Jᵀ q̄ (assigns). */
-static inline void quat_exp_adjoint(const double *restrict v, const double *restrict q_bar,
-                                    double *restrict v_bar)
-{
-    const double a2 = dot3(v, v);
-    double s, k; /* s = sin a / a, k = (a cos a − sin a) / a³ = (ds/da) / a */
-    if (a2 < QUAT_EXP_SERIES_A2) {
-        s = 1.0 - a2 / 6.0 + a2 * a2 / 120.0 - a2 * a2 * a2 / 5040.0;
-        k = -1.0 / 3.0 + a2 / 30.0 - a2 * a2 / 840.0;
-    } else {
-        const double a = sqrt(a2);
-        s = sin(a) / a;
-        k = (a * cos(a) - sin(a)) / (a2 * a);
-    }
-    const double vq = k * dot3(v, q_bar + 1) - s * q_bar[0];
-    for (int i = 0; i < 3; ++i) v_bar[i] = s * q_bar[1 + i] + vq * v[i];
-}
-
-static inline void quat_to_mat(const double *restrict q, double *restrict R)
+static ALWAYS_INLINE void quat_to_mat(const double *restrict q, double *restrict R)
 {
     const double w = q[0], x = q[1], y = q[2], z = q[3];
     R[0] = 1 - 2 * (y * y + z * z);
@@ -244,21 +230,45 @@ static inline void quat_to_mat(const double *restrict q, double *restrict R)
     R[8] = 1 - 2 * (x * x + y * y);
 }
 
-/* Adjoint of R = quat_to_mat(q): q̄ += Σ R̄ ⊙ ∂R/∂q. */
-static inline void quat_to_mat_adjoint(const double *restrict q, const double *restrict Rb,
-                                       double *restrict q_bar)
+/* v ↦ R(q) v for a unit quaternion q = (c, w): v + 2c (w × v) + 2 w × (w × v). */
+static ALWAYS_INLINE void quat_rotate(const double *restrict q, const double *restrict v,
+                                      double *restrict out)
 {
-    const double w = q[0], x = q[1], y = q[2], z = q[3];
-    q_bar[0] += 2 * (-z * Rb[1] + y * Rb[2] + z * Rb[3] - x * Rb[5] - y * Rb[6] + x * Rb[7]);
-    q_bar[1] += 2 * (y * Rb[1] + z * Rb[2] + y * Rb[3] - 2 * x * Rb[4] - w * Rb[5] + z * Rb[6] +
-                     w * Rb[7] - 2 * x * Rb[8]);
-    q_bar[2] += 2 * (-2 * y * Rb[0] + x * Rb[1] + w * Rb[2] + x * Rb[3] + z * Rb[5] - w * Rb[6] +
-                     z * Rb[7] - 2 * y * Rb[8]);
-    q_bar[3] += 2 * (-2 * z * Rb[0] - w * Rb[1] + x * Rb[2] + w * Rb[3] - 2 * z * Rb[4] + y * Rb[5] +
-                     x * Rb[6] + y * Rb[7]);
+    double t[3], wt[3];
+    cross3(q + 1, v, t);
+    for (int i = 0; i < 3; ++i) t[i] = 2.0 * t[i];
+    cross3(q + 1, t, wt);
+    for (int i = 0; i < 3; ++i) out[i] = v[i] + q[0] * t[i] + wt[i];
 }
 
-static inline void normalise_quat(double *q)
+/* Below this squared rotation angle the Jacobian coefficients come from their series
+ * (truncation < 1e-16 relative); above it the closed forms lose < 1e-14 to cancellation. */
+#define JR_SERIES_T 0.04
+
+/* Jr(θ)ᵀ v, with Jr the right Jacobian of the rotation vector θ ↦ Exp(θ):
+ * Exp(θ + dθ) = Exp(θ) Exp(Jr(θ) dθ), Jr(θ)ᵀ = I + a [θ×] + b [θ×]²,
+ * a = (1 − cos|θ|)/|θ|², b = (|θ| − sin|θ|)/|θ|³. It turns a body-frame torque on
+ * Exp(θ) into the adjoint of θ. */
+static ALWAYS_INLINE void rotvec_jac_t(const double *restrict th, const double *restrict v,
+                                       double *restrict out)
+{
+    const double t = dot3(th, th);
+    double a, b;
+    if (t < JR_SERIES_T) {
+        a = 0.5 + t * (-C_1_24 + t * (C_1_720 + t * (-C_1_40320 + t * (C_1_3628800 - t * C_1_479001600))));
+        b = C_1_6 + t * (-C_1_120 + t * (C_1_5040 + t * (-C_1_362880 + t * C_1_39916800)));
+    } else {
+        const double th1 = sqrt(t), sh = sin(0.5 * th1);
+        a = 2.0 * sh * sh / t;
+        b = (th1 - sin(th1)) / (t * th1);
+    }
+    double c1[3], c2[3];
+    cross3(th, v, c1);
+    cross3(th, c1, c2);
+    for (int i = 0; i < 3; ++i) out[i] = v[i] + a * c1[i] + b * c2[i];
+}
+
+static ALWAYS_INLINE void normalise_quat(double *q)
 {
     const double r = 1.0 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     for (int i = 0; i < 4; ++i) q[i] *= r;
@@ -308,14 +318,14 @@ static int make_pass(const mc_mekf_model_t *m, const mc_mekf_data_t *d, pass_t *
     return 1;
 }
 
-static inline double acc_extra(const mc_mekf_data_t *d, size_t k)
+static ALWAYS_INLINE double acc_extra(const mc_mekf_data_t *d, size_t k)
 {
     return d->acc_extra_var ? d->acc_extra_var[k] : 0.0;
 }
 
 /* Accelerometer information Ai = (Σa + c I)⁻¹ into buf, or the pass constant when c = 0.
  * Returns NULL when Σa + c I is not positive definite; *det receives its determinant. */
-static inline const double *acc_information(const pass_t *p, double c, double *restrict buf,
+static ALWAYS_INLINE const double *acc_information(const pass_t *p, double c, double *restrict buf,
                                             double *restrict det)
 {
     if (c == 0.0) return p->Ai0;
@@ -328,7 +338,7 @@ static inline const double *acc_information(const pass_t *p, double c, double *r
 }
 
 /* Time update of the attitude, sample k−1 → k: φ = ½ T (ω − δω), Δ = exp_q(φ), q1 = q ⊙ Δ. */
-static inline void predict_attitude(const pass_t *p, size_t k, const double *restrict q,
+static ALWAYS_INLINE void predict_attitude(const pass_t *p, size_t k, const double *restrict q,
                                     double *restrict phi, double *restrict Delta,
                                     double *restrict q1)
 {
@@ -339,10 +349,17 @@ static inline void predict_attitude(const pass_t *p, size_t k, const double *res
     quat_mul(q, Delta, q1);
 }
 
+/* The fraction of εᵀR⁻¹ε that the quadratic term may lose to cancellation before it is
+ * recomputed in a stable form: the rounding error is then below 2^-52 · 8 / QUAD_CANCEL
+ * relative. */
+#define QUAD_CANCEL (1.0 / 64.0)
+
 /* The intermediates of one step that the callers use. */
 typedef struct {
     double q1[4], R[9], Pp[9]; /* predicted attitude, its rotation, predicted covariance */
     double ea[3], em[3];       /* innovations                                           */
+    double zm[3], xm[3], vm[3];/* Σm⁻¹ εm, Dᵀ zm, R xm                                 */
+    double Kn[9];              /* R K Rᵀ                                                */
     double Y[9], Pu[9];        /* Pp⁻¹ and the posterior covariance Λ⁻¹                  */
     double u[3], eta[3];       /* information vector and correction η = Λ⁻¹ u           */
     double q_out[4];           /* exp_q(η/2) ⊙ q1 (not yet renormalised)                 */
@@ -351,7 +368,7 @@ typedef struct {
 
 /* One step from (q, P) before sample k. Returns 0 when a covariance is not positive
  * definite. Inlined into both passes, so the fields a pass does not read cost nothing. */
-static inline int step_forward(const pass_t *p, size_t k, const double *restrict q,
+static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *restrict q,
                                const double *restrict P, step_t *restrict s)
 {
     const mc_mekf_model_t *m = p->m;
@@ -381,6 +398,7 @@ static inline int step_forward(const pass_t *p, size_t k, const double *restrict
     double za[3], s0[3], s1[3], J[9];
     for (int i = 0; i < 3; ++i) s->ea[i] = ya[i] - g * r2[i];
     mat_vec(Ai, s->ea, za);
+    double e2 = dot3(s->ea, za);
     /* u_a = g_n × (R za); J_a = [g_n×]ᵀ (R Ai Rᵀ) [g_n×] needs rows 0 and 1 of R only. */
     s->u[0] = g * dot3(r1, za);
     s->u[1] = -g * dot3(r0, za);
@@ -396,11 +414,13 @@ static inline int step_forward(const pass_t *p, size_t k, const double *restrict
     if (d->use_mag) {
         /* εm = ym − D Rᵀ m − o; u_m = (R Dᵀ zm) × m; J_m = [m×]ᵀ (R K Rᵀ) [m×]. */
         const double *ym = d->mag + 3 * k;
-        double mb[3], ym_pred[3], zm[3], xm[3], vm[3], um[3], RK[9], Kn[9], Jm[9];
+        double mb[3], ym_pred[3], um[3], RK[9], Jm[9];
+        double *zm = s->zm, *xm = s->xm, *vm = s->vm, *Kn = s->Kn;
         mat_tvec(s->R, m->m, mb);
         mat_vec(m->D, mb, ym_pred);
         for (int i = 0; i < 3; ++i) s->em[i] = ym[i] - ym_pred[i] - m->o[i];
         mat_vec(p->Mi, s->em, zm);
+        e2 += dot3(s->em, zm);
         mat_tvec(m->D, zm, xm);
         mat_vec(s->R, xm, vm);
         cross3(vm, m->m, um);
@@ -427,27 +447,31 @@ static inline int step_forward(const pass_t *p, size_t k, const double *restrict
     /* One log for log det Sa_t + log det Pp + log det Λ (det Pp · det Λ = det(I + Pp J)
      * is ≥ 1 and the product cannot underflow). */
     const double ld = cx == 0.0 ? p->ld_Sa0 + log(det_Pp * det_Lam) : log(det_Sa * det_Pp * det_Lam);
-    /* εᵀS⁻¹ε = εᵀR⁻¹ε − uᵀη cancels catastrophically when a noise covariance is nearly
-     * singular (an optimiser's trial point can make it so) and can then even go negative.
-     * The same value as a sum of non-negative terms, the minimum of the information form:
+    /* εᵀS⁻¹ε = εᵀR⁻¹ε − uᵀη. The difference cancels catastrophically when a noise
+     * covariance is nearly singular (an optimiser's trial point can make it so) and can then
+     * even go negative. When less than QUAD_CANCEL of e2 survives, the same value is formed
+     * as a sum of non-negative terms, the minimum of the information form:
      *   εᵀS⁻¹ε = rᵀR⁻¹r + ηᵀPp⁻¹η,   r = ε − Hη (the posterior residual).
      * Mathematically identical, so the reverse pass differentiates the simpler form. */
     const double *eta = s->eta;
-    double ra[3], t[3], quad;
-    for (int i = 0; i < 3; ++i) ra[i] = s->ea[i] + g * (eta[1] * r0[i] - eta[0] * r1[i]);
-    mat_vec(Ai, ra, t);
-    quad = dot3(ra, t);
-    if (d->use_mag) {
-        double w[3], Rtw[3], Hmeta[3], rm[3];
-        cross3(m->m, eta, w); /* Hm η = D Rᵀ (m × η) */
-        mat_tvec(s->R, w, Rtw);
-        mat_vec(m->D, Rtw, Hmeta);
-        for (int i = 0; i < 3; ++i) rm[i] = s->em[i] - Hmeta[i];
-        mat_vec(p->Mi, rm, t);
-        quad += dot3(rm, t);
+    double quad = e2 - dot3(s->u, eta);
+    if (!(quad >= QUAD_CANCEL * e2)) {
+        double ra[3], t[3];
+        for (int i = 0; i < 3; ++i) ra[i] = s->ea[i] + g * (eta[1] * r0[i] - eta[0] * r1[i]);
+        mat_vec(Ai, ra, t);
+        quad = dot3(ra, t);
+        if (d->use_mag) {
+            double w[3], Rtw[3], Hmeta[3], rm[3];
+            cross3(m->m, eta, w); /* Hm η = D Rᵀ (m × η) */
+            mat_tvec(s->R, w, Rtw);
+            mat_vec(m->D, Rtw, Hmeta);
+            for (int i = 0; i < 3; ++i) rm[i] = s->em[i] - Hmeta[i];
+            mat_vec(p->Mi, rm, t);
+            quad += dot3(rm, t);
+        }
+        mat_vec(s->Y, eta, t);
+        quad += dot3(eta, t);
     }
-    mat_vec(s->Y, eta, t);
-    quad += dot3(eta, t);
     s->cost = 0.5 * (quad + ld + p->ld_Sm);
 
     double half_eta[3], E[4];
@@ -457,14 +481,20 @@ static inline int step_forward(const pass_t *p, size_t k, const double *restrict
     return 1;
 }
 
-/* Layout of one sample's tape record. */
+/* Layout of one sample's tape record: what the reverse pass would otherwise recompute at
+ * the price of a matrix product or an inverse. */
 enum {
-    TAPE_Q = 0,    /* attitude before the step (4)  */
-    TAPE_Y = 4,    /* Pp⁻¹, packed (6)              */
-    TAPE_PU = 10,  /* Λ⁻¹, packed (6)               */
-    TAPE_U = 16,   /* u (3)                         */
-    TAPE_ETA = 19, /* η (3)                         */
-    TAPE_END = 22
+    TAPE_Q1 = 0,   /* predicted attitude q1 (4)       */
+    TAPE_Y = 4,    /* Pp⁻¹, packed (6)                 */
+    TAPE_PU = 10,  /* Λ⁻¹, packed (6)                  */
+    TAPE_U = 16,   /* u (3)                            */
+    TAPE_ETA = 19, /* η (3)                            */
+    TAPE_KN = 22,  /* R K Rᵀ, packed (6; magnetometer) */
+    TAPE_EM = 28,  /* εm (3)                           */
+    TAPE_ZM = 31,  /* Σm⁻¹ εm (3)                      */
+    TAPE_XM = 34,  /* Dᵀ zm (3)                        */
+    TAPE_VM = 37,  /* R xm (3)                         */
+    TAPE_END = 40
 };
 typedef char tape_size_matches_header[TAPE_END == MC_MEKF_TAPE_DOUBLES ? 1 : -1];
 
@@ -478,50 +508,44 @@ typedef struct {
     size_t n0;         /* samples with c_t = 0                   */
 } grad_acc_t;
 
-/* Reverse of step_forward for sample k from its tape record. q̄_out and P̄_out (= P̄u)
- * arrive from later steps; q̄ and P̄ of the step's inputs are assigned. */
-static inline void step_reverse(const pass_t *p, size_t k, const double *restrict rec,
-                                const double *restrict qo_bar, const double *restrict Pu_bar_in,
-                                double *restrict q_bar, double *restrict P_bar,
-                                grad_acc_t *restrict acc)
+/* Reverse of step_forward for sample k from its tape record.
+ *
+ * Attitude adjoints are body-frame torques: δ̄ such that dV = δ̄·δ when an attitude q
+ * moves to q ⊙ exp_q(δ/2) (R(q) to R(q)(I + [δ×])). The quaternion stays on the unit
+ * sphere, so this is all of its adjoint; it also makes renormalisation the identity. Along
+ * the chain q → q1 = q ⊙ Δ → q_out = exp_q(η/2) ⊙ q1:
+ *   δ_q1 = R(Δ)ᵀ δ_q + Jr(2φ) 2dφ,   δ_out = δ_q1 + R(q1)ᵀ Jr(η) dη.
+ * A term R̄ of R = R(q1) adds vex(RᵀR̄ − R̄ᵀR): Σᵢ R̄ᵢ × rᵢ over its rows, b × (Rᵀa) for
+ * R̄ = a bᵀ, and (M₂₁ − M₁₂, M₀₂ − M₂₀, M₁₀ − M₀₁) for RᵀR̄ = M. Most such M are products
+ * the gradient forms anyway, which saves building R̄.
+ *
+ * δ̄_out and P̄_out (= P̄u) arrive from later steps; δ̄_q and P̄ of the step's inputs are
+ * assigned. */
+static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *restrict rec,
+                                       const double *restrict tq_out,
+                                       const double *restrict Pu_bar_in, double *restrict tq_in,
+                                       double *restrict P_bar, grad_acc_t *restrict acc)
 {
     const mc_mekf_model_t *m = p->m;
     const mc_mekf_data_t *d = p->d;
     mc_mekf_model_t *gm = &acc->g;
     const double g = p->g;
-    const double *q = rec + TAPE_Q, *u = rec + TAPE_U, *eta = rec + TAPE_ETA;
-    double Y[9], Pu[9];
+    const double *q1 = rec + TAPE_Q1, *u = rec + TAPE_U, *eta = rec + TAPE_ETA;
+    double Y[9], Pu[9], R[9];
     sym_unpack(rec + TAPE_Y, Y);
     sym_unpack(rec + TAPE_PU, Pu);
-
-    /* Recompute the cheap intermediates. */
-    double phi[3], Delta[4], q1[4], R[9];
-    if (k > 0) {
-        predict_attitude(p, k, q, phi, Delta, q1);
-    } else {
-        memcpy(q1, q, sizeof q1);
-    }
     quat_to_mat(q1, R);
     const double *r0 = R, *r1 = R + 3, *r2 = R + 6;
-    const double cx = acc_extra(d, k);
-    double Ai_buf[9], det_Sa;
-    const double *Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
-    const double *ya = d->acc + 3 * k;
-    double ea[3], za[3], s0[3], s1[3];
-    for (int i = 0; i < 3; ++i) ea[i] = ya[i] - g * r2[i];
-    mat_vec(Ai, ea, za);
-    mat_vec(Ai, r0, s0);
-    mat_vec(Ai, r1, s1);
 
-    /* q_out = E ⊙ q1, E = exp_q(η/2) */
-    double half_eta[3], E[4], E_bar[4], q1_bar[4], he_bar[3];
-    for (int i = 0; i < 3; ++i) half_eta[i] = 0.5 * eta[i];
-    quat_exp(half_eta, E);
-    quat_mul_adjoint(E, q1, qo_bar, E_bar, q1_bar);
-    quat_exp_adjoint(half_eta, E_bar, he_bar);
-    /* cost = ½(e2 − uᵀη + log dets); η = Pu u */
-    double eta_bar[3], u_bar[3], Pu_bar[9], Lam_bar[9], Pp_bar[9];
-    for (int i = 0; i < 3; ++i) eta_bar[i] = 0.5 * he_bar[i] - 0.5 * u[i];
+    /* q_out = exp_q(η/2) ⊙ q1: η̄ = Jr(η)ᵀ R δ̄_out; and the cost's −½ uᵀη. The torque on
+     * q1 starts as δ̄_out. */
+    double tq[3], w[3], eta_bar[3];
+    memcpy(tq, tq_out, sizeof tq);
+    mat_vec(R, tq_out, w);
+    rotvec_jac_t(eta, w, eta_bar);
+    for (int i = 0; i < 3; ++i) eta_bar[i] -= 0.5 * u[i];
+    /* η = Pu u; the cost's −½ uᵀη */
+    double u_bar[3], Pu_bar[9], Lam_bar[9], Pp_bar[9];
     mat_vec(Pu, eta_bar, u_bar);
     for (int i = 0; i < 3; ++i) u_bar[i] -= 0.5 * eta[i];
     memcpy(Pu_bar, Pu_bar_in, sizeof Pu_bar);
@@ -534,77 +558,90 @@ static inline void step_reverse(const pass_t *p, size_t k, const double *restric
     for (int i = 0; i < 9; ++i) P_bar[i] = 0.5 * Y[i] - Pp_bar[i];
     const double *Jb = Lam_bar;
 
-    double R_bar[9];
-    /* J_a = g² [[r1ᵀAi r1, −r1ᵀAi r0], [·, r0ᵀAi r0]] (upper-left block):
-     * R̄ rows 0, 1 += 2 Āᵢⱼ Ai r_j and Āi += Σ Āᵢⱼ r_i r_jᵀ with Ā the block's adjoint. */
+    /* Accelerometer. */
+    const double cx = acc_extra(d, k);
+    double Ai_buf[9], det_Sa;
+    const double *Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
+    const double *ya = d->acc + 3 * k;
+    double ea[3], za[3], za_bar[3], ea_bar[3], Ai_bar[9], p0[3], p1[3], t3[3];
+    for (int i = 0; i < 3; ++i) ea[i] = ya[i] - g * r2[i];
+    mat_vec(Ai, ea, za);
+    /* u_a = (g r1·za, −g r0·za, 0) = g_n × (R za): the rows 0, 1 of R get v̄a zaᵀ,
+     * v̄a = (−g ū1, g ū0), so z̄a = Rᵀ v̄a (+ ½ εa from e2) and δ̄ += za × Rᵀv̄a. */
+    const double va0 = -g * u_bar[1], va1 = g * u_bar[0];
+    for (int i = 0; i < 3; ++i) za_bar[i] = va0 * r0[i] + va1 * r1[i];
+    cross3(za, za_bar, t3);
+    for (int i = 0; i < 3; ++i) {
+        tq[i] += t3[i];
+        za_bar[i] += 0.5 * ea[i];
+    }
+    /* J_a = g² [[r1ᵀAi r1, −r1ᵀAi r0], [·, r0ᵀAi r0]] (upper-left block). With Ā its
+     * adjoint and pᵢ = Σⱼ Āᵢⱼ rⱼ: Āi += W = Σᵢ rᵢ pᵢᵀ (symmetric), and RᵀR̄ = 2 W Ai. */
     const double g2 = g * g;
     const double A00 = g2 * Jb[4], A01 = -g2 * Jb[1], A11 = g2 * Jb[0];
-    /* u_a = (g r1·za, −g r0·za, 0): v̄a = (−g ū1, g ū0) on rows 0, 1 of R */
-    const double va0 = -g * u_bar[1], va1 = g * u_bar[0];
-    double za_bar[3], ea_bar[3], Ai_bar[9];
     for (int i = 0; i < 3; ++i) {
-        R_bar[i] = 2.0 * (A00 * s0[i] + A01 * s1[i]) + va0 * za[i];
-        R_bar[3 + i] = 2.0 * (A01 * s0[i] + A11 * s1[i]) + va1 * za[i];
-        za_bar[i] = va0 * r0[i] + va1 * r1[i] + 0.5 * ea[i];
+        p0[i] = A00 * r0[i] + A01 * r1[i];
+        p1[i] = A01 * r0[i] + A11 * r1[i];
     }
     for (int i = 0; i < 3; ++i)
-        for (int j = i; j < 3; ++j)
-            Ai_bar[3 * i + j] = A00 * r0[i] * r0[j] + A01 * (r0[i] * r1[j] + r1[i] * r0[j]) +
-                                A11 * r1[i] * r1[j] + 0.5 * (za_bar[i] * ea[j] + ea[i] * za_bar[j]);
+        for (int j = i; j < 3; ++j) Ai_bar[3 * i + j] = r0[i] * p0[j] + r1[i] * p1[j];
     sym_fill(Ai_bar);
-    /* za = Ai εa (and e2 reads εa); εa = ya − g r2 */
+    tq[0] += 2.0 * (dot3(Ai_bar + 6, Ai + 3) - dot3(Ai_bar + 3, Ai + 6));
+    tq[1] += 2.0 * (dot3(Ai_bar, Ai + 6) - dot3(Ai_bar + 6, Ai));
+    tq[2] += 2.0 * (dot3(Ai_bar + 3, Ai) - dot3(Ai_bar, Ai + 3));
+    /* za = Ai εa and e2 = εaᵀ za; εa = ya − g r2: row 2 of R̄ is −g ε̄a */
+    sym_add_outer(Ai_bar, za_bar, ea);
     mat_vec(Ai, za_bar, ea_bar);
-    for (int i = 0; i < 3; ++i) R_bar[6 + i] = -g * (ea_bar[i] + 0.5 * za[i]);
+    for (int i = 0; i < 3; ++i) ea_bar[i] = -g * (ea_bar[i] + 0.5 * za[i]);
+    cross3(ea_bar, r2, t3);
+    for (int i = 0; i < 3; ++i) tq[i] += t3[i];
 
     if (d->use_mag) {
-        const double *ym = d->mag + 3 * k;
-        double mb[3], ym_pred[3], em[3], zm[3], xm[3], vm[3], RK[9], Kn[9];
+        const double *em = rec + TAPE_EM, *zm = rec + TAPE_ZM, *xm = rec + TAPE_XM,
+                     *vm = rec + TAPE_VM;
+        double Kn[9], mb[3];
+        sym_unpack(rec + TAPE_KN, Kn);
         mat_tvec(R, m->m, mb);
-        mat_vec(m->D, mb, ym_pred);
-        for (int i = 0; i < 3; ++i) em[i] = ym[i] - ym_pred[i] - m->o[i];
-        mat_vec(p->Mi, em, zm);
-        mat_tvec(m->D, zm, xm);
-        mat_vec(R, xm, vm);
-        mat_mul(R, p->K, RK);
-        sym_mul_nt(RK, R, Kn);
 
-        /* u_m = vm × m: v̄m = m × ū, m̄ += ū × vm; vm = R xm, xm = Dᵀ zm */
-        double vm_bar[3], xm_bar[3], zm_bar[3], em_bar[3], mb_bar[3], t3[3];
+        /* u_m = vm × m: v̄m = m × ū, m̄ += ū × vm; vm = R xm: δ̄ += xm × x̄m; xm = Dᵀ zm */
+        double vm_bar[3], xm_bar[3], zm_bar[3], em_bar[3], mb_bar[3];
         cross3(m->m, u_bar, vm_bar);
         cross3(u_bar, vm, t3);
         for (int i = 0; i < 3; ++i) gm->m[i] += t3[i];
         mat_tvec(R, vm_bar, xm_bar);
+        cross3(xm, xm_bar, t3);
+        for (int i = 0; i < 3; ++i) tq[i] += t3[i];
         mat_vec(m->D, xm_bar, zm_bar);
         for (int i = 0; i < 3; ++i) zm_bar[i] += 0.5 * em[i];
         /* zm = Mi εm (and e2 reads εm) */
         sym_add_outer(acc->Mi_bar, zm_bar, em);
         mat_vec(p->Mi, zm_bar, em_bar);
         for (int i = 0; i < 3; ++i) em_bar[i] += 0.5 * zm[i];
-        /* εm = ym − D mb − o, mb = Rᵀ m */
-        mat_tvec(m->D, em_bar, mb_bar);
+        /* εm = ym − D mb − o; mb = Rᵀ m: m̄ −= R (Dᵀ ε̄m), δ̄ += mb × Dᵀε̄m */
+        mat_tvec(m->D, em_bar, mb_bar); /* −m̄b */
         for (int i = 0; i < 3; ++i) {
             gm->o[i] -= em_bar[i];
             for (int j = 0; j < 3; ++j) gm->D[3 * i + j] += zm[i] * xm_bar[j] - em_bar[i] * mb[j];
         }
         mat_vec(R, mb_bar, t3);
         for (int i = 0; i < 3; ++i) gm->m[i] -= t3[i];
-        for (int i = 0; i < 3; ++i)
-            for (int j = 0; j < 3; ++j)
-                R_bar[3 * i + j] += vm_bar[i] * xm[j] - m->m[i] * mb_bar[j];
+        cross3(mb, mb_bar, t3);
+        for (int i = 0; i < 3; ++i) tq[i] += t3[i];
 
-        /* J_m = [m×]ᵀ Kn [m×]: K̄n = [m×] J̄ [m×]ᵀ, [m×]‾ = 2 Kn [m×] J̄ */
-        double Kn_bar[9], T[9], F[9], KbRK[9], RtKbR[9];
+        /* J_m = [m×]ᵀ Kn [m×]: K̄n = [m×] J̄ [m×]ᵀ, [m×]‾ = 2 Kn [m×] J̄ (off-diagonal) */
+        double Kn_bar[9], T[9], Z[9];
         skew_sandwich(m->m, Jb, Kn_bar);
         for (int i = 0; i < 3; ++i) cross3(Kn + 3 * i, m->m, T + 3 * i); /* Kn [m×] */
-        mat_mul(T, Jb, F);
-        gm->m[0] += 2.0 * (F[7] - F[5]);
-        gm->m[1] += 2.0 * (F[2] - F[6]);
-        gm->m[2] += 2.0 * (F[3] - F[1]);
-        /* Kn = R K Rᵀ: R̄ += 2 K̄n R K, K̄ += Rᵀ K̄n R */
-        mat_mul(Kn_bar, RK, KbRK);
-        for (int i = 0; i < 9; ++i) R_bar[i] += 2.0 * KbRK[i];
-        sym_sandwich_t(R, Kn_bar, RtKbR);
-        for (int i = 0; i < 9; ++i) acc->K_bar[i] += RtKbR[i];
+        gm->m[0] += 2.0 * (dot3(T + 6, Jb + 3) - dot3(T + 3, Jb + 6));
+        gm->m[1] += 2.0 * (dot3(T, Jb + 6) - dot3(T + 6, Jb));
+        gm->m[2] += 2.0 * (dot3(T + 3, Jb) - dot3(T, Jb + 3));
+        /* Kn = R K Rᵀ: K̄ += Z = Rᵀ K̄n R; RᵀR̄ = 2 Z K */
+        sym_sandwich_t(R, Kn_bar, Z);
+        for (int i = 0; i < 9; ++i) acc->K_bar[i] += Z[i];
+        const double *K = p->K;
+        tq[0] += 2.0 * (dot3(Z + 6, K + 3) - dot3(Z + 3, K + 6));
+        tq[1] += 2.0 * (dot3(Z, K + 6) - dot3(Z + 6, K));
+        tq[2] += 2.0 * (dot3(Z + 3, K) - dot3(Z, K + 3));
     }
 
     /* Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I) */
@@ -622,23 +659,28 @@ static inline void step_reverse(const pass_t *p, size_t k, const double *restric
     }
 
     if (k > 0) {
-        /* Pp = P + T² R Σω Rᵀ: Σ̄ω += T² Rᵀ P̄p R, R̄ += 2 T² P̄p R Σω */
+        /* Pp = P + T² R Σω Rᵀ: Σ̄ω += T² X with X = Rᵀ P̄p R; RᵀR̄ = 2 T² X Σω */
         const double dt = d->dt[k], dt2 = dt * dt;
-        double RS[9], PbRS[9], RtPbR[9];
-        mat_mul(R, p->Sw, RS);
-        mat_mul(P_bar, RS, PbRS);
-        for (int i = 0; i < 9; ++i) R_bar[i] += 2.0 * dt2 * PbRS[i];
-        sym_sandwich_t(R, P_bar, RtPbR);
-        for (int i = 0; i < 9; ++i) gm->Sw[i] += dt2 * RtPbR[i];
-        quat_to_mat_adjoint(q1, R_bar, q1_bar);
-        /* q1 = q ⊙ Δ, Δ = exp_q(φ), φ = ½ T (ω − δω) */
-        double Delta_bar[4], phi_bar[3];
-        quat_mul_adjoint(q, Delta, q1_bar, q_bar, Delta_bar);
-        quat_exp_adjoint(phi, Delta_bar, phi_bar);
-        for (int i = 0; i < 3; ++i) gm->bias[i] -= 0.5 * dt * phi_bar[i];
+        double X[9];
+        sym_sandwich_t(R, P_bar, X);
+        for (int i = 0; i < 9; ++i) gm->Sw[i] += dt2 * X[i];
+        const double *Sw = p->Sw, h = 2.0 * dt2;
+        tq[0] += h * (dot3(X + 6, Sw + 3) - dot3(X + 3, Sw + 6));
+        tq[1] += h * (dot3(X, Sw + 6) - dot3(X + 6, Sw));
+        tq[2] += h * (dot3(X + 3, Sw) - dot3(X, Sw + 3));
+        /* q1 = q ⊙ Δ, Δ = exp_q(φ) (rotation vector 2φ), φ = ½ T (ω − δω) */
+        const double *wg = d->gyr + 3 * (k - 1);
+        double phi[3], rv[3], Delta[4], rv_bar[3];
+        for (int i = 0; i < 3; ++i) {
+            phi[i] = 0.5 * dt * (wg[i] - m->bias[i]);
+            rv[i] = 2.0 * phi[i];
+        }
+        quat_exp(phi, Delta);
+        quat_rotate(Delta, tq, tq_in);
+        rotvec_jac_t(rv, tq, rv_bar); /* φ̄ = 2 r̄v, δ̄ω = −½ T φ̄ */
+        for (int i = 0; i < 3; ++i) gm->bias[i] -= dt * rv_bar[i];
     } else {
-        quat_to_mat_adjoint(q1, R_bar, q1_bar);
-        memcpy(q_bar, q1_bar, sizeof q1_bar);
+        memcpy(tq_in, tq, sizeof tq);
     }
 }
 
@@ -753,12 +795,19 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
     const size_t n = data->n;
     for (size_t k = 0; k < n; ++k) {
         double *rec = tape + MC_MEKF_TAPE_DOUBLES * k;
-        memcpy(rec + TAPE_Q, q, 4 * sizeof(double));
         if (!step_forward(&p, k, q, P, &s)) return NAN;
+        memcpy(rec + TAPE_Q1, s.q1, 4 * sizeof(double));
         sym_pack(s.Y, rec + TAPE_Y);
         sym_pack(s.Pu, rec + TAPE_PU);
         memcpy(rec + TAPE_U, s.u, 3 * sizeof(double));
         memcpy(rec + TAPE_ETA, s.eta, 3 * sizeof(double));
+        if (data->use_mag) {
+            sym_pack(s.Kn, rec + TAPE_KN);
+            memcpy(rec + TAPE_EM, s.em, 3 * sizeof(double));
+            memcpy(rec + TAPE_ZM, s.zm, 3 * sizeof(double));
+            memcpy(rec + TAPE_XM, s.xm, 3 * sizeof(double));
+            memcpy(rec + TAPE_VM, s.vm, 3 * sizeof(double));
+        }
         cost += s.cost;
         memcpy(q, s.q_out, sizeof q);
         normalise_quat(q);
@@ -767,11 +816,11 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
     /* The final state does not enter the cost. */
     grad_acc_t acc;
     memset(&acc, 0, sizeof acc);
-    double q_bar[4] = {0, 0, 0, 0}, P_bar[9] = {0};
+    double tq[3] = {0, 0, 0}, P_bar[9] = {0};
     for (size_t kk = n; kk-- > 0;) {
-        double qb_in[4], Pb_in[9];
-        step_reverse(&p, kk, tape + MC_MEKF_TAPE_DOUBLES * kk, q_bar, P_bar, qb_in, Pb_in, &acc);
-        memcpy(q_bar, qb_in, sizeof q_bar);
+        double tq_in[3], Pb_in[9];
+        step_reverse(&p, kk, tape + MC_MEKF_TAPE_DOUBLES * kk, tq, P_bar, tq_in, Pb_in, &acc);
+        memcpy(tq, tq_in, sizeof tq);
         memcpy(P_bar, Pb_in, sizeof P_bar);
     }
 

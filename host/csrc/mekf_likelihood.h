@@ -44,8 +44,8 @@ typedef struct {
 double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                     const mc_mekf_outputs_t *out);
 
-/* Doubles of reverse-mode tape per sample (the attitude before the step, Pp⁻¹, Λ⁻¹, u, η). */
-#define MC_MEKF_TAPE_DOUBLES 22
+/* Doubles of reverse-mode tape per sample (attitude, Pp⁻¹, Λ⁻¹, u, η and magnetometer terms). */
+#define MC_MEKF_TAPE_DOUBLES 40
 
 /* Cost and gradient. `tape` is caller-owned workspace of MC_MEKF_TAPE_DOUBLES*n doubles.
  * `grad_acc_extra` receives dV/dc summed with weights 1,

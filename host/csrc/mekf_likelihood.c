@@ -230,42 +230,38 @@ static ALWAYS_INLINE void quat_to_mat(const double *restrict q, double *restrict
     R[8] = 1 - 2 * (x * x + y * y);
 }
 
-/* v ↦ R(q) v for a unit quaternion q = (c, w): v + 2c (w × v) + 2 w × (w × v). */
-static ALWAYS_INLINE void quat_rotate(const double *restrict q, const double *restrict v,
-                                      double *restrict out)
-{
-    double t[3], wt[3];
-    cross3(q + 1, v, t);
-    for (int i = 0; i < 3; ++i) t[i] = 2.0 * t[i];
-    cross3(q + 1, t, wt);
-    for (int i = 0; i < 3; ++i) out[i] = v[i] + q[0] * t[i] + wt[i];
-}
+/* Below this squared rotation angle the rotation-vector coefficients come from their
+ * series (truncation < 1e-16 relative); above it the closed forms lose < 1e-14 to
+ * cancellation. */
+#define ROTVEC_SERIES_T 0.04
 
-/* Below this squared rotation angle the Jacobian coefficients come from their series
- * (truncation < 1e-16 relative); above it the closed forms lose < 1e-14 to cancellation. */
-#define JR_SERIES_T 0.04
-
-/* Jr(θ)ᵀ v, with Jr the right Jacobian of the rotation vector θ ↦ Exp(θ):
- * Exp(θ + dθ) = Exp(θ) Exp(Jr(θ) dθ), Jr(θ)ᵀ = I + a [θ×] + b [θ×]²,
- * a = (1 − cos|θ|)/|θ|², b = (|θ| − sin|θ|)/|θ|³. It turns a body-frame torque on
- * Exp(θ) into the adjoint of θ. */
-static ALWAYS_INLINE void rotvec_jac_t(const double *restrict th, const double *restrict v,
-                                       double *restrict out)
+/* For a rotation vector θ (angle |θ|) and a vector v:
+ *   rv = Exp(θ) v     = v + s [θ×] v + a [θ×]² v   (Rodrigues)
+ *   jv = Jr(θ)ᵀ v     = v + a [θ×] v + b [θ×]² v
+ * with s = sin|θ|/|θ|, a = (1 − cos|θ|)/|θ|², b = (|θ| − sin|θ|)/|θ|³ and Jr the right
+ * Jacobian, Exp(θ + dθ) = Exp(θ) Exp(Jr(θ) dθ): jv turns a body-frame torque on Exp(θ)
+ * into the adjoint of θ, rv carries a torque across the rotation. rv may be NULL. */
+static ALWAYS_INLINE void rotvec_apply(const double *restrict th, const double *restrict v,
+                                       double *restrict rv, double *restrict jv)
 {
     const double t = dot3(th, th);
-    double a, b;
-    if (t < JR_SERIES_T) {
+    double s, a, b;
+    if (t < ROTVEC_SERIES_T) {
+        s = 1.0 + t * (-C_1_6 + t * (C_1_120 + t * (-C_1_5040 + t * (C_1_362880 - t * C_1_39916800))));
         a = 0.5 + t * (-C_1_24 + t * (C_1_720 + t * (-C_1_40320 + t * (C_1_3628800 - t * C_1_479001600))));
         b = C_1_6 + t * (-C_1_120 + t * (C_1_5040 + t * (-C_1_362880 + t * C_1_39916800)));
     } else {
         const double th1 = sqrt(t), sh = sin(0.5 * th1);
+        s = sin(th1) / th1;
         a = 2.0 * sh * sh / t;
-        b = (th1 - sin(th1)) / (t * th1);
+        b = (1.0 - s) / t;
     }
     double c1[3], c2[3];
     cross3(th, v, c1);
     cross3(th, c1, c2);
-    for (int i = 0; i < 3; ++i) out[i] = v[i] + a * c1[i] + b * c2[i];
+    for (int i = 0; i < 3; ++i) jv[i] = v[i] + a * c1[i] + b * c2[i];
+    if (rv)
+        for (int i = 0; i < 3; ++i) rv[i] = v[i] + s * c1[i] + a * c2[i];
 }
 
 static ALWAYS_INLINE void normalise_quat(double *q)
@@ -542,7 +538,7 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
     double tq[3], w[3], eta_bar[3];
     memcpy(tq, tq_out, sizeof tq);
     mat_vec(R, tq_out, w);
-    rotvec_jac_t(eta, w, eta_bar);
+    rotvec_apply(eta, w, NULL, eta_bar);
     for (int i = 0; i < 3; ++i) eta_bar[i] -= 0.5 * u[i];
     /* η = Pu u; the cost's −½ uᵀη */
     double u_bar[3], Pu_bar[9], Lam_bar[9], Pp_bar[9];
@@ -670,14 +666,9 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
         tq[2] += h * (dot3(X + 3, Sw) - dot3(X, Sw + 3));
         /* q1 = q ⊙ Δ, Δ = exp_q(φ) (rotation vector 2φ), φ = ½ T (ω − δω) */
         const double *wg = d->gyr + 3 * (k - 1);
-        double phi[3], rv[3], Delta[4], rv_bar[3];
-        for (int i = 0; i < 3; ++i) {
-            phi[i] = 0.5 * dt * (wg[i] - m->bias[i]);
-            rv[i] = 2.0 * phi[i];
-        }
-        quat_exp(phi, Delta);
-        quat_rotate(Delta, tq, tq_in);
-        rotvec_jac_t(rv, tq, rv_bar); /* φ̄ = 2 r̄v, δ̄ω = −½ T φ̄ */
+        double rv[3], rv_bar[3];
+        for (int i = 0; i < 3; ++i) rv[i] = 2.0 * (0.5 * dt * (wg[i] - m->bias[i]));
+        rotvec_apply(rv, tq, tq_in, rv_bar); /* φ̄ = 2 r̄v, δ̄ω = −½ T φ̄ */
         for (int i = 0; i < 3; ++i) gm->bias[i] -= dt * rv_bar[i];
     } else {
         memcpy(tq_in, tq, sizeof tq);

@@ -264,9 +264,12 @@ static ALWAYS_INLINE void rotvec_apply(const double *restrict th, const double *
         for (int i = 0; i < 3; ++i) rv[i] = v[i] + s * c1[i] + a * c2[i];
 }
 
-static ALWAYS_INLINE void normalise_quat(double *q)
+/* Renormalise a quaternion that is unit to within a few ulps (the product of two unit
+ * quaternions): one Newton step for 1/|q|, r = (3 − |q|²)/2, which leaves |q|² − 1 at the
+ * rounding level without the square root and division on the filter's critical path. */
+static ALWAYS_INLINE void renormalise_quat(double *q)
 {
-    const double r = 1.0 / sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
+    const double r = 1.5 - 0.5 * (q[0] * q[0] + q[1] * q[1] + q[2] * q[2] + q[3] * q[3]);
     for (int i = 0; i < 4; ++i) q[i] *= r;
 }
 
@@ -359,8 +362,31 @@ typedef struct {
     double Y[9], Pu[9];        /* Pp⁻¹ and the posterior covariance Λ⁻¹                  */
     double u[3], eta[3];       /* information vector and correction η = Λ⁻¹ u           */
     double q_out[4];           /* exp_q(η/2) ⊙ q1 (not yet renormalised)                 */
-    double cost;
+    double cost;               /* ½ (εᵀS⁻¹ε + log det S) except ½ log(det)           */
+    double det;                /* the remaining factor of det S                         */
 } step_t;
+
+/* Σ log xᵢ of the steps' determinant factors with one log per ~100 steps instead of one per
+ * step: the factors are multiplied while the product stays within 1e±100, far from
+ * overflow (a factor outside that range is logged on its own). NaN propagates. */
+typedef struct {
+    double prod, sum;
+} logdet_acc_t;
+
+static ALWAYS_INLINE void logdet_add(logdet_acc_t *a, double x)
+{
+    if (!(x > 1e-100 && x < 1e100)) {
+        a->sum += log(x);
+        return;
+    }
+    a->prod *= x;
+    if (!(a->prod > 1e-100 && a->prod < 1e100)) {
+        a->sum += log(a->prod);
+        a->prod = 1.0;
+    }
+}
+
+static ALWAYS_INLINE double logdet_total(const logdet_acc_t *a) { return a->sum + log(a->prod); }
 
 /* One step from (q, P) before sample k. Returns 0 when a covariance is not positive
  * definite. Inlined into both passes, so the fields a pass does not read cost nothing. */
@@ -440,9 +466,9 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *r
     for (int i = 0; i < 9; ++i) Lam[i] = s->Y[i] + J[i];
     if (!sym_inverse(Lam, s->Pu, &det_Lam)) return 0;
     mat_vec(s->Pu, s->u, s->eta);
-    /* One log for log det Sa_t + log det Pp + log det Λ (det Pp · det Λ = det(I + Pp J)
-     * is ≥ 1 and the product cannot underflow). */
-    const double ld = cx == 0.0 ? p->ld_Sa0 + log(det_Pp * det_Lam) : log(det_Sa * det_Pp * det_Lam);
+    /* log det S = log det Sa_t + log det Sm + log det Pp + log det Λ: the constant logs
+     * go into the cost, the determinants into s->det for the pass's logdet_acc_t. */
+    s->det = cx == 0.0 ? det_Pp * det_Lam : det_Sa * det_Pp * det_Lam;
     /* εᵀS⁻¹ε = εᵀR⁻¹ε − uᵀη. The difference cancels catastrophically when a noise
      * covariance is nearly singular (an optimiser's trial point can make it so) and can then
      * even go negative. When less than QUAD_CANCEL of e2 survives, the same value is formed
@@ -468,7 +494,7 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *r
         mat_vec(s->Y, eta, t);
         quad += dot3(eta, t);
     }
-    s->cost = 0.5 * (quad + ld + p->ld_Sm);
+    s->cost = 0.5 * (quad + (cx == 0.0 ? p->ld_Sa0 : 0.0) + p->ld_Sm);
 
     double half_eta[3], E[4];
     for (int i = 0; i < 3; ++i) half_eta[i] = 0.5 * s->eta[i];
@@ -734,7 +760,9 @@ static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *o
 
 static void load_prior(const mc_mekf_data_t *d, double *q, double *P)
 {
-    memcpy(q, d->q0, 4 * sizeof(double));
+    const double *q0 = d->q0;
+    const double r = 1.0 / sqrt(q0[0] * q0[0] + q0[1] * q0[1] + q0[2] * q0[2] + q0[3] * q0[3]);
+    for (int i = 0; i < 4; ++i) q[i] = r * q0[i];
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) P[3 * i + j] = 0.5 * (d->P0[3 * i + j] + d->P0[3 * j + i]);
 }
@@ -748,13 +776,15 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
     double q[4], P[9];
     load_prior(data, q, P);
     double cost = 0.0;
+    logdet_acc_t ld = {1.0, 0.0};
     step_t s;
     const int want = out && (out->q_filt || out->innov || out->normalised);
     for (size_t k = 0; k < data->n; ++k) {
         if (!step_forward(&p, k, q, P, &s)) return NAN;
         cost += s.cost;
+        logdet_add(&ld, s.det);
         memcpy(q, s.q_out, sizeof q);
-        normalise_quat(q);
+        renormalise_quat(q);
         memcpy(P, s.Pu, sizeof P);
         if (want) {
             if (out->q_filt) memcpy(out->q_filt + 4 * k, q, sizeof q);
@@ -767,26 +797,30 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
             if (out->normalised) whiten(&p, &s, k, data->use_mag ? 6 : 3, out->normalised + 6 * k);
         }
     }
-    return cost;
+    return cost + 0.5 * logdet_total(&ld);
 }
 
-double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data, double *tape,
-                         mc_mekf_model_t *grad, double *grad_acc_scale)
+/* The two halves of mc_mekf_cost_grad are kept out of line: each is one hot loop, and
+ * compiled apart neither's register allocation or layout depends on the other's. */
+#if defined(__GNUC__)
+#define NOINLINE __attribute__((noinline))
+#else
+#define NOINLINE
+#endif
+
+/* Forward pass writing the tape. Returns the cost, or NaN on failure. */
+static NOINLINE double forward_tape_pass(const pass_t *p, double *tape)
 {
-    if (!model || !data || !tape || !grad || data->n == 0) return NAN;
-    /* A zero gradient on failure: callers that test only the cost never see garbage. */
-    memset(grad, 0, sizeof *grad);
-    if (grad_acc_scale) *grad_acc_scale = 0.0;
-    pass_t p;
-    if (!make_pass(model, data, &p)) return NAN;
+    const mc_mekf_data_t *data = p->d;
     double q[4], P[9];
     load_prior(data, q, P);
     double cost = 0.0;
+    logdet_acc_t ld = {1.0, 0.0};
     step_t s;
     const size_t n = data->n;
     for (size_t k = 0; k < n; ++k) {
         double *rec = tape + MC_MEKF_TAPE_DOUBLES * k;
-        if (!step_forward(&p, k, q, P, &s)) return NAN;
+        if (!step_forward(p, k, q, P, &s)) return NAN;
         memcpy(rec + TAPE_Q1, s.q1, 4 * sizeof(double));
         sym_pack(s.Y, rec + TAPE_Y);
         sym_pack(s.Pu, rec + TAPE_PU);
@@ -800,20 +834,41 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
             memcpy(rec + TAPE_VM, s.vm, 3 * sizeof(double));
         }
         cost += s.cost;
+        logdet_add(&ld, s.det);
         memcpy(q, s.q_out, sizeof q);
-        normalise_quat(q);
+        renormalise_quat(q);
         memcpy(P, s.Pu, sizeof P);
     }
-    /* The final state does not enter the cost. */
-    grad_acc_t acc;
-    memset(&acc, 0, sizeof acc);
+    return cost + 0.5 * logdet_total(&ld);
+}
+
+/* Reverse pass over the tape; the final state does not enter the cost. */
+static NOINLINE void reverse_pass(const pass_t *p, const double *tape, grad_acc_t *acc)
+{
     double tq[3] = {0, 0, 0}, P_bar[9] = {0};
-    for (size_t kk = n; kk-- > 0;) {
+    for (size_t kk = p->d->n; kk-- > 0;) {
         double tq_in[3], Pb_in[9];
-        step_reverse(&p, kk, tape + MC_MEKF_TAPE_DOUBLES * kk, tq, P_bar, tq_in, Pb_in, &acc);
+        step_reverse(p, kk, tape + MC_MEKF_TAPE_DOUBLES * kk, tq, P_bar, tq_in, Pb_in, acc);
         memcpy(tq, tq_in, sizeof tq);
         memcpy(P_bar, Pb_in, sizeof P_bar);
     }
+}
+
+double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data, double *tape,
+                         mc_mekf_model_t *grad, double *grad_acc_scale)
+{
+    if (!model || !data || !tape || !grad || data->n == 0) return NAN;
+    /* A zero gradient on failure: callers that test only the cost never see garbage. */
+    memset(grad, 0, sizeof *grad);
+    if (grad_acc_scale) *grad_acc_scale = 0.0;
+    pass_t p;
+    if (!make_pass(model, data, &p)) return NAN;
+    const double cost = forward_tape_pass(&p, tape);
+    if (isnan(cost)) return NAN;
+    grad_acc_t acc;
+    memset(&acc, 0, sizeof acc);
+    reverse_pass(&p, tape, &acc);
+    const size_t n = data->n;
 
     *grad = acc.g;
     double t[9];

@@ -130,11 +130,23 @@ static ALWAYS_INLINE void skew_sandwich(const double *restrict m, const double *
     sym_fill(c);
 }
 
-/* s += ½ (x yᵀ + y xᵀ): the symmetric part of an outer-product adjoint. */
-static ALWAYS_INLINE void sym_add_outer(double *restrict s, const double *restrict x, const double *restrict y)
+/* Indices of the upper triangle of a row-major 3×3 matrix. Sums of symmetric adjoints are
+ * accumulated there only and mirrored once at the end. */
+static const int UPPER[6] = {0, 1, 2, 4, 5, 8};
+
+/* s += ½ (x yᵀ + y xᵀ) on the upper triangle: the symmetric part of an outer-product
+ * adjoint. */
+static ALWAYS_INLINE void sym_add_outer_upper(double *restrict s, const double *restrict x,
+                                             const double *restrict y)
 {
     for (int i = 0; i < 3; ++i)
         for (int j = i; j < 3; ++j) s[3 * i + j] += 0.5 * (x[i] * y[j] + y[i] * x[j]);
+}
+
+/* s += ½ (x yᵀ + y xᵀ). */
+static ALWAYS_INLINE void sym_add_outer(double *restrict s, const double *restrict x, const double *restrict y)
+{
+    sym_add_outer_upper(s, x, y);
     sym_fill(s);
 }
 
@@ -635,7 +647,7 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
         mat_vec(m->D, xm_bar, zm_bar);
         for (int i = 0; i < 3; ++i) zm_bar[i] += 0.5 * em[i];
         /* zm = Mi εm (and e2 reads εm) */
-        sym_add_outer(acc->Mi_bar, zm_bar, em);
+        sym_add_outer_upper(acc->Mi_bar, zm_bar, em);
         mat_vec(p->Mi, zm_bar, em_bar);
         for (int i = 0; i < 3; ++i) em_bar[i] += 0.5 * zm[i];
         /* εm = ym − D mb − o; mb = Rᵀ m: m̄ −= R (Dᵀ ε̄m), δ̄ += mb × Dᵀε̄m */
@@ -658,7 +670,7 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
         gm->m[2] += 2.0 * (dot3(T + 3, Jb) - dot3(T, Jb + 3));
         /* Kn = R K Rᵀ: K̄ += Z = Rᵀ K̄n R; RᵀR̄ = 2 Z K */
         sym_sandwich_t(R, Kn_bar, Z);
-        for (int i = 0; i < 9; ++i) acc->K_bar[i] += Z[i];
+        for (int t = 0; t < 6; ++t) acc->K_bar[UPPER[t]] += Z[UPPER[t]];
         const double *K = p->K;
         tq[0] += 2.0 * (dot3(Z + 6, K + 3) - dot3(Z + 3, K + 6));
         tq[1] += 2.0 * (dot3(Z, K + 6) - dot3(Z + 6, K));
@@ -667,12 +679,13 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
 
     /* Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I) */
     if (cx == 0.0) {
-        for (int i = 0; i < 9; ++i) acc->Ai0_bar[i] += Ai_bar[i];
+        for (int t = 0; t < 6; ++t) acc->Ai0_bar[UPPER[t]] += Ai_bar[UPPER[t]];
         acc->n0 += 1;
     } else {
         double Sa_bar[9];
         sym_sandwich(Ai, Ai_bar, Sa_bar);
-        for (int i = 0; i < 9; ++i) {
+        for (int t = 0; t < 6; ++t) {
+            const int i = UPPER[t];
             Sa_bar[i] = 0.5 * Ai[i] - Sa_bar[i];
             gm->Sa[i] += Sa_bar[i];
         }
@@ -684,7 +697,7 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
         const double dt = d->dt[k], dt2 = dt * dt;
         double X[9];
         sym_sandwich_t(R, P_bar, X);
-        for (int i = 0; i < 9; ++i) gm->Sw[i] += dt2 * X[i];
+        for (int t = 0; t < 6; ++t) gm->Sw[UPPER[t]] += dt2 * X[UPPER[t]];
         const double *Sw = p->Sw, h = 2.0 * dt2;
         tq[0] += h * (dot3(X + 6, Sw + 3) - dot3(X + 3, Sw + 6));
         tq[1] += h * (dot3(X, Sw + 6) - dot3(X + 6, Sw));
@@ -869,6 +882,12 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
     reverse_pass(&p, tape, &acc);
     const size_t n = data->n;
 
+    /* The reverse pass accumulated symmetric adjoints on their upper triangle only. */
+    sym_fill(acc.g.Sw);
+    sym_fill(acc.g.Sa);
+    sym_fill(acc.Ai0_bar);
+    sym_fill(acc.Mi_bar);
+    sym_fill(acc.K_bar);
     *grad = acc.g;
     double t[9];
     /* Samples with c_t = 0: Ai = Σa⁻¹ and n0 · ½ log det Σa */

@@ -641,10 +641,9 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
         mat_tvec(R, m->m, mb);
 
         /* u_m = vm × m: v̄m = m × ū, m̄ += ū × vm; vm = R xm: δ̄ += xm × x̄m; xm = Dᵀ zm */
-        double vm_bar[3], xm_bar[3], zm_bar[3], em_bar[3], mb_bar[3];
+        double vm_bar[3], xm_bar[3], zm_bar[3], em_bar[3], mb_bar[3], m_bar[3];
         cross3(m->m, u_bar, vm_bar);
-        cross3(u_bar, vm, t3);
-        for (int i = 0; i < 3; ++i) gm->m[i] += t3[i];
+        cross3(u_bar, vm, m_bar);
         mat_tvec(R, vm_bar, xm_bar);
         cross3(xm, xm_bar, t3);
         for (int i = 0; i < 3; ++i) tq[i] += t3[i];
@@ -661,19 +660,21 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
             for (int j = 0; j < 3; ++j) gm->D[3 * i + j] += zm[i] * xm_bar[j] - em_bar[i] * mb[j];
         }
         mat_vec(R, mb_bar, t3);
-        for (int i = 0; i < 3; ++i) gm->m[i] -= t3[i];
+        for (int i = 0; i < 3; ++i) m_bar[i] -= t3[i];
         cross3(mb, mb_bar, t3);
         for (int i = 0; i < 3; ++i) tq[i] += t3[i];
 
-        /* J_m = [m×]ᵀ Kn [m×]: K̄n = [m×] J̄ [m×]ᵀ, [m×]‾ = 2 Kn [m×] J̄ (off-diagonal) */
-        double Kn_bar[9], T[9], Z[9];
-        skew_sandwich(m->m, Jb, Kn_bar);
-        for (int i = 0; i < 3; ++i) cross3(Kn + 3 * i, m->m, T + 3 * i); /* Kn [m×] */
-        gm->m[0] += 2.0 * (dot3(T + 6, Jb + 3) - dot3(T + 3, Jb + 6));
-        gm->m[1] += 2.0 * (dot3(T, Jb + 6) - dot3(T + 6, Jb));
-        gm->m[2] += 2.0 * (dot3(T + 3, Jb) - dot3(T, Jb + 3));
-        /* Kn = R K Rᵀ: K̄ += Z = Rᵀ K̄n R; RᵀR̄ = 2 Z K */
-        sym_sandwich_t(R, Kn_bar, Z);
+        /* J_m = [m×]ᵀ Kn [m×], Kn = R K Rᵀ: [m×]‾ = 2 Kn [m×] J̄ (only its skew part reaches
+         * m; row i of Kn [m×] is Knᵢ × m), and K̄ += Z = Rᵀ [m×] J̄ [m×]ᵀ R = B J̄ Bᵀ with
+         * B = Rᵀ[m×] = [mb×] Rᵀ, whose column j is mb × rⱼ. RᵀR̄ = 2 Z K. */
+        double T[9], Bt[9], Z[9];
+        for (int i = 0; i < 3; ++i) cross3(Kn + 3 * i, m->m, T + 3 * i);
+        m_bar[0] += 2.0 * (dot3(T + 6, Jb + 3) - dot3(T + 3, Jb + 6));
+        m_bar[1] += 2.0 * (dot3(T, Jb + 6) - dot3(T + 6, Jb));
+        m_bar[2] += 2.0 * (dot3(T + 3, Jb) - dot3(T, Jb + 3));
+        for (int i = 0; i < 3; ++i) gm->m[i] += m_bar[i];
+        for (int j = 0; j < 3; ++j) cross3(mb, R + 3 * j, Bt + 3 * j); /* rows of Bᵀ */
+        sym_sandwich_t(Bt, Jb, Z);
         for (int t = 0; t < 6; ++t) acc->K_bar[UPPER[t]] += Z[UPPER[t]];
         const double *K = p->K;
         tq[0] += 2.0 * (dot3(Z + 6, K + 3) - dot3(Z + 3, K + 6));

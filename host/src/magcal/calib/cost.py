@@ -4,7 +4,7 @@
 ``ekf.py``; θ is the 34-vector of ``params.py``.
 
 * :func:`cost_and_gradient` — one forward and one reverse pass of the C kernel: the exact
-  gradient for about three times the price of the cost.
+  gradient for about 2.4 times the price of the cost (``make bench``).
 * :func:`numeric_gradient` — the paper's way: finite differences, n_θ + 1 (forward) or
   2 n_θ (central) filter passes.
 """

@@ -203,15 +203,10 @@ def work_imports() -> dict:
     return {"magcal_pipeline_s": magcal_s, "cvxpy_s": time.perf_counter() - t0}
 
 
-#: The ML runs of the comparison: (key, gradient, force a cost-only line search). Both
-#: run as the pipeline runs them: the exact gradient evaluates cost and gradient together
-#: at every trial point (about 3 filter passes); finite differences (the paper's way) try
-#: points by cost alone, as a gradient there costs 35 passes. The third field is kept for
-#: experiments with other line-search set-ups.
-COMPARE_RUNS = (
-    ("exact", "exact", False),
-    ("numeric", "numeric", False),
-)
+#: The ML runs of the comparison, as the pipeline runs them: the exact gradient evaluates
+#: cost and gradient together at every trial point (about 2.4 filter passes); finite
+#: differences (the paper's way) try points by cost alone, as a gradient there costs 35.
+COMPARE_RUNS = ("exact", "numeric")
 
 
 def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
@@ -237,24 +232,18 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
     runs: dict = {}
     thetas = {}
     objectives = {}
-    for key, gradient, cost_only in COMPARE_RUNS:
+    for key in COMPARE_RUNS:
+        gradient = key
         _log(f"  {key}: optimising ({len(session)} samples)")
 
         def progress(it, v, dec, key=key):
             if it % 25 == 0:
                 _log(f"    {key} iteration {it}: cost {v:.6f}, decrement {dec:.2e}")
 
-        try:
-            with _instrument_ml(ml, cost_only) as objective:
-                t0, c0 = time.perf_counter(), time.process_time()
-                est = ml.maximum_likelihood(session, init, gradient, options, progress)
-                wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
-        except _InstrumentError as exc:
-            if key in ("exact", "numeric"):
-                raise
-            _log(f"  {key}: skipped ({exc})")
-            runs[key] = None
-            continue
+        with _instrument_ml(ml) as objective:
+            t0, c0 = time.perf_counter(), time.process_time()
+            est = ml.maximum_likelihood(session, init, gradient, options, progress)
+            wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
         objectives.setdefault(gradient, objective)
         r = est.report
         thetas[key] = est.theta
@@ -317,13 +306,7 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
         "speedup_ml": n["wall_s"] / e["wall_s"],
         "speedup_ml_cpu": n["cpu_s"] / e["cpu_s"],
         "speedup_with_init": (init_s + n["wall_s"]) / (init_s + e["wall_s"]),
-        "speedup_ml_vs_cost_only_ls": None,
-        "final_cost_rel_diff_cost_only_ls": None,
     }
-    fair = runs.get("numeric_cost_only_ls")
-    if fair is not None:
-        out["speedup_ml_vs_cost_only_ls"] = fair["wall_s"] / e["wall_s"]
-        out["final_cost_rel_diff_cost_only_ls"] = rel_diff(fair)
     return out
 
 
@@ -341,12 +324,11 @@ class _InstrumentError(RuntimeError):
 
 
 @contextlib.contextmanager
-def _instrument_ml(ml_module, cost_only_line_search: bool):
+def _instrument_ml(ml_module):
     """Record the objective ``ml.maximum_likelihood`` builds (``fun_and_grad`` and the
     cost-only ``fun`` from ``penalised_cost_functions``), so that end points are judged by
     the very objective that was minimised, prior included, without restating how ml builds
-    it. With ``cost_only_line_search`` the optimiser is also handed ``fun``, so that it
-    checks trial points by cost alone. Raises _InstrumentError if the names are gone."""
+    it. Raises _InstrumentError if the names are gone."""
     captured: dict = {}
     names = ("penalised_cost_functions", "minimize_bfgs")
     if not all(hasattr(ml_module, name) for name in names):
@@ -360,10 +342,6 @@ def _instrument_ml(ml_module, cost_only_line_search: bool):
 
     def minimize(fun_and_grad, *args, **kwargs):
         captured.setdefault("fun_and_grad", fun_and_grad)
-        if cost_only_line_search:
-            if "fun" not in captured or "fun" in kwargs:
-                raise _InstrumentError("cannot hand the optimiser a cost-only function")
-            kwargs["fun"] = captured["fun"]
         return original_min(fun_and_grad, *args, **kwargs)
 
     ml_module.penalised_cost_functions, ml_module.minimize_bfgs = pcf, minimize
@@ -664,7 +642,6 @@ def compare_summary(per_seed: list[dict], duration_s: float) -> dict:
         "speedup_ml_median": statistics.median(values("speedup_ml")),
         "speedup_ml_min": min(values("speedup_ml")),
         "speedup_ml_max": max(values("speedup_ml")),
-        "speedup_ml_vs_cost_only_ls_median": median_or_none("speedup_ml_vs_cost_only_ls"),
         "speedup_per_gradient_evaluation_median": median_or_none("speedup_per_gradient_evaluation"),
         "final_cost_rel_diff_max": max(values("final_cost_rel_diff")),
         "per_seed": per_seed,
@@ -721,10 +698,9 @@ def _format_compare(cmp_: dict, tg: dict) -> list[str]:
         + "; each pair from the same θ₀",
         f"   seed {d['seed']} in detail ({d['samples']:,} samples; shared init "
         f"{d['init_s']:.2f} s, after importing cvxpy):",
-        f"   {'':<34}{'exact':>16}{'numeric':>16}{'numeric, cost-':>16}",
-        f"   {'':<34}{'':>16}{'(the tool)':>16}{'only line srch':>16}",
+        f"   {'':<34}{'exact':>16}{'numeric':>16}",
     ]
-    cols = [d["runs"][k] for k, _, _ in COMPARE_RUNS]
+    cols = [d["runs"][k] for k in COMPARE_RUNS]
     for label, key, fmt in (
         ("ML wall (s)", "wall_s", "{:.2f}"),
         ("ML CPU time (s)", "cpu_s", "{:.2f}"),
@@ -751,16 +727,14 @@ def _format_compare(cmp_: dict, tg: dict) -> list[str]:
         + _fmt(d["max_scaled_fd_gradient_error_at_optimum"], "{:.2e}")
         + f" (scaled, at the exact optimum; gradient rule < {d['gradient_tol']:g})",
         f"   {'speed-up, ML step':<34}{d['speedup_ml']:.1f} x (CPU time {d['speedup_ml_cpu']:.1f}"
-        f" x; incl. shared init {d['speedup_with_init']:.1f} x; vs cost-only line search "
-        f"{_fmt(d['speedup_ml_vs_cost_only_ls'], '{:.1f}')} x)",
-        f"   {'seed':>6}{'samples':>9}{'speed-up':>10}{'vs c-o ls':>11}{'per eval':>10}"
+        f" x; incl. shared init {d['speedup_with_init']:.1f} x)",
+        f"   {'seed':>6}{'samples':>9}{'speed-up':>10}{'per eval':>10}"
         f"{'iters e/n':>11}{'evals e/n':>11}{'rules e/n':>19}{'cost rel diff':>15}",
     ]
     for r in cmp_["per_seed"]:
         e, n = r["runs"]["exact"], r["runs"]["numeric"]
         out.append(
             f"   {r['seed']:>6}{r['samples']:>9,}{r['speedup_ml']:>9.1f}x"
-            f"{_fmt(r['speedup_ml_vs_cost_only_ls'], '{:.1f}x'):>11}"
             f"{_fmt(r['speedup_per_gradient_evaluation'], '{:.1f}x'):>10}"
             f"{e['iterations']:>6}/{n['iterations']:<4}"
             f"{e['gradient_evaluations']:>6}/{n['gradient_evaluations']:<4}"
@@ -770,8 +744,6 @@ def _format_compare(cmp_: dict, tg: dict) -> list[str]:
     out += [
         f"   {'speed-up, ML step, median':<34}{cmp_['speedup_ml_median']:8.1f} x  target >= "
         f"{TARGET_SPEEDUP:g} x  {_pf(tg['speedup_ml_median']['pass'])}",
-        f"   {'  vs cost-only line search':<34}"
-        f"{_fmt(cmp_['speedup_ml_vs_cost_only_ls_median'], '{:8.1f}')} x",
         f"   {'  per gradient evaluation':<34}"
         f"{_fmt(cmp_['speedup_per_gradient_evaluation_median'], '{:8.1f}')} x",
         f"   {'final cost rel. difference, max':<34}{cmp_['final_cost_rel_diff_max']:8.1e}"
@@ -873,11 +845,6 @@ HEADLINE = (
     ("  iterations", ("calibration", "optimizer", "iterations"), "{}"),
     ("peak RSS (MB)", ("memory", "peak_rss_mb"), "{:.0f}"),
     ("numeric/exact speed-up", ("exact_vs_numeric", "speedup_ml_median"), "{:.1f}"),
-    (
-        "  vs cost-only line srch",
-        ("exact_vs_numeric", "speedup_ml_vs_cost_only_ls_median"),
-        "{:.1f}",
-    ),
     (
         "  per gradient eval.",
         ("exact_vs_numeric", "speedup_per_gradient_evaluation_median"),

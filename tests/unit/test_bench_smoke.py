@@ -51,7 +51,7 @@ def test_smoke_compare_starts_every_run_from_the_same_theta0(smoke_results, benc
     cmp_ = res["exact_vs_numeric"]
     assert cmp_["seeds"] == list(bench.SMOKE_CONFIG.compare_seeds)
     (one,) = cmp_["per_seed"]
-    assert set(one["runs"]) == {key for key, _, _ in bench.COMPARE_RUNS}
+    assert set(one["runs"]) == set(bench.COMPARE_RUNS)
     for run in one["runs"].values():
         assert run["theta0_identical"]
         assert run["iterations"] <= one["max_iter"]

@@ -55,9 +55,6 @@ class MLEstimate:
     theta: np.ndarray  # (34,) normalised
     theta0: np.ndarray  # (34,) normalised
     report: OptimizeReport
-    data: ekf.FilterData  # normalised
-    normalisation: Normalisation
-    gradient: str
 
 
 def normalisation_for(p: ModelParams) -> Normalisation:
@@ -218,7 +215,4 @@ def maximum_likelihood(
         theta=theta,
         theta0=theta0,
         report=report,
-        data=data,
-        normalisation=norm,
-        gradient=gradient,
     )

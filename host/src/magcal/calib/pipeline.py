@@ -46,7 +46,6 @@ class Calibration:
     ml: MLEstimate | None
     filter_output: ekf.FilterOutput
     calibrated: np.ndarray  # (N, 3) D⁻¹(y − o), unit norm when good
-    seconds: dict
 
 
 def _filter_at(session: Session, init: InitialEstimate, p: ModelParams) -> ekf.FilterOutput:
@@ -149,6 +148,8 @@ def calibrate(
     extra["Sigma_gyr"] = p.Sigma_gyr
     extra["Sigma_acc"] = p.Sigma_acc
     extra["Sigma_mag"] = p.Sigma_mag
+    # V(θ̂) of eq. (6) alone; the optimiser's final_cost also holds the gyro-noise prior.
+    extra["negative_log_likelihood"] = out.cost
     extra["innovations"] = quality.innovation_stats(out.normalised).as_dict()
     extra["field_norm"] = {
         "before": quality.norm_stats(session.mag),
@@ -166,6 +167,4 @@ def calibrate(
         warnings=warnings,
         extra=extra,
     )
-    return Calibration(
-        result=result, init=init, ml=est, filter_output=out, calibrated=calibrated, seconds=seconds
-    )
+    return Calibration(result=result, init=init, ml=est, filter_output=out, calibrated=calibrated)

@@ -1,41 +1,11 @@
-"""Shared fixtures: a small synthetic session with known truth, for filter-level tests."""
+"""Shared fixtures."""
 
-import numpy as np
 import pytest
 
-from magcal.calib import ekf, frames, params
+from tests.synthetic import synthetic_filter_problem
 
 
-def synthetic_filter_problem(n=400, seed=0, rate_hz=100.0):
-    """A short, smoothly rotating session with known parameters (normalised field)."""
-    rng = np.random.default_rng(seed)
-    T = 1.0 / rate_hz
-    t = np.arange(n) * T
-    w = np.array([0.5, 1.0, -0.7]) + np.cumsum(rng.normal(size=(n, 3)), axis=0) * 0.02
-    q = np.empty((n, 4))
-    q[0] = frames.rotvec_to_quat(rng.normal(size=3))
-    for k in range(1, n):
-        q[k] = frames.quat_multiply(q[k - 1], frames.quat_exp(0.5 * T * w[k - 1]))
-    R_nb = frames.quat_to_matrix(q)
-    p = params.ModelParams(
-        D=np.eye(3) + 0.1 * rng.normal(size=(3, 3)),
-        o=0.2 * rng.normal(size=3),
-        dip_rad=np.deg2rad(70.0),
-        gyro_bias=np.array([0.01, -0.02, 0.005]),
-        Sigma_gyr=np.diag([2.5e-5, 3e-5, 2e-5]) + 1e-6,
-        Sigma_acc=np.diag([0.0025, 0.003, 0.002]),
-        Sigma_mag=np.diag([1e-4, 1.2e-4, 0.9e-4]),
-    )
-    g_n = frames.gravity_n()
-    acc = -np.einsum("nji,j->ni", R_nb, g_n) + 0.05 * rng.normal(size=(n, 3))
-    mag = np.einsum("ij,nkj,k->ni", p.D, R_nb, p.m_n) + p.o + 0.01 * rng.normal(size=(n, 3))
-    gyr = w + p.gyro_bias + 0.005 * rng.normal(size=(n, 3))
-    extra = 0.01 * np.abs(rng.normal(size=n))
-    q0 = frames.quat_multiply(frames.rotvec_to_quat([0.05, -0.03, 0.1]), q[0])
-    data = ekf.make_filter_data(t, gyr, acc, mag, q0, acc_extra_var=extra, g=9.81)
-    return p, data, q
-
-
-@pytest.fixture
-def filter_problem():
-    return synthetic_filter_problem()
+@pytest.fixture(params=["mixed", "none", "all"])
+def filter_problem(request):
+    """A short session with known parameters, for each accelerometer-inflation pattern."""
+    return synthetic_filter_problem(inflation=request.param)

@@ -49,14 +49,16 @@ def test_non_positive_definite_noise_gives_an_error(filter_problem):
         ekf.run_filter(bad, data)
 
 
-def test_acc_inflation_is_zero_at_rest_and_large_for_bumps():
+def test_acc_inflation_is_zero_at_rest_and_spreads_a_bump_over_its_window():
     rng = np.random.default_rng(0)
     acc = np.tile([0.0, 0.0, 9.81], (200, 1)) + 0.02 * rng.normal(size=(200, 3))
-    c = ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0)
-    assert np.count_nonzero(c) < 5
+    assert not np.any(ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0))
     acc[100] += [8.0, 0.0, 5.0]
     c = ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0)
-    assert c[100] > 10.0 and c[98] > 10.0
+    excess = abs(np.linalg.norm(acc[100]) - 9.81) - (3 * 0.02 + ekf.BUMP_THRESHOLD_M_S2)
+    half = round(ekf.BUMP_WINDOW_S * 100.0)
+    np.testing.assert_allclose(c[100 - half : 100 + half + 1], ekf.BUMP_GAIN * excess**2)
+    assert c[100 - half - 1] == 0.0 and c[100 + half + 1] == 0.0
 
 
 def test_acc_inflation_ignores_smooth_accelerations():

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from magcal.calib import cost, params
-from tests.conftest import synthetic_filter_problem
+from tests.synthetic import synthetic_filter_problem
 
 
 def central_difference(f, theta, h):
@@ -19,9 +19,9 @@ def central_difference(f, theta, h):
     return g
 
 
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_exact_gradient_matches_central_differences_at_random_points(seed):
-    p, data, _ = synthetic_filter_problem(n=300, seed=seed)
+@pytest.mark.parametrize(("seed", "inflation"), [(0, "mixed"), (1, "none"), (2, "all")])
+def test_exact_gradient_matches_central_differences_at_random_points(seed, inflation):
+    p, data, _ = synthetic_filter_problem(n=300, seed=seed, inflation=inflation)
     rng = np.random.default_rng(100 + seed)
     theta = params.pack(p)
     # A random point away from the truth: perturb every parameter.

@@ -93,7 +93,7 @@ def test_likelihood_twins_are_mapped_to_the_canonical_branch():
     from magcal.calib import cost
     from magcal.calib.ml import canonical_twin
     from magcal.calib.params import INDEX_DIP, SLICE_D, pack
-    from tests.conftest import synthetic_filter_problem
+    from tests.synthetic import synthetic_filter_problem
 
     for dip, expected in (
         (np.deg2rad(110), np.deg2rad(70)),

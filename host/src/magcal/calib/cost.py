@@ -22,9 +22,9 @@ _FORWARD_REL_STEP = np.sqrt(np.finfo(float).eps)
 _CENTRAL_REL_STEP = np.cbrt(np.finfo(float).eps)
 
 
-def cost(theta: np.ndarray, data: FilterData, use_mag: bool = True) -> float:
+def cost(theta: np.ndarray, data: FilterData) -> float:
     """V(θ) (float, nats). NaN when the filter's covariances break down."""
-    return native.filter_pass(params.unpack(theta), data, use_mag)
+    return native.filter_pass(params.unpack(theta), data, True)
 
 
 def cost_and_gradient(
@@ -32,7 +32,7 @@ def cost_and_gradient(
 ) -> tuple[float, np.ndarray]:
     """V(θ) and ∂V/∂θ (34,), exact (reverse mode through the filter)."""
     theta = np.asarray(theta, dtype=float)
-    value, mg = native.cost_and_model_gradient(params.unpack(theta), data, True, tape)
+    value, mg = native.cost_and_model_gradient(params.unpack(theta), data, tape=tape)
     grad = params.model_grad_to_theta(
         theta, mg.D, mg.o, mg.m, mg.gyro_bias, mg.Sigma_gyr, mg.Sigma_acc, mg.Sigma_mag
     )

@@ -8,7 +8,7 @@ State: ``q̃_nb`` plus a navigation-frame orientation error ``η`` with covarian
 * Measurement ``y = (y_a, y_m)``: ``ŷ = (−R_bn g_n, D R_bn m_n + o)``,
   ``H = (−R_bn [g_n×], D R_bn [m_n×])``, ``S = H P Hᵀ + blockdiag(Σ_a,t, Σ_m)``.
   ``Σ_a,t = Σ_a + c_t I`` where ``c_t`` (m/s²)² is a data-only inflation that makes the
-  accelerometer count less while the sensor is visibly accelerating (see ``robust``).
+  accelerometer count less at outliers (knocks; see :func:`accelerometer_extra_variance`).
 * The first sample is only a measurement update from the given prior ``(q₀, P₀)``.
 
 Two implementations compute the same numbers:
@@ -25,6 +25,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from magcal.calib import frames
 from magcal.calib.params import ModelParams
@@ -129,7 +130,8 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
             q = frames.quat_multiply(q, frames.quat_exp(0.5 * dt * (data.gyr[t - 1] - p.gyro_bias)))
             R = frames.quat_to_matrix(q)
             P = P + dt * dt * R @ p.Sigma_gyr @ R.T
-        R = frames.quat_to_matrix(q)
+        else:
+            R = frames.quat_to_matrix(q)
         Rt = R.T
         y_pred = np.concatenate([-Rt @ g_n, p.D @ Rt @ m_n + p.o])[:ny]
         H = np.vstack([-Rt @ G, p.D @ Rt @ Mx])[:ny]
@@ -141,9 +143,10 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
         eps = y - y_pred
         S = H @ P @ H.T + Rm
         L = np.linalg.cholesky(S)
-        w = np.linalg.solve(L, eps)
+        w = scipy.linalg.solve_triangular(L, eps, lower=True)
         cost += 0.5 * (w @ w + 2.0 * np.sum(np.log(np.diag(L))))
-        K = P @ H.T @ np.linalg.inv(S)
+        # K = P Hᵀ S⁻¹ with the Cholesky factor already at hand, not an explicit inverse.
+        K = scipy.linalg.cho_solve((L, True), H @ P).T
         eta = K @ eps
         # Joseph form keeps P symmetric positive definite in finite precision.
         IKH = np.eye(3) - K @ H

@@ -112,3 +112,21 @@ def test_likelihood_twins_are_mapped_to_the_canonical_branch():
     mirrored[INDEX_DIP] += np.pi
     assert cost.cost(mirrored, data) == pytest.approx(cost.cost(theta, data), rel=1e-12)
     np.testing.assert_allclose(canonical_twin(mirrored), theta, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_small_patch_is_refused_not_calibrated_wrongly(seed):
+    # A ±40° wobble covers a patch whose ellipsoid fit wraps around it; the coverage must
+    # be judged without that fit (review finding: 55-96° heading errors were accepted).
+    session, _ = simulate(preset("mems", motion="small", small_amplitude_deg=40), seed)
+    with pytest.raises(InsufficientDataError, match="small part of the ellipsoid"):
+        calibrate(session, "init")
+
+
+def test_noisy_but_covered_ellipsoid_calibrates_with_a_warning_that_says_so():
+    from magcal.calib.pipeline import NOISY_ELLIPSOID_WARNING
+
+    session, truth = simulate(preset("table2"), 41)  # A on the PD boundary from noise
+    cal = calibrate(session, "ml")
+    assert NOISY_ELLIPSOID_WARNING in cal.result.warnings
+    assert np.linalg.det(cal.result.D) > 0

@@ -74,12 +74,10 @@ def inertial_attitude(
     return ekf.run_filter(p, data, use_mag=False).q_filt
 
 
-def initial_estimate(
-    session: Session, force: bool = False, fit: EllipsoidFit | None = None
-) -> InitialEstimate:
-    """Algorithm 1 step 1 on a whole session. ``force`` accepts data that cannot determine
-    the ellipsoid (with a warning) instead of raising; ``fit`` is step 1b's result when the
-    caller has it already."""
+def initial_estimate(session: Session, fit: EllipsoidFit | None = None) -> InitialEstimate:
+    """Algorithm 1 step 1 on a whole session. ``fit`` is step 1b's result when the caller
+    has it already (the pipeline fits before, to judge it); otherwise it is fitted here and
+    raises on data that cannot determine it."""
     seconds = {}
     t0 = time.perf_counter()
     still = stationary.find_stationary(session.t, session.gyr, session.acc, session.mag)
@@ -94,7 +92,7 @@ def initial_estimate(
 
     if fit is None:
         t0 = time.perf_counter()
-        fit = fit_ellipsoid_sdp(session.mag, force=force)
+        fit = fit_ellipsoid_sdp(session.mag)
         seconds["ellipsoid"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()

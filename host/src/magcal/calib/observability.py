@@ -135,8 +135,6 @@ def check_observability(
     acc: np.ndarray,
     mag: np.ndarray,
     t: np.ndarray,
-    *,
-    mag_shape: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> ObservabilityReport:
     """Check that a session can determine the calibration.
 
@@ -144,8 +142,6 @@ def check_observability(
     acc : (N, 3) float, m/s²
     mag : (N, 3) float, raw magnetometer units
     t   : (N,) float, s, increasing
-    mag_shape : optional ``(o (3,), D̃ (3, 3))`` of an ellipsoid fit; the coverage is then
-          judged on ``D̃⁻¹(y − o)``, the data mapped onto the unit sphere
 
     Refuses (``ok=False``) a session that is too short, has non-finite values, whose gravity
     direction barely changes in the body frame (yaw-only motion), whose magnetometer data
@@ -181,14 +177,7 @@ def check_observability(
     else:
         w = 1
     g_eig, tilt = _gravity_figures(_moving_average(acc, w))
-    if mag_shape is not None:
-        # On the ellipsoid's own unit sphere the coverage figure is free of the soft-iron
-        # anisotropy (a 3:1 ellipsoid alone gives a ratio of 1/9), which is what the
-        # threshold, derived for a sphere, assumes.
-        centre, shape = mag_shape
-        m_eig, m_ratio = _mag_figures(np.linalg.solve(shape, (mag - centre).T).T)
-    else:
-        m_eig, m_ratio = _mag_figures(mag)
+    m_eig, m_ratio = _mag_figures(mag)
     total_rot = float(np.sum(np.linalg.norm(gyr[:-1], axis=1) * np.diff(t))) if n > 1 else 0.0
 
     if np.isfinite(g_eig[1]):

@@ -82,24 +82,21 @@ def calibrate(
     if method not in METHODS:
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     seconds = {}
-    # The ellipsoid first: the coverage check is judged on its unit sphere. It may not
-    # raise here (degenerate A from heavy noise on well-covered data is not a refusal; the
-    # checks decide whether the data cover enough); its warnings go into the result.
+    t0 = time.perf_counter()
+    report = observability.check_observability(session.gyr, session.acc, session.mag, session.t)
+    warnings = observability.raise_if_unobservable(report, force)
+    seconds["checks"] = time.perf_counter() - t0
+
+    # Past the checks (or forced), a degenerate ellipsoid is fitted regardless, with a
+    # warning. When the data do cover the sphere, degeneracy comes from noise, not from
+    # too little rotation: say that instead of the fit's own advice to rotate more.
     t0 = time.perf_counter()
     fit = fit_ellipsoid_sdp(session.mag, force=True)
     seconds["ellipsoid"] = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    report = observability.check_observability(
-        session.gyr, session.acc, session.mag, session.t, mag_shape=(fit.o, fit.D_tilde)
-    )
-    warnings = observability.raise_if_unobservable(report, force)
-    seconds["checks"] = time.perf_counter() - t0
     if report.ok and fit.warnings:
-        # The data cover the sphere, so a degenerate fit comes from noise, not from too
-        # little rotation: say that instead of the fit's own advice to rotate more.
         fit = dataclasses.replace(fit, warnings=(NOISY_ELLIPSOID_WARNING,))
 
-    init = initial_estimate(session, force, fit)
+    init = initial_estimate(session, fit)
     seconds.update(init.seconds)
     warnings += list(init.warnings)
     warnings += _alignment_warnings(session, init.g)

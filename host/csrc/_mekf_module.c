@@ -152,13 +152,13 @@ static PyObject *py_cost_grad(PyObject *self, PyObject *args)
     if (prepare(&in, g, use_mag, &model, &data) &&
         check_len(&tape, MC_MEKF_TAPE_DOUBLES * (Py_ssize_t)data.n, "tape") &&
         check_len(&gradb, MODEL_DOUBLES, "grad")) {
-        double cost, acc_scale_grad = 0.0;
+        double cost;
         double *tape_buf = (double *)tape.buf;
         Py_BEGIN_ALLOW_THREADS
-        cost = mc_mekf_cost_grad(&model, &data, tape_buf, &grad, &acc_scale_grad);
+        cost = mc_mekf_cost_grad(&model, &data, tape_buf, &grad);
         Py_END_ALLOW_THREADS
         store_model(&grad, (double *)gradb.buf);
-        result = Py_BuildValue("dd", cost, acc_scale_grad);
+        result = PyFloat_FromDouble(cost);
     }
     PyBuffer_Release(&tape);
     PyBuffer_Release(&gradb);
@@ -171,7 +171,7 @@ static PyMethodDef methods[] = {
      "cost(model, dt, gyr, acc, mag, extra, g, q0, P0, use_mag, q_out, innov_out, norm_out)"},
     {"cost_grad", py_cost_grad, METH_VARARGS,
      "cost_grad(model, dt, gyr, acc, mag, extra, g, q0, P0, use_mag, tape, grad_out) "
-     "-> (cost, d cost / d acc_extra scale)"},
+     "-> cost"},
     {NULL, NULL, 0, NULL},
 };
 

@@ -541,7 +541,6 @@ typedef struct {
     double Ai0_bar[9]; /* Σ of Āi over the samples with c_t = 0 */
     double Mi_bar[9];  /* Σ m̄ of Σm⁻¹ (besides K)              */
     double K_bar[9];   /* Σ of K̄                                */
-    double acc_scale;  /* Σ_t dV/dc_t · c_t                      */
     size_t n0;         /* samples with c_t = 0                   */
 } grad_acc_t;
 
@@ -694,7 +693,6 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
             Sa_bar[i] = 0.5 * Ai[i] - Sa_bar[i];
             gm->Sa[i] += Sa_bar[i];
         }
-        acc->acc_scale += cx * (Sa_bar[0] + Sa_bar[4] + Sa_bar[8]);
     }
 
     if (k > 0) {
@@ -891,12 +889,11 @@ static HOT_PASS void reverse_pass(const pass_t *p, const double *tape, grad_acc_
 }
 
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data, double *tape,
-                         mc_mekf_model_t *grad, double *grad_acc_scale)
+                         mc_mekf_model_t *grad)
 {
     if (!model || !data || !tape || !grad || data->n == 0) return NAN;
     /* A zero gradient on failure: callers that test only the cost never see garbage. */
     memset(grad, 0, sizeof *grad);
-    if (grad_acc_scale) *grad_acc_scale = 0.0;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
     const double cost = forward_tape_pass(&p, tape);
@@ -929,6 +926,5 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
         sym_sandwich(p.Mi, acc.Mi_bar, t);
         for (int i = 0; i < 9; ++i) grad->Sm[i] = 0.5 * (double)n * p.Mi[i] - t[i];
     }
-    if (grad_acc_scale) *grad_acc_scale = acc.acc_scale;
     return cost;
 }

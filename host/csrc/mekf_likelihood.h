@@ -48,10 +48,8 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
 #define MC_MEKF_TAPE_DOUBLES 40
 
 /* Cost and gradient. `tape` is caller-owned workspace of MC_MEKF_TAPE_DOUBLES*n doubles.
- * `grad_acc_extra` receives dV/dc summed with weights 1,
- * i.e. sum_t dV/dc_t * acc_extra_var[t] / (sum over a unit scale), see the Python side.
  * Returns the cost, or NaN on failure (the gradient is then zero). */
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
-                         double *tape, mc_mekf_model_t *grad, double *grad_acc_scale);
+                         double *tape, mc_mekf_model_t *grad);
 
 #endif

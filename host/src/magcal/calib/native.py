@@ -34,8 +34,7 @@ def new_tape(n_samples: int) -> np.ndarray:
 
 @dataclass(frozen=True)
 class ModelGradient:
-    """∂V/∂(model quantity), same shapes as :class:`ModelParams` (m w.r.t. m_n), plus the
-    derivative w.r.t. a common scale factor of ``acc_extra_var`` at scale 1."""
+    """∂V/∂(model quantity), same shapes as :class:`ModelParams` (m w.r.t. m_n)."""
 
     D: np.ndarray
     o: np.ndarray
@@ -44,7 +43,6 @@ class ModelGradient:
     Sigma_gyr: np.ndarray
     Sigma_acc: np.ndarray
     Sigma_mag: np.ndarray
-    acc_extra_scale: float
 
 
 def _model_buffer(p: ModelParams) -> np.ndarray:
@@ -94,9 +92,7 @@ def cost_and_model_gradient(
     if tape is None or tape.shape != (TAPE_DOUBLES_PER_SAMPLE * len(data),):
         tape = new_tape(len(data))
     grad = np.empty(45)
-    cost, acc_scale = _mekf.cost_grad(
-        _model_buffer(p), *_data_args(data), bool(use_mag), tape, grad
-    )
+    cost = _mekf.cost_grad(_model_buffer(p), *_data_args(data), bool(use_mag), tape, grad)
     return cost, ModelGradient(
         D=grad[0:9].reshape(3, 3),
         o=grad[9:12],
@@ -105,5 +101,4 @@ def cost_and_model_gradient(
         Sigma_gyr=grad[18:27].reshape(3, 3),
         Sigma_acc=grad[27:36].reshape(3, 3),
         Sigma_mag=grad[36:45].reshape(3, 3),
-        acc_extra_scale=acc_scale,
     )

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import numpy as np
 import pytest
 
@@ -204,11 +202,9 @@ def test_jacobian_matches_finite_differences():
     assert np.allclose(J, fd, atol=1e-8)
 
 
-def test_60k_samples_fast():
+def test_60k_samples_are_aligned():
+    # Correctness at the size of a 10-minute session; its speed is measured by bench/.
     rng = np.random.default_rng(10)
     q_nb, mag, o, D_tilde, D, _ = _scenario(rng, n=60000)
-    estimate_alignment(mag[:100], o, D_tilde, q_nb[:100])  # warm-up
-    t0 = time.perf_counter()
     al = estimate_alignment(mag, o, D_tilde, q_nb)
-    assert time.perf_counter() - t0 < 0.3
     assert np.max(np.abs(al.D0 - D)) < 1e-6

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import time
-
 import cvxpy as cp
 import numpy as np
 import pytest
@@ -98,20 +96,22 @@ def test_noisy_data_are_close():
     fit = fit_ellipsoid_sdp(y)
     assert _rel(fit.D_tilde @ fit.D_tilde.T, D @ D.T) < 0.01
     assert np.linalg.norm(fit.o - o) < 0.01 * np.linalg.norm(D, 2)
-    assert fit.radius_rms == pytest.approx(0.5 / 48.0 / np.mean(np.diag(D) / 48.0), rel=0.5)
+    # With D = D̃U (U orthogonal) and y = Dû + o + e, e ~ N(0, σ²I): D̃⁻¹(y − o) = v + D̃⁻¹e
+    # with v = Uû on the unit sphere, so to first order ‖D̃⁻¹(y − o)‖ − 1 = vᵀD̃⁻¹e, whose
+    # mean square over uniform v is σ² tr((DDᵀ)⁻¹)/3. The neglected terms: second order,
+    # (σ/|D|)² ≈ 1e-4 against an RMS of 1e-2; the RMS of 20,000 samples, ≈ 0.5 % relative
+    # (1/√(2N)); the fit's own error, smaller still. Seeds 4-13 agree to 1.3 %.
+    predicted = 0.5 * np.sqrt(np.trace(np.linalg.inv(D @ D.T)) / 3.0)
+    assert fit.radius_rms == pytest.approx(predicted, rel=0.03)
 
 
-def test_600k_samples_fast():
+def test_600k_samples_are_fitted():
+    # Correctness at the size of a long session; its speed is measured by bench/, not here.
     rng = np.random.default_rng(5)
     D = _random_D(rng)
     o = rng.normal(size=3)
-    fit_ellipsoid_sdp(_ellipsoid_data(rng, 200, D, o))  # warm-up: cvxpy import
-    y = _ellipsoid_data(rng, 600_000, D, o, noise=0.01)
-    t0 = time.perf_counter()
-    fit = fit_ellipsoid_sdp(y)
-    elapsed = time.perf_counter() - t0
+    fit = fit_ellipsoid_sdp(_ellipsoid_data(rng, 600_000, D, o, noise=0.01))
     assert _rel(fit.D_tilde @ fit.D_tilde.T, D @ D.T) < 1e-2
-    assert elapsed < 1.0, f"fit of 600k samples took {elapsed:.2f} s"
 
 
 def test_planar_data_raise():

@@ -199,9 +199,8 @@ def test_shape_errors():
         initial_noise_and_bias(t, np.zeros((100, 3)), np.zeros((100, 3)), np.zeros((99, 3)), None)
 
 
-def test_60k_samples_fast():
-    import time
-
+def test_60k_samples_find_the_rest():
+    # Correctness at the size of a 10-minute session; its speed is measured by bench/.
     rng = np.random.default_rng(11)
     n = 60000
     t = np.arange(n) / FS_HZ
@@ -218,8 +217,6 @@ def test_60k_samples_fast():
     gyr += SIGMA_GYR * rng.normal(size=(n, 3)) + BIAS
     acc += SIGMA_ACC * rng.normal(size=(n, 3))
     mag += SIGMA_MAG * rng.normal(size=(n, 3))
-    t0 = time.perf_counter()
     sl = find_stationary(t, gyr, acc, mag)
-    assert time.perf_counter() - t0 < 0.3
     assert sl is not None and 30000 <= sl.start and sl.stop <= 31000
     assert sl.stop - sl.start > 900

@@ -6,13 +6,15 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT := out
 
-.PHONY: setup demo test lint accuracy accuracy-quick bench clean
+.PHONY: setup demo test lint accuracy bench clean
 
 setup: $(STAMP)
 
 # Re-install when the package definition or the native kernel changes (the editable
 # install compiles host/csrc into magcal/calib/_mekf*.so).
 $(STAMP): host/pyproject.toml host/setup.py $(wildcard host/csrc/*.c host/csrc/*.h)
+	@$(PYTHON) -c "import sysconfig,os,sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()['include'],'Python.h')))" \
+		|| { echo "make setup: $(PYTHON) has no C headers (Python.h), needed to build the native kernel: install python3-dev (Debian/Ubuntu) or python3-devel (Fedora)" >&2; exit 1; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 	$(PY) -m pip install --quiet -e 'host[dev]'
@@ -38,5 +40,5 @@ bench: setup
 	$(PY) bench/run_bench.py --out bench/results.json
 
 clean:
-	rm -rf $(OUT) build host/build host/src/*.egg-info
+	rm -rf $(OUT) build host/build host/src/*.egg-info $(STAMP)
 	find host -name '_mekf*.so' -delete

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """magcal benchmark: the speed and memory targets of issue 3, measured on one core.
 
-    python bench/run_bench.py --out bench/results.json     # what `make bench` runs (~1-2 min)
+    python bench/run_bench.py --out bench/results.json     # what `make bench` runs (~35 s)
     python bench/run_bench.py --show old.json new.json     # headline figures side by side
 
 Four measurements, each in a fresh subprocess of this script (``--worker NAME``) with
@@ -18,7 +18,8 @@ CPU with ``os.sched_setaffinity``:
    optimisations from the same initial estimate θ₀ in one process.
 4. ``scaling``: one cost+gradient and one cost-only evaluation at 6k, 60k and 600k samples.
 
-Progress goes to stderr, the table to stdout, the machine-readable summary to ``--out``.
+Progress goes to stderr, the table (formatted by bench/report.py) to stdout, the
+machine-readable summary to ``--out``.
 Targets are reported as pass/fail, never asserted: timing depends on the machine.
 See bench/README.md for what each figure means.
 """
@@ -39,6 +40,9 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
+
+# bench/report.py, found because Python puts a script's own directory first on sys.path.
+from report import format_headlines, format_table
 
 RESULTS_FORMAT = "magcal-bench/1"
 REPO_ROOT = Path(__file__).resolve().parent.parent
@@ -61,10 +65,12 @@ TARGET_PEAK_RSS_MB = 1024.0
 TARGET_SPEEDUP = 20.0
 TARGET_COST_REL_DIFF = 1e-6
 
-#: Keys of ``result.extra["seconds"]`` in pipeline order; noise + ellipsoid + alignment is
-#: the initial estimate (Algorithm 1 step 1), ml is step 2.
-STAGES = ("checks", "noise", "ellipsoid", "alignment", "ml", "diagnostics")
-INIT_STAGES = ("noise", "ellipsoid", "alignment")
+#: Keys of ``result.extra["seconds"]`` in the order ``pipeline.calibrate`` writes them: the
+#: observability checks; the initial estimate (Algorithm 1 step 1), whose ellipsoid fit the
+#: pipeline runs first (to judge it) and ``initial_estimate`` then adds noise and alignment;
+#: ml (step 2); diagnostics.
+STAGES = ("checks", "ellipsoid", "noise", "alignment", "ml", "diagnostics")
+INIT_STAGES = ("ellipsoid", "noise", "alignment")
 
 
 @dataclass(frozen=True)
@@ -91,17 +97,6 @@ SMOKE_CONFIG = BenchConfig(
     scaling_durations_s=(15.0, 30.0),
     scaling_reps=(2, 1),
 )
-
-
-def __getattr__(name: str):
-    """``TAPE_DOUBLES_PER_SAMPLE``: the reverse-mode tape of host/csrc/mekf_likelihood.c, as
-    the built kernel reports it. Looked up lazily: magcal imports numpy, which must not be
-    loaded before a worker has set its single-thread environment."""
-    if name == "TAPE_DOUBLES_PER_SAMPLE":
-        from magcal.calib import native
-
-        return native.TAPE_DOUBLES_PER_SAMPLE
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def _log(msg: str) -> None:
@@ -170,7 +165,7 @@ def work_calibrate(duration_s: float, seed: int, warm: bool) -> dict:
         "simulate_s": simulate_s,
         "wall_s": wall_s,
         "cpu_s": _cpu_seconds() - cpu0,
-        "stages_s": {k: float(cal.result.extra["seconds"].get(k, 0.0)) for k in STAGES},
+        "stages_s": _stage_seconds(cal),
         "optimizer": _optimizer_summary(cal.result.extra["optimizer"]),
         "peak_rss_before_calibrate_mb": rss_before_mb,
         "peak_rss_mb": _peak_rss_mb(),
@@ -179,8 +174,14 @@ def work_calibrate(duration_s: float, seed: int, warm: bool) -> dict:
         t0 = time.perf_counter()
         cal = pipeline.calibrate(session, "ml", gradient="exact")
         out["warm_wall_s"] = time.perf_counter() - t0
-        out["warm_stages_s"] = {k: float(cal.result.extra["seconds"].get(k, 0.0)) for k in STAGES}
+        out["warm_stages_s"] = _stage_seconds(cal)
     return out
+
+
+def _stage_seconds(cal) -> dict:
+    """The pipeline's own stage times, s, in the order it recorded them (:data:`STAGES`, as
+    the smoke test checks)."""
+    return {k: float(v) for k, v in cal.result.extra["seconds"].items()}
 
 
 def _optimizer_summary(opt: dict) -> dict:
@@ -474,6 +475,9 @@ def run_worker(name: str, params: dict, cpu: int | None) -> dict:
 
 
 def _git(*args: str) -> str | None:
+    """``git *args`` in the repository: its stdout, or None if git is missing or fails. The
+    same helper as in tools/accuracy_report.py (tools/ and bench/ import nothing from each
+    other): keep the two identical."""
     try:
         proc = subprocess.run(
             ["git", *args],
@@ -675,211 +679,6 @@ def targets(results: dict) -> dict:
             cmp_["final_cost_rel_diff_max"] <= TARGET_COST_REL_DIFF,
         ),
     }
-
-
-# --------------------------------------------------------------------------------------
-# Output
-
-
-def _pf(ok: bool) -> str:
-    return "PASS" if ok else "FAIL"
-
-
-def _fmt(value, fmt: str) -> str:
-    return "-" if value is None else fmt.format(value)
-
-
-def _format_compare(cmp_: dict, tg: dict) -> list[str]:
-    """Section 3: the first seed in detail, then one line per seed and the medians."""
-    d = cmp_["per_seed"][0]
-    out = [
-        f"3. Exact vs numeric gradient, {cmp_['duration_s']:g} s sessions, seeds "
-        + ", ".join(str(s) for s in cmp_["seeds"])
-        + "; each pair from the same θ₀",
-        f"   seed {d['seed']} in detail ({d['samples']:,} samples; shared init "
-        f"{d['init_s']:.2f} s, after importing cvxpy):",
-        f"   {'':<34}{'exact':>16}{'numeric':>16}",
-    ]
-    cols = [d["runs"][k] for k in COMPARE_RUNS]
-    for label, key, fmt in (
-        ("ML wall (s)", "wall_s", "{:.2f}"),
-        ("ML CPU time (s)", "cpu_s", "{:.2f}"),
-        ("iterations", "iterations", "{}"),
-        ("cost evaluations", "cost_evaluations", "{}"),
-        ("gradient evaluations", "gradient_evaluations", "{}"),
-        ("final cost (with prior)", "final_cost", "{:.6f}"),
-        ("final V(θ) (no prior)", "final_cost_without_prior", "{:.6f}"),
-        ("stopping rule", "stopping_rule", "{}"),
-        ("max |exact grad| at end (scaled)", "max_scaled_exact_gradient_at_end", "{:.2e}"),
-    ):
-        cells = ["-" if c is None else _fmt(c[key], fmt) for c in cols]
-        out.append(f"   {label:<34}" + "".join(f"{c:>16}" for c in cells))
-    t_e, t_n = d["gradient_evaluation_exact_s"], d["gradient_evaluation_numeric_s"]
-    out += [
-        f"   {'one gradient evaluation':<34}{_fmt(t_e and 1e3 * t_e, '{:.1f} ms'):>16}"
-        f"{_fmt(t_n and 1e3 * t_n, '{:.1f} ms'):>16}   "
-        f"ratio {_fmt(d['speedup_per_gradient_evaluation'], '{:.1f}')} x",
-        f"   {'final cost difference':<34}{d['final_cost_abs_diff']:.2e} nats, relative "
-        f"{d['final_cost_rel_diff']:.2e}",
-        f"   {'max parameter difference':<34}{d['max_param_diff_sigma']:.2e} σ "
-        "(each parameter's rough 1-σ uncertainty)",
-        f"   {'finite-difference gradient error':<34}"
-        + _fmt(d["max_scaled_fd_gradient_error_at_optimum"], "{:.2e}")
-        + f" (scaled, at the exact optimum; gradient rule < {d['gradient_tol']:g})",
-        f"   {'speed-up, ML step':<34}{d['speedup_ml']:.1f} x (CPU time {d['speedup_ml_cpu']:.1f}"
-        f" x; incl. shared init {d['speedup_with_init']:.1f} x)",
-        f"   {'seed':>6}{'samples':>9}{'speed-up':>10}{'per eval':>10}"
-        f"{'iters e/n':>11}{'evals e/n':>11}{'rules e/n':>19}{'cost rel diff':>15}",
-    ]
-    for r in cmp_["per_seed"]:
-        e, n = r["runs"]["exact"], r["runs"]["numeric"]
-        out.append(
-            f"   {r['seed']:>6}{r['samples']:>9,}{r['speedup_ml']:>9.1f}x"
-            f"{_fmt(r['speedup_per_gradient_evaluation'], '{:.1f}x'):>10}"
-            f"{e['iterations']:>6}/{n['iterations']:<4}"
-            f"{e['gradient_evaluations']:>6}/{n['gradient_evaluations']:<4}"
-            f"{e['stopping_rule'] + '/' + n['stopping_rule']:>19}"
-            f"{r['final_cost_rel_diff']:>15.2e}"
-        )
-    out += [
-        f"   {'speed-up, ML step, median':<34}{cmp_['speedup_ml_median']:8.1f} x  target >= "
-        f"{TARGET_SPEEDUP:g} x  {_pf(tg['speedup_ml_median']['pass'])}",
-        f"   {'  per gradient evaluation':<34}"
-        f"{_fmt(cmp_['speedup_per_gradient_evaluation_median'], '{:8.1f}')} x",
-        f"   {'final cost rel. difference, max':<34}{cmp_['final_cost_rel_diff_max']:8.1e}"
-        f"    target <= {TARGET_COST_REL_DIFF:g}  {_pf(tg['final_cost_rel_diff_max']['pass'])}",
-    ]
-    return out
-
-
-def format_table(res: dict) -> str:
-    m, cal, mem = res["machine"], res["calibration"], res["memory"]
-    cmp_, scal, tg = res["exact_vs_numeric"], res["scaling"], res["targets"]
-    commit = (res["git"]["commit"] or "unknown")[:10]
-    modified = res["git"].get("host_modified") or []
-    dirty = f" + uncommitted changes to {', '.join(modified)}" if modified else ""
-    pin = f"pinned to CPU {m['pinned_cpu']}" if m["pinned_cpu"] is not None else "not pinned"
-    load = m["loadavg_at_start"]
-    load_txt = f", load {load[0]:.2f} at start" if load else ""
-    out = [
-        f"magcal benchmark, {res['date']}, commit {commit}{dirty}",
-        f"machine: {m['cpu_model']}, {m['cpu_count']} cores ({pin}, 1 thread){load_txt}",
-        f"Python {m['python']}, numpy {m['numpy']}; preset '{PRESET}', seed {SEED}",
-        "",
-        f"1. Full ML calibration (pipeline.calibrate), {cal['samples']:,} samples, cold "
-        f"process, median of {cal['runs']}",
-        f"   {'total wall':<34}{cal['wall_s']:8.2f} s   target <= {TARGET_CALIBRATION_S:g} s"
-        f"   {_pf(tg['calibration_wall_s']['pass'])}",
-        f"   {'  all runs':<34}{', '.join(f'{w:.2f}' for w in cal['wall_all_s']):>8} s",
-        f"   {'  CPU time (user+sys)':<34}{cal['cpu_s']:8.2f} s",
-    ]
-    labels = {
-        "checks": "observability checks",
-        "noise": "init: stationary, bias, noise",
-        "ellipsoid": "init: ellipsoid SDP",
-        "alignment": "init: alignment (R_D, m_z)",
-        "ml": "ML optimisation",
-        "diagnostics": "diagnostics",
-    }
-    for k in STAGES:
-        out.append(f"   {'  ' + labels[k]:<34}{cal['stages_s'][k]:8.2f} s")
-    opt = cal["optimizer"]
-    out += [
-        f"   {'  (init total)':<34}{cal['init_s']:8.2f} s",
-        f"   optimiser: {opt['iterations']} iterations, {opt['gradient_evaluations']} "
-        f"cost+gradient evaluations, stopped on '{opt['stopping_rule']}', "
-        f"final cost {opt['final_cost']:.6f}",
-        f"   not in the total: import magcal {cal['import_s']:.2f} s, simulation "
-        f"{cal['simulate_s']:.2f} s; whole process {cal['process_wall_s']:.2f} s",
-        f"   cvxpy import ({res['imports']['cvxpy_s']:.2f} s in a fresh process) is "
-        + (
-            "paid inside 'init: ellipsoid SDP'"
-            if not cal["cvxpy_imported_before_calibrate"]
-            else "paid before calibrate (in the import)"
-        ),
-    ]
-    if cal["warm_wall_s"] is not None:
-        out.append(
-            f"   warm (second calibration, same process): {cal['warm_wall_s']:.2f} s, "
-            f"ellipsoid {cal['warm_stages_s']['ellipsoid']:.2f} s"
-        )
-    out += [
-        "",
-        "2. Peak memory of the calibration process",
-        f"   {'max RSS':<34}{mem['peak_rss_mb']:8.0f} MB  target <= {TARGET_PEAK_RSS_MB:g} MB"
-        f"  {_pf(tg['peak_rss_mb']['pass'])}",
-        f"   {'  of which before calibrate':<34}{mem['peak_rss_before_calibrate_mb']:8.0f} MB",
-        "",
-    ]
-    out += _format_compare(cmp_, tg)
-    out += [
-        "",
-        "4. One evaluation at θ₀ (median), time per sample, memory",
-        f"   {'samples':>9}{'cost+grad':>12}{'cost':>10}{'ratio':>7}{'cg ns/smp':>11}"
-        f"{'c ns/smp':>10}{'tape':>10}{'alloc/eval':>12}{'data':>9}",
-    ]
-    for r in scal["rows"]:
-        out.append(
-            f"   {r['samples']:>9,}{r['cost_grad_s'] * 1e3:>9.1f} ms{r['cost_s'] * 1e3:>7.1f} ms"
-            f"{r['grad_over_cost']:>7.2f}{r['cost_grad_ns_per_sample']:>11.0f}"
-            f"{r['cost_ns_per_sample']:>10.0f}{r['tape_mb']:>7.1f} MB"
-            f"{r['cost_grad_alloc_mb']:>9.1f} MB{r['data_mb']:>6.1f} MB"
-        )
-    if scal["loglog_slope_cost_grad"] is not None:
-        out.append(
-            f"   log-log slope of cost+gradient time vs samples: "
-            f"{scal['loglog_slope_cost_grad']:.3f} (1 = linear)"
-        )
-    out += ["", f"benchmark took {res['bench_wall_s']:.0f} s"]
-    return "\n".join(out)
-
-
-#: Headline figures for ``--show``: (label, path into the results, format).
-HEADLINE = (
-    ("commit", ("git", "commit"), "{:.10}"),
-    ("date", ("date",), "{:.10}"),
-    ("cores", ("machine", "cpu_count"), "{}"),
-    ("calibration wall (s)", ("calibration", "wall_s"), "{:.2f}"),
-    ("  init (s)", ("calibration", "init_s"), "{:.2f}"),
-    ("  ML (s)", ("calibration", "stages_s", "ml"), "{:.2f}"),
-    ("  iterations", ("calibration", "optimizer", "iterations"), "{}"),
-    ("peak RSS (MB)", ("memory", "peak_rss_mb"), "{:.0f}"),
-    ("numeric/exact speed-up", ("exact_vs_numeric", "speedup_ml_median"), "{:.1f}"),
-    (
-        "  per gradient eval.",
-        ("exact_vs_numeric", "speedup_per_gradient_evaluation_median"),
-        "{:.1f}",
-    ),
-    ("final cost rel. diff", ("exact_vs_numeric", "final_cost_rel_diff_max"), "{:.1e}"),
-    ("cost+grad slope", ("scaling", "loglog_slope_cost_grad"), "{:.3f}"),
-)
-
-
-def _get(d: dict, path: tuple[str, ...]):
-    for key in path:
-        if not isinstance(d, dict) or key not in d:
-            return None
-        d = d[key]
-    return d
-
-
-def format_headlines(files: list[str]) -> str:
-    """One column per results file, for comparing runs over time."""
-    docs = [json.loads(Path(f).read_text()) for f in files]
-    lines = [f"{'':<26}" + "".join(f"{Path(f).name[:16]:>18}" for f in files)]
-    for label, path, fmt in HEADLINE:
-        cells = []
-        for d in docs:
-            v = _get(d, path)
-            cells.append("-" if v is None else fmt.format(v))
-        lines.append(f"{label:<26}" + "".join(f"{c:>18}" for c in cells))
-    for d_i, d in enumerate(docs):
-        for r in _get(d, ("scaling", "rows")) or []:
-            lines.append(
-                f"file {d_i + 1}: {r['samples']:>9,} samples  cost+grad "
-                f"{r['cost_grad_s'] * 1e3:8.1f} ms  ({r['cost_grad_ns_per_sample']:.0f} ns/sample)"
-            )
-    return "\n".join(lines)
 
 
 def main(argv: list[str] | None = None) -> int:

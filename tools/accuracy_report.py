@@ -48,7 +48,8 @@ _COST_ESTIMATE_S = {
     "noise-free": 0.3,
 }
 
-REPO = Path(__file__).resolve().parent.parent
+REPO_ROOT = Path(__file__).resolve().parent.parent
+GIT_TIMEOUT_S = 10.0
 
 
 def _task(args: tuple[str, int, bool]) -> tuple[str, dict]:
@@ -80,27 +81,31 @@ def _progress_line(i: int, total: int, key: str, run: dict) -> str:
     return head + ", ".join(parts) + f" ({run['seconds']:.1f} s)"
 
 
-def _git_description() -> str:
+def _git(*args: str) -> str | None:
+    """``git *args`` in the repository: its stdout, or None if git is missing or fails. The
+    same helper as in bench/run_bench.py (tools/ and bench/ import nothing from each other):
+    keep the two identical."""
     try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "--short", "HEAD"],
-            cwd=REPO,
+        proc = subprocess.run(
+            ["git", *args],
+            cwd=REPO_ROOT,
             capture_output=True,
             text=True,
-            timeout=10,
-            check=True,
-        ).stdout.strip()
-        dirty = subprocess.run(
-            ["git", "status", "--porcelain", "--untracked-files=no", "host"],
-            cwd=REPO,
-            capture_output=True,
-            text=True,
-            timeout=10,
-            check=True,
-        ).stdout.strip()
-    except (OSError, subprocess.SubprocessError):
+            timeout=GIT_TIMEOUT_S,
+            check=False,
+        )
+    except (OSError, subprocess.TimeoutExpired):
+        return None
+    return proc.stdout.strip() if proc.returncode == 0 else None
+
+
+def _git_description() -> str:
+    """The commit, and whether the code under host/ differs from it (as bench/ records)."""
+    commit = _git("rev-parse", "--short", "HEAD")
+    status = _git("status", "--porcelain", "--", "host")
+    if commit is None or status is None:
         return "unknown commit"
-    return commit + (" with uncommitted changes under host/" if dirty else "")
+    return commit + (" with uncommitted changes under host/" if status else "")
 
 
 def _f(x: float, fmt: str = "{:.3g}") -> str:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import time
 
 import numpy as np
@@ -11,6 +12,8 @@ from magcal.errors import MagcalError, SessionFormatError
 from magcal.io.session import (
     COLUMNS,
     Session,
+    SessionFileError,
+    check_writable,
     read_session,
     session_from_arrays,
     write_session,
@@ -107,6 +110,45 @@ def test_tolerates_bom_crlf_blank_lines_and_spaces(tmp_path):
     np.testing.assert_array_equal(s.t, [0.0, 0.01, 0.02, 0.03])
 
 
+def test_metadata_with_unusual_characters_round_trips(tmp_path):
+    # Everything that is not a line separator survives: tabs, NUL, other scripts, emoji.
+    meta = {"source": "a\tb\x00c ÅÄÖ ☃ 🧲", "note": "", "x_y-z.1": "1: 2: 3"}
+    path = tmp_path / "s.csv"
+    write_session(path, make_session(3, meta=meta))
+    assert read_session(path).meta == meta
+
+
+# Every character str.splitlines() splits at: the reader sees a new line there.
+LINE_SEPARATORS = ["\n", "\r", "\v", "\f", "\x1c", "\x1d", "\x1e", "\x85", "\u2028", "\u2029"]
+
+
+@pytest.mark.parametrize("sep", LINE_SEPARATORS)
+def test_write_rejects_every_line_separator_in_metadata(tmp_path, sep):
+    path = tmp_path / "s.csv"
+    for meta in ({"source": f"one{sep}# two: 2"}, {"source": sep}, {f"so{sep}urce": "x"}):
+        with pytest.raises(SessionFormatError, match="newline"):
+            write_session(path, Session(*arrays(), meta=meta))  # bypasses validation
+        assert not path.exists()
+    # Without the check the file would read back differently (or not at all):
+    text = f"# magcal-session: 1\n# source: one{sep}# two: 2\n{HEADER}\n" + "\n".join(good_rows())
+    assert read_session(write_text(tmp_path, text, "raw.csv")).meta != {
+        "source": f"one{sep}# two: 2"
+    }
+
+
+def test_write_rejects_unencodable_metadata(tmp_path):
+    path = tmp_path / "s.csv"
+    with pytest.raises(SessionFormatError, match="not valid Unicode"):
+        write_session(path, Session(*arrays(), meta={"source": "\ud800"}))
+    assert not path.exists()
+
+
+def test_second_version_line_is_rejected_not_kept_as_metadata(tmp_path):
+    text = session_text(good_rows(), meta="# source: x\n# magcal-session: 1\n")
+    with pytest.raises(SessionFormatError, match="line 3: a second 'magcal-session' line"):
+        read_session(write_text(tmp_path, text))
+
+
 def test_time_need_not_start_at_zero(tmp_path):
     rows = [f"{1e6 + i},0,0,0,0,0,9.81,1,0,0" for i in range(3)]
     assert read_session(write_text(tmp_path, session_text(rows))).t[0] == 1e6
@@ -140,6 +182,53 @@ def test_error_names_the_file(tmp_path):
     path = write_text(tmp_path, "t,x\n", name="named.csv")
     with pytest.raises(SessionFormatError, match=r"named\.csv"):
         read_session(path)
+
+
+def test_missing_file(tmp_path):
+    path = tmp_path / "nope.csv"
+    with pytest.raises(SessionFileError, match=r"reading session .*nope\.csv: no such file"):
+        read_session(path)
+
+
+def test_directory_instead_of_file(tmp_path):
+    with pytest.raises(SessionFileError, match="it is a directory: give a file name"):
+        read_session(tmp_path)
+
+
+def test_write_into_missing_directory(tmp_path):
+    path = tmp_path / "no" / "s.csv"
+    with pytest.raises(
+        SessionFileError, match=r"writing session .*: directory .*no does not exist"
+    ):
+        write_session(path, make_session(3))
+
+
+def test_file_errors_are_session_format_errors():
+    assert issubclass(SessionFileError, SessionFormatError)
+
+
+def test_check_writable(tmp_path):
+    check_writable(tmp_path / "new.json", "writing result")  # a fresh file in a directory
+    assert list(tmp_path.iterdir()) == []  # the probe leaves nothing behind
+    with pytest.raises(SessionFileError, match=r"writing result .*: directory .*no does not exist"):
+        check_writable(tmp_path / "no" / "r.json", "writing result")
+    (tmp_path / "file").write_text("")
+    with pytest.raises(SessionFileError, match=r"directory .*file is not a directory"):
+        check_writable(tmp_path / "file" / "r.json", "writing result")
+    with pytest.raises(SessionFileError, match="it is a directory"):
+        check_writable(tmp_path, "writing result")
+
+
+@pytest.mark.skipif(not hasattr(os, "geteuid") or os.geteuid() == 0, reason="root may write")
+def test_check_writable_read_only_directory(tmp_path):
+    d = tmp_path / "ro"
+    d.mkdir()
+    d.chmod(0o500)
+    try:
+        with pytest.raises(SessionFileError, match="cannot create files in directory"):
+            check_writable(d / "r.json", "writing result")
+    finally:
+        d.chmod(0o700)
 
 
 def test_empty_file(tmp_path):

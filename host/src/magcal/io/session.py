@@ -20,11 +20,12 @@ from __future__ import annotations
 
 import math
 import os
+import tempfile
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.errors import SessionFormatError
+from magcal.errors import MagcalError, SessionFormatError
 
 SESSION_VERSION = "1"
 FIRST_LINE = "# magcal-session: 1"
@@ -38,6 +39,63 @@ VECTOR_COLUMNS = (
 COLUMNS = (TIME_COLUMN,) + tuple(name for _, names in VECTOR_COLUMNS for name in names)
 #: Rows per chunk when a file with a problem is re-parsed to find the first bad line.
 RESCAN_CHUNK_ROWS = 4096
+
+
+class SessionFileError(SessionFormatError):
+    """A session file cannot be opened, read or written (missing, a directory, no permission)."""
+
+
+# --------------------------------------------------------------------------------------------
+# File-system problems, shared by the readers and writers of magcal's files
+
+
+def os_error_advice(exc: OSError, path: str | os.PathLike, writing: bool) -> str:
+    """What went wrong with ``path`` and what to do, for an error message (no file name)."""
+    directory = os.path.dirname(os.fspath(path)) or "."
+    if isinstance(exc, FileNotFoundError):
+        if writing:
+            return f"directory {directory} does not exist: create it or write elsewhere"
+        return "no such file: check the name and the directory"
+    if isinstance(exc, IsADirectoryError):
+        return "it is a directory: give a file name"
+    if isinstance(exc, NotADirectoryError):
+        return "part of the path is a file, not a directory: check the path"
+    if isinstance(exc, PermissionError):
+        if writing:
+            return "permission denied: write to a directory you may write to"
+        return "permission denied: make the file readable"
+    return f"{exc.strerror or exc}: check the path and the disk"
+
+
+def check_writable(
+    path: str | os.PathLike, operation: str, error: type[MagcalError] = SessionFileError
+) -> None:
+    """Raise ``error`` unless a file can be written at ``path``.
+
+    For commands that work long before they write: check first, so the work is not lost.
+    operation : names it in the message, e.g. ``"writing result"``
+    """
+    name = os.fspath(path)
+    directory = os.path.dirname(name) or "."
+    if os.path.isdir(name):
+        raise error(f"{operation} {name}: it is a directory: give a file name")
+    if not os.path.isdir(directory):
+        problem = "is not a directory" if os.path.exists(directory) else "does not exist"
+        raise error(
+            f"{operation} {name}: directory {directory} {problem}: create it or write elsewhere"
+        )
+    try:
+        # Creating (and at once deleting) a file is the only reliable test: permissions,
+        # ACLs and read-only file systems all show up here.
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as exc:
+        raise error(
+            f"{operation} {name}: cannot create files in directory {directory} "
+            f"({exc.strerror or exc}): write elsewhere"
+        ) from exc
+    if os.path.exists(name) and not os.access(name, os.W_OK):
+        raise error(f"{operation} {name}: the file exists and is read-only: write elsewhere")
 
 
 @dataclass(frozen=True)
@@ -114,16 +172,34 @@ def session_from_arrays(
     return Session(t=t, gyr=arrays["gyr"], acc=arrays["acc"], mag=arrays["mag"], meta=meta)
 
 
+def _breaks_line(text: str) -> bool:
+    """True if ``text`` holds anything the reader's ``str.splitlines`` splits at.
+
+    That is more than \\n and \\r: also \\v, \\f, \\x1c-\\x1e, \\x85, \\u2028 and \\u2029. The
+    sentinel makes a lone separator (``"\\x85".splitlines() == [""]``) count too.
+    """
+    return len((text + "x").splitlines()) != 1
+
+
 def _check_meta(meta: dict[str, str], operation: str) -> None:
     for key, value in meta.items():
         if not isinstance(key, str) or not isinstance(value, str):
             raise SessionFormatError(f"{operation}: metadata {key!r} must map str to str")
-        if not key.strip() or ":" in key or "\n" in key or "\r" in key:
+        if not key.strip() or ":" in key or _breaks_line(key):
             raise SessionFormatError(
                 f"{operation}: metadata key {key!r} must be non-empty without ':' or newlines"
             )
-        if "\n" in value or "\r" in value:
-            raise SessionFormatError(f"{operation}: metadata {key!r} has a newline in its value")
+        if _breaks_line(value):
+            raise SessionFormatError(
+                f"{operation}: metadata {key!r} has a newline in its value (\\x85, \\u2028 "
+                "and the other line separators count too): put it on one line"
+            )
+        try:
+            (key + value).encode("utf-8")
+        except UnicodeEncodeError:
+            raise SessionFormatError(
+                f"{operation}: metadata {key!r} is not valid Unicode text (a lone surrogate?)"
+            ) from None
         if key.strip() == "magcal-session":
             raise SessionFormatError(f"{operation}: metadata key 'magcal-session' is reserved")
 
@@ -142,13 +218,19 @@ def write_session(path: str | os.PathLike, session: Session) -> None:
     s = session_from_arrays(session.t, session.gyr, session.acc, session.mag, session.meta)
     data = np.column_stack([s.t, s.gyr, s.acc, s.mag])
     row_format = ",".join(["%r"] * len(COLUMNS))  # %r of a Python float is its repr
-    with open(path, "w", encoding="utf-8", newline="\n") as f:
-        f.write(FIRST_LINE + "\n")
-        for key, value in s.meta.items():
-            f.write(f"# {key.strip()}: {value}\n")
-        f.write(",".join(COLUMNS) + "\n")
-        # .tolist() gives Python floats, whose repr is plain (numpy 2 scalars print np.float64).
-        f.writelines(row_format % tuple(row) + "\n" for row in data.tolist())
+    try:
+        with open(path, "w", encoding="utf-8", newline="\n") as f:
+            f.write(FIRST_LINE + "\n")
+            for key, value in s.meta.items():
+                f.write(f"# {key.strip()}: {value}\n")
+            f.write(",".join(COLUMNS) + "\n")
+            # .tolist() gives Python floats, whose repr is plain (numpy 2 scalars print
+            # np.float64).
+            f.writelines(row_format % tuple(row) + "\n" for row in data.tolist())
+    except OSError as exc:
+        raise SessionFileError(
+            f"writing session {os.fspath(path)}: {os_error_advice(exc, path, writing=True)}"
+        ) from exc
 
 
 # --------------------------------------------------------------------------------------------
@@ -173,6 +255,10 @@ def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
             lines = f.read().splitlines()
     except UnicodeDecodeError as exc:
         raise SessionFormatError(f"reading session {name}: not UTF-8 text ({exc})") from exc
+    except OSError as exc:
+        raise SessionFileError(
+            f"reading session {name}: {os_error_advice(exc, path, writing=False)}"
+        ) from exc
 
     meta, header_index = _read_preamble(name, lines)
     columns = [c.strip() for c in lines[header_index].split(",")]
@@ -233,6 +319,13 @@ def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int]:
         if not text.startswith("#"):
             return meta, i
         key, sep, value = text[1:].partition(":")
+        if key.strip() == "magcal-session":
+            raise _error(
+                name,
+                i,
+                "a second 'magcal-session' line; the version goes on the first line only "
+                "(are two files joined together?)",
+            )
         # Comment lines without "key:" carry no metadata; they are allowed and ignored.
         if sep and key.strip():
             meta[key.strip()] = value.strip()

@@ -13,7 +13,9 @@ from magcal.io.result import (
     REQUIRED_KEYS,
     RESULT_FORMAT,
     CalibrationResult,
+    ResultFileError,
     apply_correction,
+    check_result_writable,
     read_result,
     result_from_dict,
     result_to_dict,
@@ -93,8 +95,9 @@ def test_errors_are_magcal_errors():
 def test_round_trip_is_exact(tmp_path):
     rng = np.random.default_rng(1)
     D = np.eye(3) + 0.1 * rng.normal(size=(3, 3))
-    m_n = rng.normal(size=3)
-    r = make_result(D=D, o=rng.normal(size=3), m_n=m_n / np.linalg.norm(m_n), dip_deg=1 / 3)
+    # dip_deg = 1/3 and its m_n have no short decimal form: they must survive bit for bit.
+    m_n = field_direction(np.deg2rad(1 / 3))
+    r = make_result(D=D, o=rng.normal(size=3), m_n=m_n, dip_deg=1 / 3)
     path = tmp_path / "r.json"
     write_result(path, r)
     back = read_result(path)
@@ -295,6 +298,105 @@ def test_non_finite_in_extra_names_path(tmp_path):
         read_result(written(tmp_path, data))
 
 
+@pytest.mark.parametrize("key", ["D", "D_inv", "o", "m_n", "gyro_bias"])
+def test_integer_too_large_for_float64_names_key(tmp_path, key):
+    data = result_to_dict(make_result())
+    value = data[key]
+    if key in ("D", "D_inv"):
+        value[1][2] = 10**400  # valid JSON; float() of it overflows
+    else:
+        value[1] = 10**400
+    with pytest.raises(ResultFormatError, match=rf"r\.json: key '{key}' holds a number too large"):
+        read_result(written(tmp_path, data))
+
+
+def test_integer_dip_too_large_for_float64(tmp_path):
+    data = result_to_dict(make_result())
+    data["dip_deg"] = 10**400
+    with pytest.raises(ResultFormatError, match="key 'dip_deg' .* too large for a float64"):
+        read_result(written(tmp_path, data))
+    with pytest.raises(ResultFormatError, match="dip_deg is too large for a float64"):
+        make_result(dip_deg=10**400)
+
+
+def test_float_beyond_float64_is_not_finite(tmp_path):
+    text = json.dumps(result_to_dict(make_result())).replace('"dip_deg": 70.0', '"dip_deg": 1e400')
+    with pytest.raises(ResultFormatError, match="key 'dip_deg' must be a finite number, got inf"):
+        read_result(written(tmp_path, text))
+
+
+def test_integer_with_too_many_digits(tmp_path):
+    text = json.dumps(result_to_dict(make_result())).replace("70.0", "7" * 5000)
+    with pytest.raises(ResultFormatError, match="not a usable JSON file"):
+        read_result(written(tmp_path, text))
+
+
+def test_absurdly_nested_json(tmp_path):
+    with pytest.raises(ResultFormatError, match="not a usable JSON file"):
+        read_result(written(tmp_path, "[" * 100_000))
+
+
+def test_m_n_must_agree_with_dip(tmp_path):
+    data = result_to_dict(make_result())
+    data["m_n"] = field_direction(np.deg2rad(60.0)).tolist()  # unit norm, wrong dip
+    pattern = r"r\.json: m_n = .* does not agree with dip_deg = 70\.0"
+    with pytest.raises(ResultFormatError, match=pattern):
+        read_result(written(tmp_path, data))
+    data["m_n"] = (-field_direction(np.deg2rad(70.0))).tolist()  # field pointing south and up
+    with pytest.raises(ResultFormatError, match="does not agree with dip_deg"):
+        read_result(written(tmp_path, data))
+
+
+def test_m_n_agrees_with_dip_to_1e_6(tmp_path):
+    data = result_to_dict(make_result())
+    m_n = field_direction(np.deg2rad(70.0))
+    data["m_n"] = np.round(m_n, 7).tolist()  # hand-rounded to 7 decimals: within 1e-6
+    assert read_result(written(tmp_path, data)).dip_deg == 70.0
+    data["m_n"] = np.round(m_n, 4).tolist()  # 4 decimals: off by up to 5e-5
+    with pytest.raises(ResultFormatError, match="does not agree with dip_deg"):
+        read_result(written(tmp_path, data))
+
+
+@pytest.mark.parametrize("dip", [-90.0, 0.0, 90.0])
+def test_dip_limits_are_accepted(dip):
+    assert make_result(m_n=field_direction(np.deg2rad(dip)), dip_deg=dip).dip_deg == dip
+
+
+@pytest.mark.parametrize("dip", [-90.5, 90.001, 110.0, 270.0])
+def test_dip_outside_plus_minus_90_is_rejected(tmp_path, dip):
+    m_n = field_direction(np.deg2rad(dip))
+    with pytest.raises(ResultFormatError, match=r"dip_deg = .* is outside \[-90, 90\] degrees"):
+        make_result(m_n=m_n, dip_deg=dip)
+    data = result_to_dict(make_result())
+    data["m_n"], data["dip_deg"] = m_n.tolist(), dip
+    with pytest.raises(ResultFormatError, match=r"r\.json: dip_deg = .* is outside"):
+        read_result(written(tmp_path, data))
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ResultFileError, match=r"reading result .*nope\.json: no such file"):
+        read_result(tmp_path / "nope.json")
+
+
+def test_directory_instead_of_file(tmp_path):
+    with pytest.raises(ResultFileError, match="it is a directory: give a file name"):
+        read_result(tmp_path)
+
+
+def test_write_into_missing_directory(tmp_path):
+    path = tmp_path / "no" / "r.json"
+    with pytest.raises(ResultFileError, match=r"writing result .*: directory .*no does not exist"):
+        write_result(path, make_result())
+
+
+def test_check_result_writable(tmp_path):
+    check_result_writable(tmp_path / "r.json")
+    assert not (tmp_path / "r.json").exists()
+    with pytest.raises(ResultFileError, match=r"writing result .*r\.json: directory .* does not"):
+        check_result_writable(tmp_path / "no" / "r.json")
+    assert issubclass(ResultFileError, ResultFormatError)
+
+
 def test_result_from_dict_default_source():
     with pytest.raises(ResultFormatError, match="^result: missing required key"):
         result_from_dict({})
@@ -312,6 +414,9 @@ def test_result_from_dict_default_source():
         ({"D": np.zeros((3, 3))}, "D is singular"),
         ({"o": [0.0, np.nan, 0.0]}, "o has non-finite entries"),
         ({"m_n": [1.0, 1.0, 0.0]}, "m_n must have unit norm"),
+        ({"m_n": [1.0, 0.0, 0.0]}, "m_n = .* does not agree with dip_deg = 70.0"),
+        ({"dip_deg": 60.0}, "does not agree with dip_deg = 60.0"),
+        ({"dip_deg": 91.0}, r"dip_deg = 91.0 is outside \[-90, 90\]"),
         ({"dip_deg": float("nan")}, "dip_deg is not finite"),
         ({"dip_deg": "70"}, "dip_deg must be a number"),
         ({"gyro_bias": np.zeros(2)}, r"gyro_bias must have shape \(3,\)"),
@@ -332,6 +437,6 @@ def test_write_leaves_no_file_on_failure(tmp_path):
     # Bypass the constructor's check to simulate a result that cannot be encoded.
     object.__setattr__(r, "extra", {"bad": float("nan")})
     path = tmp_path / "r.json"
-    with pytest.raises(ValueError):
+    with pytest.raises(ResultFormatError, match=r"writing result .*r\.json: cannot encode it"):
         write_result(path, r)
     assert not path.exists()

@@ -6,7 +6,10 @@ and is kept, unchanged, in :attr:`CalibrationResult.extra` (forward compatibilit
 writer's keys survive a read/write by an older reader).
 
 Numbers are written with Python's ``repr`` (via :mod:`json`), so float64 values round-trip
-exactly. JSON cannot hold NaN or infinity; they are rejected on writing and on reading.
+exactly. JSON cannot hold NaN or infinity; they are rejected on writing and on reading, and so
+are numbers too large for a float64 (``1e400`` reads as infinity, ``10**400`` as an int).
+``m_n`` must be the direction the dip angle gives, ``(cos δ, 0, −sin δ)``, with
+``−90° ≤ δ ≤ 90°``.
 """
 
 from __future__ import annotations
@@ -19,18 +22,26 @@ from typing import Any
 
 import numpy as np
 
+from magcal.calib.frames import field_direction
 from magcal.errors import ResultFormatError
+from magcal.io.session import check_writable, os_error_advice
 
 RESULT_FORMAT = "magcal-result/1"
 #: The keys every result file has, in the order they are written.
 REQUIRED_KEYS = ("format", "method", "D", "o", "D_inv", "m_n", "dip_deg", "gyro_bias", "warnings")
 #: ``m_n`` is a direction: its norm must be 1 to within this.
 M_N_NORM_TOLERANCE = 1e-6
+#: ``m_n`` must equal ``(cos δ, 0, −sin δ)`` of ``dip_deg`` to within this, per component.
+M_N_DIP_TOLERANCE = 1e-6
 #: A stored ``D_inv`` must satisfy ``max |D D_inv - I| <=`` this (hand-rounded files fail).
 D_INV_TOLERANCE = 1e-6
 #: ``D`` with a larger condition number cannot be inverted meaningfully.
 D_MAX_CONDITION = 1e12
 _CONSTRUCTOR = "calibration result"
+
+
+class ResultFileError(ResultFormatError):
+    """A result file cannot be opened, read or written (missing, a directory, no permission)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -78,9 +89,26 @@ class CalibrationResult:
         set_(self, "m_n", m_n)
         if isinstance(self.dip_deg, bool) or not isinstance(self.dip_deg, (int, float)):
             raise ResultFormatError(f"{where}: dip_deg must be a number, got {self.dip_deg!r}")
-        if not math.isfinite(self.dip_deg):
-            raise ResultFormatError(f"{where}: dip_deg is not finite ({self.dip_deg!r})")
-        set_(self, "dip_deg", float(self.dip_deg))
+        try:
+            dip = float(self.dip_deg)  # an int beyond float64 overflows here
+        except OverflowError:
+            raise ResultFormatError(f"{where}: dip_deg is too large for a float64") from None
+        if not math.isfinite(dip):
+            raise ResultFormatError(f"{where}: dip_deg is not finite ({dip!r})")
+        if not -90.0 <= dip <= 90.0:
+            raise ResultFormatError(
+                f"{where}: dip_deg = {dip!r} is outside [-90, 90] degrees; a dip angle is "
+                "positive down and at most 90° (a field pointing south is not a dip angle)"
+            )
+        expected = field_direction(np.deg2rad(dip))
+        gap = float(np.abs(m_n - expected).max())
+        if gap > M_N_DIP_TOLERANCE:
+            raise ResultFormatError(
+                f"{where}: m_n = {m_n.tolist()} does not agree with dip_deg = {dip!r}, which "
+                f"gives (cos δ, 0, −sin δ) = {expected.tolist()} (max difference {gap:.3g}); "
+                "the file was edited or corrupted: recompute m_n from dip_deg"
+            )
+        set_(self, "dip_deg", dip)
         if self.gyro_bias is not None:
             set_(self, "gyro_bias", _checked_array(self.gyro_bias, (3,), "gyro_bias", where))
         warnings = list(self.warnings) if isinstance(self.warnings, (list, tuple)) else None
@@ -162,7 +190,16 @@ def result_from_dict(data: Any, where: str = "result") -> CalibrationResult:
     if gyro_bias is not None:
         gyro_bias = _json_numbers(gyro_bias, (3,), "gyro_bias", where)
     dip = data["dip_deg"]
-    if isinstance(dip, bool) or not isinstance(dip, (int, float)) or not math.isfinite(dip):
+    if isinstance(dip, bool) or not isinstance(dip, (int, float)):
+        raise ResultFormatError(f"{where}: key 'dip_deg' must be a finite number, got {dip!r}")
+    try:
+        dip = float(dip)  # an int beyond float64 (10**400 is valid JSON) overflows here
+    except OverflowError:
+        raise ResultFormatError(
+            f"{where}: key 'dip_deg' must be a finite number, got an integer too large for a "
+            "float64"
+        ) from None
+    if not math.isfinite(dip):
         raise ResultFormatError(f"{where}: key 'dip_deg' must be a finite number, got {dip!r}")
     warnings = data["warnings"]
     if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
@@ -183,7 +220,7 @@ def result_from_dict(data: Any, where: str = "result") -> CalibrationResult:
             D=arrays["D"],
             o=arrays["o"],
             m_n=arrays["m_n"],
-            dip_deg=float(dip),
+            dip_deg=dip,
             gyro_bias=gyro_bias,
             warnings=warnings,
             extra=extra,
@@ -195,10 +232,27 @@ def result_from_dict(data: Any, where: str = "result") -> CalibrationResult:
 
 def write_result(path: str | os.PathLike, result: CalibrationResult) -> None:
     """Write ``result`` as ``magcal-result/1`` JSON (UTF-8, 2-space indent)."""
+    name = os.fspath(path)
     # Encode fully before opening the file, so a failure leaves no half-written result.
-    text = json.dumps(result_to_dict(result), indent=2, allow_nan=False, ensure_ascii=False)
-    with open(path, "w", encoding="utf-8", newline="\n") as f:
-        f.write(text + "\n")
+    try:
+        text = json.dumps(result_to_dict(result), indent=2, allow_nan=False, ensure_ascii=False)
+    except ValueError as exc:  # e.g. an int in extra with more digits than Python will print
+        raise ResultFormatError(f"writing result {name}: cannot encode it as JSON ({exc})") from exc
+    try:
+        with open(path, "w", encoding="utf-8", newline="\n") as f:
+            f.write(text + "\n")
+    except OSError as exc:
+        raise ResultFileError(
+            f"writing result {name}: {os_error_advice(exc, path, writing=True)}"
+        ) from exc
+
+
+def check_result_writable(path: str | os.PathLike) -> None:
+    """Raise :class:`ResultFileError` unless :func:`write_result` can create ``path``.
+
+    Call it before a long calibration, so that its result is not lost to a typo in ``-o``.
+    """
+    check_writable(path, "writing result", ResultFileError)
 
 
 def read_result(path: str | os.PathLike) -> CalibrationResult:
@@ -213,6 +267,10 @@ def read_result(path: str | os.PathLike) -> CalibrationResult:
         ) from exc
     except UnicodeDecodeError as exc:
         raise ResultFormatError(f"{where}: not UTF-8 text ({exc})") from exc
+    except (ValueError, RecursionError) as exc:  # an int of > 4300 digits; absurd nesting
+        raise ResultFormatError(f"{where}: not a usable JSON file ({exc})") from exc
+    except OSError as exc:
+        raise ResultFileError(f"{where}: {os_error_advice(exc, path, writing=False)}") from exc
     return result_from_dict(data, where)
 
 
@@ -224,6 +282,10 @@ def _checked_array(value: Any, shape: tuple[int, ...], key: str, where: str) -> 
     """A read-only float64 copy of ``value`` with the given shape and finite entries."""
     try:
         a = np.array(value, dtype=np.float64)
+    except OverflowError as exc:  # an int beyond float64, e.g. 10**400 (valid JSON)
+        raise ResultFormatError(
+            f"{where}: key '{key}' holds a number too large for a float64"
+        ) from exc
     except (TypeError, ValueError) as exc:
         raise ResultFormatError(f"{where}: {key} must be numbers of shape {shape}") from exc
     if a.shape != shape:

@@ -264,9 +264,16 @@ def truth_to_dict(truth: SimTruth) -> dict:
 
 def write_truth(path: str | Path, truth: SimTruth) -> None:
     """Write ``truth`` as ``magcal-truth/1`` JSON to ``path``."""
-    with open(path, "w", encoding="utf-8") as f:
-        json.dump(truth_to_dict(truth), f)
-        f.write("\n")
+    from magcal.io.session import os_error_advice
+
+    text = json.dumps(truth_to_dict(truth))  # encode first: a failure leaves no partial file
+    try:
+        with open(path, "w", encoding="utf-8") as f:
+            f.write(text + "\n")
+    except OSError as e:
+        raise TruthFormatError(
+            f"writing truth {path}: {os_error_advice(e, path, writing=True)}"
+        ) from e
 
 
 def _array(d: dict, key: str, shape: tuple[int | None, ...], path: str) -> np.ndarray:
@@ -296,12 +303,24 @@ def read_truth(path: str | Path) -> SimTruth:
     The result has ``trajectory=None`` (the file holds only t and q_nb of the motion).
     Unknown scenario settings (from newer versions) are ignored.
     """
+    from magcal.io.session import os_error_advice
+
     p = str(path)
     try:
         with open(path, encoding="utf-8") as f:
             d = json.load(f)
     except json.JSONDecodeError as e:
         raise TruthFormatError(f"reading truth {p}: not JSON ({e}); rewrite the file") from None
+    except UnicodeDecodeError as e:
+        raise TruthFormatError(
+            f"reading truth {p}: not UTF-8 text ({e}); is this a truth file from `magcal simulate`?"
+        ) from None
+    except (ValueError, RecursionError) as e:  # an int of > 4300 digits; absurd nesting
+        raise TruthFormatError(f"reading truth {p}: not a usable JSON file ({e})") from None
+    except OSError as e:
+        raise TruthFormatError(
+            f"reading truth {p}: {os_error_advice(e, path, writing=False)}"
+        ) from e
     if not isinstance(d, dict) or d.get("format") != TRUTH_FORMAT:
         got = d.get("format") if isinstance(d, dict) else type(d).__name__
         raise TruthFormatError(
@@ -310,17 +329,25 @@ def read_truth(path: str | Path) -> SimTruth:
         )
     if "dip_deg" not in d or not isinstance(d["dip_deg"], int | float):
         raise TruthFormatError(f"reading truth {p}: missing or non-numeric 'dip_deg'")
-    t = _array(d, "t", (None,), p)
-    q_nb = _array(d, "q_nb", (t.shape[0], 4), p)
-    sensor = SensorTruth(
-        D=_array(d, "D", (3, 3), p),
-        o=_array(d, "o", (3,), p),
-        dip_rad=float(np.deg2rad(d["dip_deg"])),
-        gyro_bias=_array(d, "gyro_bias", (3,), p),
-        Sigma_gyr=_array(d, "Sigma_gyr", (3, 3), p),
-        Sigma_acc=_array(d, "Sigma_acc", (3, 3), p),
-        Sigma_mag=_array(d, "Sigma_mag", (3, 3), p),
-    )
+    try:  # float() of an int beyond float64 (10**400 is valid JSON) raises OverflowError
+        dip_deg = float(d["dip_deg"])
+        t = _array(d, "t", (None,), p)
+        q_nb = _array(d, "q_nb", (t.shape[0], 4), p)
+        sensor = SensorTruth(
+            D=_array(d, "D", (3, 3), p),
+            o=_array(d, "o", (3,), p),
+            dip_rad=float(np.deg2rad(dip_deg)),
+            gyro_bias=_array(d, "gyro_bias", (3,), p),
+            Sigma_gyr=_array(d, "Sigma_gyr", (3, 3), p),
+            Sigma_acc=_array(d, "Sigma_acc", (3, 3), p),
+            Sigma_mag=_array(d, "Sigma_mag", (3, 3), p),
+        )
+    except OverflowError:
+        raise TruthFormatError(
+            f"reading truth {p}: a number is too large for a float64; rewrite the file"
+        ) from None
+    if not np.isfinite(dip_deg):
+        raise TruthFormatError(f"reading truth {p}: 'dip_deg' is not finite ({dip_deg!r})")
     scenario = None
     if isinstance(d.get("scenario"), dict):
         known = {f.name for f in dataclasses.fields(ScenarioConfig)}

@@ -126,7 +126,9 @@ def test_small_patch_is_refused_not_calibrated_wrongly(seed):
 def test_noisy_but_covered_ellipsoid_calibrates_with_a_warning_that_says_so():
     from magcal.calib.pipeline import NOISY_ELLIPSOID_WARNING
 
-    session, truth = simulate(preset("table2"), 41)  # A on the PD boundary from noise
+    # Of the 150 Table 2 sessions, seed 62 covers well but its noise puts A on the PD
+    # boundary (found by scanning them).
+    session, truth = simulate(preset("table2"), 62)
     cal = calibrate(session, "ml")
     assert NOISY_ELLIPSOID_WARNING in cal.result.warnings
     assert np.linalg.det(cal.result.D) > 0

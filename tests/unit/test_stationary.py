@@ -178,10 +178,23 @@ def test_priors_without_stretch():
     init = initial_noise_and_bias(t, gyr, acc, mag, None)
     assert init.source == "prior" and init.stationary is None
     assert np.array_equal(init.gyro_bias, np.zeros(3))
-    assert np.allclose(init.Sigma_gyr, st.GYR_NOISE_PRIOR_RAD_S**2 * np.eye(3))
+    # The gyroscope's white noise is measured during the motion (second differences).
+    np.testing.assert_allclose(np.sqrt(np.diag(init.Sigma_gyr)), SIGMA_GYR, rtol=0.1)
+    assert np.count_nonzero(init.Sigma_gyr - np.diag(np.diag(init.Sigma_gyr))) == 0
     assert np.allclose(init.Sigma_acc, st.ACC_NOISE_PRIOR_M_S2**2 * np.eye(3))
     field = np.median(np.linalg.norm(mag - mag.mean(axis=0), axis=1))
     assert np.allclose(init.Sigma_mag, (0.01 * field) ** 2 * np.eye(3))
+
+
+def test_gyro_noise_from_differences_ignores_bias_and_smooth_motion():
+    rng = np.random.default_rng(11)
+    t = np.arange(6000) / FS_HZ
+    # 3 rad/s hand-like rotation, a bias, and white noise of known σ per axis.
+    omega = 3.0 * np.column_stack([np.sin(1.3 * t), np.cos(0.7 * t), np.sin(2.1 * t + 1)])
+    sigma = np.array([0.002, 0.005, 0.01])
+    gyr = omega + BIAS + sigma * rng.normal(size=omega.shape)
+    est = np.sqrt(np.diag(st.gyro_noise_from_differences(gyr)))
+    np.testing.assert_allclose(est, sigma, rtol=0.05)
 
 
 def test_short_given_stretch_raises():

@@ -12,8 +12,10 @@ Numerical choices, each a fix for a way the plain problem fails:
   parameters drift towards −∞ along an almost flat valley and BFGS never converges. And
   with translational accelerations, which the model lacks, the likelihood prefers a large
   Σ_ω: a filter that follows the accelerometer explains them best, but its tilted
-  attitude biases the misalignment. A stationary stretch measures Σ_ω directly, so then
-  the prior is that measurement with its sampling uncertainty; without one it is weak.
+  attitude biases the misalignment (without a prior: 6× the known-attitude floor on
+  hand-moved sessions with 0.3 m/s² accelerations). The gyroscope's white noise can be
+  measured, at rest or from second differences during motion; the prior is that
+  measurement with its uncertainty.
 """
 
 from __future__ import annotations
@@ -29,12 +31,15 @@ from magcal.calib.optimize import OptimizeOptions, OptimizeReport, minimize_bfgs
 from magcal.calib.params import ModelParams
 from magcal.io.session import Session
 
-#: 1-σ width of the prior on log σ_ω (nats; ln 10 = a factor of 10) and on the unit
-#: lower-triangular entries of its Cholesky factor (dimensionless correlations) when no
-#: stationary stretch measured the gyroscope noise.
-GYRO_NOISE_PRIOR_WIDTH_UNMEASURED = (np.log(10.0), 1.0)
-#: Smallest width when it was measured: a gyroscope's noise at rest and in motion differ
-#: by about this much (vibration, quantisation), however long the stretch.
+#: 1-σ width of the prior on log σ_ω when a stationary stretch did not measure it: the
+#: initial value then comes from second differences of the gyroscope during motion
+#: (``stationary.gyro_noise_from_differences``), good to a few per cent for white noise,
+#: so it gets the same ±10 % as a stationary measurement (measured: 0.2 let the likelihood
+#: pull σ_ω up 1.7× on accelerated sessions, 2.4× the floor instead of 1.6×). Same width,
+#: centred on 0, for the unit lower-triangular entries of its Cholesky factor.
+GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.1
+#: Smallest width when a stationary stretch measured it: a gyroscope's noise at rest and in
+#: motion differ by about this much (vibration, quantisation), however long the stretch.
 GYRO_NOISE_PRIOR_WIDTH_MIN = 0.1
 
 
@@ -107,8 +112,8 @@ def gyro_noise_prior(theta0: np.ndarray, stationary_samples: int) -> tuple[np.nd
 
     Centred on θ₀'s Σ_ω. With ``stationary_samples`` = n > 0 it was measured there: a
     log-σ estimated from n samples has standard error 1/√(2n), a correlation 1/√n; both
-    are floored at :data:`GYRO_NOISE_PRIOR_WIDTH_MIN`. Otherwise the widths are
-    :data:`GYRO_NOISE_PRIOR_WIDTH_UNMEASURED`, centred on uncorrelated axes.
+    are floored at :data:`GYRO_NOISE_PRIOR_WIDTH_MIN`. Otherwise it was measured during
+    motion (:data:`GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION`), with uncorrelated axes.
     """
     mean = np.zeros(params.N_PARAMS)
     precision = np.zeros(params.N_PARAMS)
@@ -119,7 +124,7 @@ def gyro_noise_prior(theta0: np.ndarray, stationary_samples: int) -> tuple[np.nd
         w_corr = max(GYRO_NOISE_PRIOR_WIDTH_MIN, 1.0 / np.sqrt(stationary_samples))
     else:
         mean[sl.start + 3 : sl.stop] = 0.0
-        w_log, w_corr = GYRO_NOISE_PRIOR_WIDTH_UNMEASURED
+        w_log = w_corr = GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION
     precision[sl.start : sl.start + 3] = 1.0 / w_log**2
     precision[sl.start + 3 : sl.stop] = 1.0 / w_corr**2
     return mean, precision

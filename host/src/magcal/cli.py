@@ -12,6 +12,8 @@ from magcal import __version__
 from magcal.errors import MagcalError
 
 EXIT_ERROR = 2
+#: Exit status after Ctrl-C (128 + SIGINT, as a shell reports it).
+EXIT_INTERRUPTED = 130
 
 
 def _progress_printer(stream=None):
@@ -57,8 +59,8 @@ def _add_simulate(sub) -> None:
 
 
 def _run_simulate(args) -> int:
-    from magcal.io.session import write_session
-    from magcal.sim.scenarios import preset, simulate, write_truth
+    from magcal.io.session import check_writable, write_session
+    from magcal.sim.scenarios import TruthFormatError, preset, simulate, write_truth
 
     keys = (
         "rate_hz",
@@ -75,9 +77,16 @@ def _run_simulate(args) -> int:
         "offset_scale",
     )
     overrides = {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
-    session, truth = simulate(preset(args.preset, **overrides), args.seed)
     out = Path(args.output)
     truth_path = Path(args.truth) if args.truth else out.with_suffix(".truth.json")
+    if truth_path.resolve() == out.resolve():
+        raise MagcalError(
+            f"simulate: --truth {truth_path} is the session file itself; give another name"
+        )
+    # Check both outputs first, so that a bad path never leaves a session without its truth.
+    check_writable(out, "writing session")
+    check_writable(truth_path, "writing truth", TruthFormatError)
+    session, truth = simulate(preset(args.preset, **overrides), args.seed)
     write_session(out, session)
     write_truth(truth_path, truth)
     print(f"wrote {out} ({len(session)} samples) and {truth_path}")
@@ -109,44 +118,60 @@ def _print_summary(cal, out=None) -> None:
     out = out or sys.stdout
     r = cal.result
     x = r.extra
-    np.set_printoptions(precision=5, suppress=True)
-    print(f"method      {r.method}", file=out)
-    print(f"D           {np.array2string(r.D, prefix=' ' * 12)}", file=out)
-    print(f"o           {r.o}", file=out)
-    print(f"dip         {r.dip_deg:.3f}°", file=out)
-    if r.gyro_bias is not None:
-        print(f"gyro bias   {np.rad2deg(r.gyro_bias)} °/s", file=out)
-    if "optimizer" in x:
-        o = x["optimizer"]
+    with np.printoptions(precision=5, suppress=True):  # local: no global numpy state
+        print(f"method      {r.method}", file=out)
+        print(f"D           {np.array2string(r.D, prefix=' ' * 12)}", file=out)
+        print(f"o           {r.o}", file=out)
+        print(f"dip         {r.dip_deg:.3f}°", file=out)
+        if r.gyro_bias is not None:
+            print(f"gyro bias   {np.rad2deg(r.gyro_bias)} °/s", file=out)
+        if "optimizer" in x:
+            o = x["optimizer"]
+            print(
+                f"ML          {o['iterations']} iterations, {o['cost_evaluations']} cost and "
+                f"{o['gradient_evaluations']} gradient evaluations, "
+                f"final cost {o['final_cost']:.6f}, {o['seconds']:.2f} s, "
+                f"stopped on '{o['stopping_rule']}' ({o['gradient']} gradient)",
+                file=out,
+            )
+        s = x["innovations"]
         print(
-            f"ML          {o['iterations']} iterations, {o['cost_evaluations']} cost and "
-            f"{o['gradient_evaluations']} gradient evaluations, final cost {o['final_cost']:.6f}, "
-            f"{o['seconds']:.2f} s, stopped on '{o['stopping_rule']}' ({o['gradient']} gradient)",
+            f"innovations normalised: mean {s['mean']:.3f}, std {s['std']:.3f}, "
+            f"{100 * s['fraction_outside_3']:.2f} % outside ±3",
             file=out,
         )
-    s = x["innovations"]
-    print(
-        f"innovations normalised: mean {s['mean']:.3f}, std {s['std']:.3f}, "
-        f"{100 * s['fraction_outside_3']:.2f} % outside ±3",
-        file=out,
-    )
-    b, a = x["field_norm"]["before"], x["field_norm"]["after"]
-    print(
-        f"field norm  before {b['mean']:.4g} ± {b['std']:.3g} (raw units), "
-        f"after {a['mean']:.5f} ± {a['std']:.5f}",
-        file=out,
-    )
-    print("time        " + ", ".join(f"{k} {v:.2f} s" for k, v in x["seconds"].items()), file=out)
-    for w in r.warnings:
-        print(f"warning: {w}", file=out)
+        b, a = x["field_norm"]["before"], x["field_norm"]["after"]
+        print(
+            f"field norm  before {b['mean']:.4g} ± {b['std']:.3g} (raw units), "
+            f"after {a['mean']:.5f} ± {a['std']:.5f}",
+            file=out,
+        )
+        print(
+            "time        " + ", ".join(f"{k} {v:.2f} s" for k, v in x["seconds"].items()), file=out
+        )
+        for w in r.warnings:
+            print(f"warning: {w}", file=out)
 
 
-def _print_truth_comparison(cal, truth_path: str, session, out=None) -> None:
-    out = out or sys.stdout
-    from magcal.calib import quality
+def _read_matching_truth(truth_path: str, session_path: str, session):
+    """The truth file of ``session``; refuses one whose length shows it is another session's."""
     from magcal.sim.scenarios import read_truth
 
     truth = read_truth(truth_path)
+    n_truth, n_session = int(truth.q_nb.shape[0]), len(session)
+    if n_truth != n_session:
+        raise MagcalError(
+            f"comparing with the truth: {truth_path} has {n_truth} samples but the session "
+            f"{session_path} has {n_session}, so it is the truth of another session: pass the "
+            f"truth file that `magcal simulate` wrote with {session_path}"
+        )
+    return truth
+
+
+def _print_truth_comparison(cal, truth, session, out=None) -> None:
+    out = out or sys.stdout
+    from magcal.calib import quality
+
     st = truth.sensor
     floor = quality.known_attitude_fit(session.mag, truth.q_nb, st.m_n)
     rows = [
@@ -161,11 +186,28 @@ def _print_truth_comparison(cal, truth_path: str, session, out=None) -> None:
         print(f"  {name:22s} {quality.rms_deg(e):.4f}°", file=out)
 
 
+def _prepare_plot_dir(directory: str) -> None:
+    """Create the ``--plot`` directory and check that files can be written there."""
+    from magcal.io.session import check_writable, os_error_advice
+
+    try:
+        Path(directory).mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise MagcalError(
+            f"writing plots to {directory}: it is a file, not a directory: give a directory"
+        ) from None
+    except OSError as exc:
+        raise MagcalError(
+            f"writing plots to {directory}: cannot create the directory "
+            f"({os_error_advice(exc, directory, writing=True)})"
+        ) from exc
+    check_writable(Path(directory) / "ellipsoid_sphere.png", "writing plot", MagcalError)
+
+
 def _write_plots(cal, session, directory: str) -> list[Path]:
     from magcal.report import plots
 
     d = Path(directory)
-    d.mkdir(parents=True, exist_ok=True)
     return [
         plots.plot_ellipsoid_sphere(session.mag, cal.calibrated, d / "ellipsoid_sphere.png"),
         plots.plot_norms(
@@ -183,11 +225,20 @@ def _write_plots(cal, session, directory: str) -> list[Path]:
 
 
 def _run_calibrate(args) -> int:
+    from magcal.calib import ellipsoid, observability
     from magcal.calib.pipeline import calibrate
-    from magcal.io.result import write_result
-    from magcal.io.session import read_session
+    from magcal.io.result import check_result_writable, write_result
+    from magcal.io.session import os_error_advice, read_session
 
-    session = read_session(args.session)
+    # Everything a typo can break is checked before calibrating: an ML run takes a while.
+    if args.output:
+        check_result_writable(args.output)
+    if args.plot:
+        _prepare_plot_dir(args.plot)
+    # The observability checks refuse fewer samples; forced, the ellipsoid fit's minimum holds.
+    min_samples = ellipsoid.MIN_SAMPLES if args.force else observability.MIN_SAMPLES
+    session = read_session(args.session, min_samples=min_samples)
+    truth = _read_matching_truth(args.truth, args.session, session) if args.truth else None
     progress = _progress_printer()
     try:
         cal = calibrate(
@@ -195,15 +246,21 @@ def _run_calibrate(args) -> int:
         )
     finally:
         progress.done()
-    _print_summary(cal)
-    if args.truth:
-        _print_truth_comparison(cal, args.truth, session)
+    # Save the result first: nothing printed or plotted below may lose it.
     if args.output:
         write_result(args.output, cal.result)
         print(f"wrote {args.output}")
+    _print_summary(cal)
+    if truth is not None:
+        _print_truth_comparison(cal, truth, session)
     if args.plot:
-        for path in _write_plots(cal, session, args.plot):
-            print(f"wrote {path}")
+        try:
+            for path in _write_plots(cal, session, args.plot):
+                print(f"wrote {path}")
+        except OSError as exc:
+            raise MagcalError(
+                f"writing plots to {args.plot}: {os_error_advice(exc, args.plot, writing=True)}"
+            ) from exc
     return 0
 
 
@@ -218,10 +275,34 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def refusal(command: str, exc: BaseException | str) -> str:
+    """The one-paragraph stderr message ``magcal <command>: ...`` for ``exc``.
+
+    Line breaks are joined into one line, and the prefix is not doubled when the message
+    already names the command ("simulate: unknown preset ...").
+    """
+    text = " ".join(line.strip() for line in str(exc).splitlines() if line.strip())
+    text = text or type(exc).__name__
+    if text.startswith(f"magcal {command}:"):
+        return text
+    if text.startswith(f"{command}:"):
+        return f"magcal {text}"
+    return f"magcal {command}: {text}"
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         return args.run(args)
     except MagcalError as exc:
-        print(f"magcal {args.command}: {exc}", file=sys.stderr)
+        print(refusal(args.command, exc), file=sys.stderr)
         return EXIT_ERROR
+    except OSError as exc:
+        # A safety net: the file functions raise MagcalError for the files they handle; any
+        # other refusal by the system (a closed pipe, a full disk) is still a message.
+        where = f" ({exc.filename})" if exc.filename else ""
+        print(refusal(args.command, f"{exc.strerror or exc}{where}"), file=sys.stderr)
+        return EXIT_ERROR
+    except KeyboardInterrupt:
+        print(f"magcal {args.command}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED

@@ -30,11 +30,30 @@ QUICK_SEEDS = {
 }
 
 
+#: Checks whose bound the library does not meet yet; issue 2 stays open on them. Strict:
+#: the test fails as soon as the bound is met, so this list cannot go stale.
+NOT_MET_YET = {
+    "mems-acc": (
+        "issue 2, open: with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the ML "
+        "misalignment tilt sits at 1.7-2.1× the known-attitude floor depending on the "
+        "simulated tours (bound 2×): the EKF has no state for the acceleration"
+    ),
+}
+
+
 def test_every_check_has_a_quick_version():
     assert set(QUICK_SEEDS) == set(accuracy.CHECKS)
 
 
-@pytest.mark.parametrize("key", list(QUICK_SEEDS))
+@pytest.mark.parametrize(
+    "key",
+    [
+        pytest.param(k, marks=pytest.mark.xfail(strict=True, reason=NOT_MET_YET[k]))
+        if k in NOT_MET_YET
+        else k
+        for k in QUICK_SEEDS
+    ],
+)
 def test_quick_check_meets_the_issue_bound(key):
     runs = [accuracy.run_check(key, seed, quick=True) for seed in range(1, QUICK_SEEDS[key] + 1)]
     v = accuracy.verdict(key, runs)

@@ -1,177 +1,228 @@
 /*
  * CPython glue for mekf_likelihood.c: magcal.calib._mekf. Arrays arrive through the buffer
- * protocol as C-contiguous float64 (the Python wrapper in magcal/calib/native.py prepares
- * them), so no numpy headers are needed to build this.
+ * protocol (no numpy headers needed to build this) and must be C-contiguous native float64:
+ * the format and item size are checked, not just the byte count, so an int64 or float32
+ * array is an error rather than a wrong result. The Python wrapper in
+ * magcal/calib/native.py prepares them.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
 #include "mekf_likelihood.h"
 
-#define MODEL_DOUBLES 45
-
-static int check_len(const Py_buffer *b, Py_ssize_t count, const char *name)
+/* A buffer format that means one native-order IEEE double: "d" / "@d" (native), "=d"
+ * (native order, standard size: 8 bytes like every platform CPython supports), and "<d"
+ * or ">d"/"!d" when that order is the native one. */
+static int is_native_float64(const char *fmt, Py_ssize_t itemsize)
 {
-    if (b->len != count * (Py_ssize_t)sizeof(double)) {
-        PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values, got %zd bytes", name,
-                     count, b->len);
-        return 0;
-    }
+    if (itemsize != 8 || itemsize != (Py_ssize_t)sizeof(double) || !fmt) return 0;
+    const int little = PY_LITTLE_ENDIAN;
+    char order = '@';
+    if (fmt[0] == '@' || fmt[0] == '=' || fmt[0] == '<' || fmt[0] == '>' || fmt[0] == '!')
+        order = *fmt++;
+    if (fmt[0] != 'd' || fmt[1] != '\0') return 0;
+    if (order == '<') return little;
+    if (order == '>' || order == '!') return !little;
     return 1;
 }
 
-static void load_model(const double *v, mc_mekf_model_t *m)
+/* Prefix the pending exception's message with the argument name ("q_filt: ..."), keeping
+ * its type. */
+static void prefix_error(const char *name)
 {
-    memcpy(m->D, v, 9 * sizeof(double));
-    memcpy(m->o, v + 9, 3 * sizeof(double));
-    memcpy(m->m, v + 12, 3 * sizeof(double));
-    memcpy(m->bias, v + 15, 3 * sizeof(double));
-    memcpy(m->Sw, v + 18, 9 * sizeof(double));
-    memcpy(m->Sa, v + 27, 9 * sizeof(double));
-    memcpy(m->Sm, v + 36, 9 * sizeof(double));
-}
-
-static void store_model(const mc_mekf_model_t *m, double *v)
-{
-    memcpy(v, m->D, 9 * sizeof(double));
-    memcpy(v + 9, m->o, 3 * sizeof(double));
-    memcpy(v + 12, m->m, 3 * sizeof(double));
-    memcpy(v + 15, m->bias, 3 * sizeof(double));
-    memcpy(v + 18, m->Sw, 9 * sizeof(double));
-    memcpy(v + 27, m->Sa, 9 * sizeof(double));
-    memcpy(v + 36, m->Sm, 9 * sizeof(double));
-}
-
-typedef struct {
-    Py_buffer model, dt, gyr, acc, mag, extra, q0, P0;
-} inputs_t;
-
-static void release_inputs(inputs_t *in)
-{
-    Py_buffer *all[] = {&in->model, &in->dt, &in->gyr, &in->acc,
-                        &in->mag,   &in->extra, &in->q0, &in->P0};
-    for (size_t i = 0; i < sizeof all / sizeof all[0]; ++i)
-        if (all[i]->obj) PyBuffer_Release(all[i]);
-}
-
-static int prepare(inputs_t *in, double g, int use_mag, mc_mekf_model_t *model,
-                   mc_mekf_data_t *data)
-{
-    const Py_ssize_t n = in->dt.len / (Py_ssize_t)sizeof(double);
-    if (n < 1) {
-        PyErr_SetString(PyExc_ValueError, "dt: no samples");
-        return 0;
+    PyObject *type, *value, *tb;
+    PyErr_Fetch(&type, &value, &tb);
+    PyErr_NormalizeException(&type, &value, &tb);
+    PyObject *msg = value ? PyObject_Str(value) : NULL;
+    if (msg) {
+        PyErr_Format(type, "%s: %U", name, msg);
+        Py_DECREF(msg);
+        Py_XDECREF(type);
+        Py_XDECREF(value);
+        Py_XDECREF(tb);
+    } else {
+        PyErr_Clear();
+        PyErr_Restore(type, value, tb);
     }
-    if (!check_len(&in->model, MODEL_DOUBLES, "model") || !check_len(&in->dt, n, "dt") ||
-        !check_len(&in->gyr, 3 * n, "gyr") || !check_len(&in->acc, 3 * n, "acc") ||
-        !check_len(&in->mag, 3 * n, "mag") || !check_len(&in->extra, n, "acc_extra_var") ||
-        !check_len(&in->q0, 4, "q0") || !check_len(&in->P0, 9, "P0"))
-        return 0;
-    load_model((const double *)in->model.buf, model);
-    data->n = (size_t)n;
-    data->dt = (const double *)in->dt.buf;
-    data->gyr = (const double *)in->gyr.buf;
-    data->acc = (const double *)in->acc.buf;
-    data->mag = (const double *)in->mag.buf;
-    data->acc_extra_var = (const double *)in->extra.buf;
-    data->g = g;
-    memcpy(data->q0, in->q0.buf, 4 * sizeof(double));
-    memcpy(data->P0, in->P0.buf, 9 * sizeof(double));
-    data->use_mag = use_mag;
-    return 1;
 }
 
-static double *optional_output(PyObject *obj, Py_buffer *buf, Py_ssize_t count, const char *name,
-                               int *ok)
+/* Acquire `obj` as `count` float64 values (count < 0: any number) into `buf`, writable
+ * when `writable`. Returns the data, or NULL with an exception set. `buf` must start
+ * zeroed; whether this succeeds or not, the caller releases it with release_buffer. */
+static double *get_float64(PyObject *obj, Py_buffer *buf, Py_ssize_t count, int writable,
+                           const char *name)
 {
-    if (obj == Py_None) return NULL;
-    if (PyObject_GetBuffer(obj, buf, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) {
-        *ok = 0;
+    const int flags = PyBUF_FORMAT | PyBUF_C_CONTIGUOUS | (writable ? PyBUF_WRITABLE : 0);
+    if (PyObject_GetBuffer(obj, buf, flags) < 0) {
+        buf->obj = NULL; /* nothing acquired: nothing to release */
+        prefix_error(name);
         return NULL;
     }
-    if (!check_len(buf, count, name)) {
-        PyBuffer_Release(buf);
-        buf->obj = NULL;
-        *ok = 0;
+    const char *fmt = buf->format ? buf->format : "B";
+    if (!is_native_float64(buf->format, buf->itemsize)) {
+        PyErr_Format(PyExc_TypeError,
+                     "%s: expected float64 values, got buffer format '%s' (item size %zd)",
+                     name, fmt, buf->itemsize);
+        return NULL;
+    }
+    const Py_ssize_t got = buf->len / buf->itemsize;
+    if (count >= 0 && got != count) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd float64 values, got %zd", name, count,
+                     got);
         return NULL;
     }
     return (double *)buf->buf;
 }
 
+static void release_buffer(Py_buffer *buf)
+{
+    if (buf->obj) PyBuffer_Release(buf); /* also resets buf->obj */
+}
+
+/* The buffers of one call: every one starts zeroed and is released at the single exit. */
+enum {
+    B_MODEL,
+    B_DT,
+    B_GYR,
+    B_ACC,
+    B_MAG,
+    B_EXTRA,
+    B_Q0,
+    B_P0,
+    B_OUT0, /* cost: q_filt; cost_grad: tape */
+    B_OUT1, /* cost: innov;  cost_grad: grad */
+    B_OUT2, /* cost: normalised               */
+    B_COUNT
+};
+
+typedef struct {
+    Py_buffer b[B_COUNT];
+} buffers_t;
+
+static void release_all(buffers_t *bufs)
+{
+    for (int i = 0; i < B_COUNT; ++i) release_buffer(&bufs->b[i]);
+}
+
+/* The inputs shared by both entry points. `dt` sets the number of samples n; acc_extra_var
+ * may be None (no inflation). Returns 0 with an exception set. */
+static int prepare(PyObject *const *in, double g, int use_mag, buffers_t *bufs,
+                   mc_mekf_model_t *model, mc_mekf_data_t *data)
+{
+    const double *v = get_float64(in[0], &bufs->b[B_MODEL], MC_MEKF_MODEL_DOUBLES, 0, "model");
+    if (!v) return 0;
+    memcpy(model, v, sizeof *model); /* the struct is flat: see mc_mekf_model_is_flat */
+    if (!(data->dt = get_float64(in[1], &bufs->b[B_DT], -1, 0, "dt"))) return 0;
+    const Py_ssize_t n = bufs->b[B_DT].len / (Py_ssize_t)sizeof(double);
+    if (n < 1) {
+        PyErr_SetString(PyExc_ValueError, "dt: no samples");
+        return 0;
+    }
+    if (n > PY_SSIZE_T_MAX / MC_MEKF_TAPE_DOUBLES) { /* keeps every count below exact */
+        PyErr_Format(PyExc_ValueError, "dt: too many samples (%zd)", n);
+        return 0;
+    }
+    data->n = (size_t)n;
+    if (!(data->gyr = get_float64(in[2], &bufs->b[B_GYR], 3 * n, 0, "gyr")) ||
+        !(data->acc = get_float64(in[3], &bufs->b[B_ACC], 3 * n, 0, "acc")) ||
+        !(data->mag = get_float64(in[4], &bufs->b[B_MAG], 3 * n, 0, "mag")))
+        return 0;
+    data->acc_extra_var = NULL;
+    if (in[5] != Py_None &&
+        !(data->acc_extra_var = get_float64(in[5], &bufs->b[B_EXTRA], n, 0, "acc_extra_var")))
+        return 0;
+    const double *q0 = get_float64(in[6], &bufs->b[B_Q0], 4, 0, "q0");
+    const double *P0 = q0 ? get_float64(in[7], &bufs->b[B_P0], 9, 0, "P0") : NULL;
+    if (!P0) return 0;
+    memcpy(data->q0, q0, sizeof data->q0);
+    memcpy(data->P0, P0, sizeof data->P0);
+    data->g = g;
+    data->use_mag = use_mag;
+    return 1;
+}
+
+/* An optional output: None gives NULL with *ok untouched. */
+static double *optional_output(PyObject *obj, Py_buffer *buf, Py_ssize_t count, const char *name,
+                               int *ok)
+{
+    if (obj == Py_None || !*ok) return NULL;
+    double *p = get_float64(obj, buf, count, 1, name);
+    if (!p) *ok = 0;
+    return p;
+}
+
 static PyObject *py_cost(PyObject *self, PyObject *args)
 {
     (void)self;
-    inputs_t in = {0};
+    PyObject *in[8], *q_obj, *innov_obj, *norm_obj;
     double g;
     int use_mag;
-    PyObject *q_obj, *innov_obj, *norm_obj;
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*dy*y*pOOO", &in.model, &in.dt, &in.gyr, &in.acc,
-                          &in.mag, &in.extra, &g, &in.q0, &in.P0, &use_mag, &q_obj, &innov_obj,
-                          &norm_obj))
+    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOOO", &in[0], &in[1], &in[2], &in[3], &in[4], &in[5],
+                          &g, &in[6], &in[7], &use_mag, &q_obj, &innov_obj, &norm_obj))
         return NULL;
+    buffers_t bufs;
+    memset(&bufs, 0, sizeof bufs);
     mc_mekf_model_t model;
     mc_mekf_data_t data;
-    if (!prepare(&in, g, use_mag, &model, &data)) {
-        release_inputs(&in);
-        return NULL;
-    }
-    Py_buffer qb = {0}, ib = {0}, nb = {0};
-    int ok = 1;
     mc_mekf_outputs_t out;
-    out.q_filt = optional_output(q_obj, &qb, 4 * (Py_ssize_t)data.n, "q_filt", &ok);
-    out.innov = ok ? optional_output(innov_obj, &ib, 6 * (Py_ssize_t)data.n, "innov", &ok) : NULL;
-    out.normalised =
-        ok ? optional_output(norm_obj, &nb, 6 * (Py_ssize_t)data.n, "normalised", &ok) : NULL;
+    int ok = prepare(in, g, use_mag, &bufs, &model, &data);
+    if (ok) {
+        const Py_ssize_t n = (Py_ssize_t)data.n;
+        out.q_filt = optional_output(q_obj, &bufs.b[B_OUT0], 4 * n, "q_filt", &ok);
+        out.innov = optional_output(innov_obj, &bufs.b[B_OUT1], 6 * n, "innov", &ok);
+        out.normalised = optional_output(norm_obj, &bufs.b[B_OUT2], 6 * n, "normalised", &ok);
+    }
     double cost = NAN;
     if (ok) {
         Py_BEGIN_ALLOW_THREADS
         cost = mc_mekf_cost(&model, &data, &out);
         Py_END_ALLOW_THREADS
     }
-    if (qb.obj) PyBuffer_Release(&qb);
-    if (ib.obj) PyBuffer_Release(&ib);
-    if (nb.obj) PyBuffer_Release(&nb);
-    release_inputs(&in);
-    if (!ok) return NULL;
-    return PyFloat_FromDouble(cost);
+    release_all(&bufs);
+    return ok ? PyFloat_FromDouble(cost) : NULL;
 }
 
 static PyObject *py_cost_grad(PyObject *self, PyObject *args)
 {
     (void)self;
-    inputs_t in = {0};
+    PyObject *in[8], *tape_obj, *grad_obj;
     double g;
     int use_mag;
-    Py_buffer tape = {0}, gradb = {0};
-    if (!PyArg_ParseTuple(args, "y*y*y*y*y*y*dy*y*pw*w*", &in.model, &in.dt, &in.gyr, &in.acc,
-                          &in.mag, &in.extra, &g, &in.q0, &in.P0, &use_mag, &tape, &gradb))
+    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOO", &in[0], &in[1], &in[2], &in[3], &in[4], &in[5],
+                          &g, &in[6], &in[7], &use_mag, &tape_obj, &grad_obj))
         return NULL;
+    buffers_t bufs;
+    memset(&bufs, 0, sizeof bufs);
     mc_mekf_model_t model, grad;
     mc_mekf_data_t data;
-    PyObject *result = NULL;
-    if (prepare(&in, g, use_mag, &model, &data) &&
-        check_len(&tape, MC_MEKF_TAPE_DOUBLES * (Py_ssize_t)data.n, "tape") &&
-        check_len(&gradb, MODEL_DOUBLES, "grad")) {
-        double cost;
-        double *tape_buf = (double *)tape.buf;
+    double *tape = NULL, *grad_out = NULL;
+    const int ok =
+        prepare(in, g, use_mag, &bufs, &model, &data) &&
+        (tape = get_float64(tape_obj, &bufs.b[B_OUT0],
+                            MC_MEKF_TAPE_DOUBLES * (Py_ssize_t)data.n, 1, "tape")) != NULL &&
+        (grad_out = get_float64(grad_obj, &bufs.b[B_OUT1], MC_MEKF_MODEL_DOUBLES, 1, "grad")) !=
+            NULL;
+    double cost = NAN;
+    if (ok) {
+        const size_t tape_len = MC_MEKF_TAPE_DOUBLES * data.n;
         Py_BEGIN_ALLOW_THREADS
-        cost = mc_mekf_cost_grad(&model, &data, tape_buf, &grad);
+        cost = mc_mekf_cost_grad(&model, &data, tape, tape_len, &grad);
         Py_END_ALLOW_THREADS
-        store_model(&grad, (double *)gradb.buf);
-        result = PyFloat_FromDouble(cost);
+        memcpy(grad_out, &grad, sizeof grad);
     }
-    PyBuffer_Release(&tape);
-    PyBuffer_Release(&gradb);
-    release_inputs(&in);
-    return result;
+    release_all(&bufs);
+    return ok ? PyFloat_FromDouble(cost) : NULL;
 }
 
 static PyMethodDef methods[] = {
     {"cost", py_cost, METH_VARARGS,
-     "cost(model, dt, gyr, acc, mag, extra, g, q0, P0, use_mag, q_out, innov_out, norm_out)"},
+     "cost(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, q_out, innov_out, "
+     "norm_out) -> cost\n\nArrays: C-contiguous float64; acc_extra_var and the outputs may "
+     "be None."},
     {"cost_grad", py_cost_grad, METH_VARARGS,
-     "cost_grad(model, dt, gyr, acc, mag, extra, g, q0, P0, use_mag, tape, grad_out) "
-     "-> cost"},
+     "cost_grad(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, tape, grad_out) "
+     "-> cost\n\nArrays: C-contiguous float64; tape holds TAPE_DOUBLES_PER_SAMPLE * n and "
+     "grad_out MODEL_DOUBLES values."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -182,8 +233,9 @@ static struct PyModuleDef module = {PyModuleDef_HEAD_INIT, "_mekf",
 PyMODINIT_FUNC PyInit__mekf(void)
 {
     PyObject *mod = PyModule_Create(&module);
-    /* The tape size per sample, so the Python side never hard-codes the layout. */
-    if (mod && PyModule_AddIntConstant(mod, "TAPE_DOUBLES_PER_SAMPLE", MC_MEKF_TAPE_DOUBLES) < 0) {
+    /* The layout sizes, so the Python side never hard-codes them. */
+    if (mod && (PyModule_AddIntConstant(mod, "TAPE_DOUBLES_PER_SAMPLE", MC_MEKF_TAPE_DOUBLES) < 0 ||
+                PyModule_AddIntConstant(mod, "MODEL_DOUBLES", MC_MEKF_MODEL_DOUBLES) < 0)) {
         Py_DECREF(mod);
         return NULL;
     }

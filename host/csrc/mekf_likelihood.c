@@ -833,10 +833,17 @@ static HOT_PASS double cost_pass(const pass_t *p, const mc_mekf_outputs_t *out)
     return cost + 0.5 * logdet_total(&ld);
 }
 
+/* The checks shared by both entry points: pointers the passes read, and samples. */
+static int valid_arguments(const mc_mekf_model_t *model, const mc_mekf_data_t *data)
+{
+    return model && data && data->n > 0 && data->dt && data->gyr && data->acc &&
+           (data->mag || !data->use_mag);
+}
+
 double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                     const mc_mekf_outputs_t *out)
 {
-    if (!model || !data || data->n == 0) return NAN;
+    if (!valid_arguments(model, data)) return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
     return cost_pass(&p, out);
@@ -889,15 +896,19 @@ static HOT_PASS void reverse_pass(const pass_t *p, const double *tape, grad_acc_
 }
 
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data, double *tape,
-                         mc_mekf_model_t *grad)
+                         size_t tape_len, mc_mekf_model_t *grad)
 {
-    if (!model || !data || !tape || !grad || data->n == 0) return NAN;
-    /* A zero gradient on failure: callers that test only the cost never see garbage. */
-    memset(grad, 0, sizeof *grad);
+    /* A zero gradient on every failure: callers that test only the cost never see garbage. */
+    if (grad) memset(grad, 0, sizeof *grad);
+    if (!grad || !valid_arguments(model, data) || !tape ||
+        tape_len / MC_MEKF_TAPE_DOUBLES < data->n) /* tape_len < TAPE · n, without overflow */
+        return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
     const double cost = forward_tape_pass(&p, tape);
-    if (isnan(cost)) return NAN;
+    /* NaN: a covariance broke down mid-pass and the tape is incomplete. ±inf: the adjoints
+     * would be inf or NaN. Either way the gradient stays zero. */
+    if (!isfinite(cost)) return cost;
     grad_acc_t acc;
     memset(&acc, 0, sizeof acc);
     reverse_pass(&p, tape, &acc);

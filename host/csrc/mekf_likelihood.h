@@ -8,38 +8,56 @@
 
 #include <stddef.h>
 
-/* Model quantities; matrices row-major. The gradient has the same layout. */
+/* Model quantities; matrices row-major. The gradient has the same layout.
+ *
+ * The covariances Sw, Sa and Sm are symmetrised, (S + Sᵀ)/2, before use, so only their
+ * symmetric part matters; the gradient w.r.t. them is the gradient w.r.t. their raw
+ * entries, which is then symmetric. */
 typedef struct {
     double D[9];      /* magnetometer distortion                    */
     double o[3];      /* magnetometer offset                        */
     double m[3];      /* unit field in n                            */
     double bias[3];   /* gyroscope bias, rad/s                      */
-    double Sw[9];     /* gyroscope noise covariance                 */
-    double Sa[9];     /* accelerometer noise covariance             */
+    double Sw[9];     /* gyroscope noise covariance, (rad/s)²       */
+    double Sa[9];     /* accelerometer noise covariance, (m/s²)²    */
     double Sm[9];     /* magnetometer noise covariance              */
 } mc_mekf_model_t;
 
+/* Doubles in mc_mekf_model_t. The struct is exactly this many doubles without padding
+ * (checked below at compile time), so it can be copied from and to a flat array. */
+#define MC_MEKF_MODEL_DOUBLES 45
+typedef char
+    mc_mekf_model_is_flat[sizeof(mc_mekf_model_t) == MC_MEKF_MODEL_DOUBLES * sizeof(double) ? 1 : -1];
+
+/* The data of one session; arrays row-major. Magnetometer values are in the model's units
+ * (D, o; the host normalises them). */
 typedef struct {
-    size_t n;
-    const double *dt;            /* (n)                                  */
-    const double *gyr;           /* (n, 3)                               */
-    const double *acc;           /* (n, 3)                               */
-    const double *mag;           /* (n, 3)                               */
-    const double *acc_extra_var; /* (n), added to the diagonal of Sa     */
-    double g;                    /* gravity magnitude                    */
-    double q0[4];                /* prior attitude q_nb                  */
-    double P0[9];                /* prior error covariance               */
-    int use_mag;                 /* 0: inertial-only filter              */
+    size_t n;                    /* samples, ≥ 1                                        */
+    const double *dt;            /* (n) s; dt[k] = time of sample k − time of k−1; dt[0]
+                                  * is not read                                         */
+    const double *gyr;           /* (n, 3) rad/s; gyr[k−1] drives the step to sample k   */
+    const double *acc;           /* (n, 3) m/s²                                         */
+    const double *mag;           /* (n, 3); not read (may be NULL) when use_mag is 0    */
+    const double *acc_extra_var; /* (n) (m/s²)², c_t added to the diagonal of Sa; NULL
+                                  * means all zeros                                     */
+    double g;                    /* gravity magnitude, m/s²                             */
+    double q0[4];                /* prior attitude q_nb (normalised before use)         */
+    double P0[9];                /* prior error covariance, rad² (symmetrised before use) */
+    int use_mag;                 /* 0: inertial-only filter                             */
 } mc_mekf_data_t;
 
 /* Optional per-sample outputs of the forward pass (any pointer may be NULL). */
 typedef struct {
-    double *q_filt;     /* (n, 4) attitude after each update          */
-    double *innov;      /* (n, 6) innovations                         */
-    double *normalised; /* (n, 6) Cholesky-whitened innovations       */
+    double *q_filt;     /* (n, 4) attitude after each update                          */
+    double *innov;      /* (n, 6) innovations (magnetometer part 0 without magnetometer) */
+    double *normalised; /* (n, 6) Cholesky-whitened innovations (likewise; NaN where the
+                         * innovation covariance has a non-positive pivot)            */
 } mc_mekf_outputs_t;
 
-/* Forward pass. Returns the cost, or NaN when a covariance stops being positive
+/* Forward pass: V(θ) = ½ Σ_t (ε_tᵀ S_t⁻¹ ε_t + log det S_t), without the constant
+ * 3 or 6 · ½ log 2π per sample. `out` may be NULL.
+ * Returns the cost, or NaN when an argument is invalid (model, data, data->dt, data->gyr,
+ * data->acc NULL, data->mag NULL with use_mag, n = 0) or a covariance stops being positive
  * definite. */
 double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                     const mc_mekf_outputs_t *out);
@@ -47,9 +65,14 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
 /* Doubles of reverse-mode tape per sample (attitude, Pp⁻¹, Λ⁻¹, u, η and magnetometer terms). */
 #define MC_MEKF_TAPE_DOUBLES 40
 
-/* Cost and gradient. `tape` is caller-owned workspace of MC_MEKF_TAPE_DOUBLES*n doubles.
- * Returns the cost, or NaN on failure (the gradient is then zero). */
+/* The cost of mc_mekf_cost (the same forward computation) and its gradient ∂V/∂model into
+ * `grad` (layout of mc_mekf_model_t; the m entry is ∂V/∂m, with m not constrained to unit
+ * length). `tape` is caller-owned workspace of `tape_len` doubles, at least
+ * MC_MEKF_TAPE_DOUBLES · n; its contents on entry do not matter.
+ * `grad` is zeroed first. Returns the cost; when it is NaN (the arguments of mc_mekf_cost
+ * plus tape or grad NULL or tape_len too short, or a covariance not positive definite) or
+ * otherwise not finite, the gradient is left zero. */
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
-                         double *tape, mc_mekf_model_t *grad);
+                         double *tape, size_t tape_len, mc_mekf_model_t *grad);
 
 #endif

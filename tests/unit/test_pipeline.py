@@ -132,3 +132,14 @@ def test_noisy_but_covered_ellipsoid_calibrates_with_a_warning_that_says_so():
     cal = calibrate(session, "ml")
     assert NOISY_ELLIPSOID_WARNING in cal.result.warnings
     assert np.linalg.det(cal.result.D) > 0
+
+
+def test_alignment_warning_when_accelerations_are_too_large_and_only_then():
+    def warned(session):
+        return any(
+            w.startswith("accelerations too large to trust the inclination")
+            for w in calibrate(session, "init").result.warnings
+        )
+
+    assert warned(simulate(preset("handheld", duration_s=20), 1)[0])  # 1 m/s² RMS
+    assert not warned(simulate(preset("mems", duration_s=20, translational_acc_rms=0.3), 1)[0])

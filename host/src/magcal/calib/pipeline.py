@@ -31,10 +31,11 @@ NOISY_ELLIPSOID_WARNING = (
     "normalised innovations and field norm"
 )
 
-#: RMS of ‖y_a‖ − g (m/s²) above which the inclination from the accelerometer, and with it
-#: the misalignment between magnetometer and inertial axes, cannot be trusted: at 0.5 m/s²
-#: the accelerometer's gravity direction is off by ≈3° RMS.
-MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2 = 0.5
+#: Robust RMS of ‖y_a‖ − g (m/s²) above which the inclination from the accelerometer, and
+#: with it the misalignment between magnetometer and inertial axes, cannot be trusted. A
+#: random acceleration shows about 1/√3 of its size in the norm, so 0.3 m/s² here is
+#: ≈0.5 m/s² of acceleration: the gravity direction off by ≈3° RMS.
+MAX_TRUSTED_ACC_DEVIATION_RMS_M_S2 = 0.3
 
 
 @dataclass(frozen=True)

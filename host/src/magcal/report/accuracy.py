@@ -138,9 +138,9 @@ def algebraic_a_eigenvalues(mag: np.ndarray) -> np.ndarray:
 
 
 def is_alignment_warning(text: str) -> bool:
-    """Whether a result warning says the magnetometer-to-inertial alignment is not trusted."""
-    t = text.lower()
-    return t.startswith("alignment:") or "inclination" in t or "misalignment" in t
+    """Whether a result warning is the pipeline's "accelerations too large to trust the
+    inclination" warning (issue 2: the data cannot support the alignment)."""
+    return text.startswith("accelerations too large to trust the inclination")
 
 
 # --------------------------------------------------------------------------- scenarios

@@ -24,11 +24,15 @@
  * - Adjoints of symmetric matrices are kept symmetric. Every perturbation of a symmetric
  *   quantity (P, the noise covariances) is symmetric, so only the symmetric part of its
  *   adjoint is ever contracted: dropping the skew part is exact and halves the work.
- * - The forward pass tapes, per sample, what the reverse pass would otherwise recompute at
- *   the price of an inverse or a matrix product (MC_MEKF_TAPE_DOUBLES = 40 doubles: the
- *   predicted attitude, Pp⁻¹, Λ⁻¹, u, η and the magnetometer terms). The reverse pass
- *   recomputes only rotations and a few matrix-vector products; memory is O(n · state) and
- *   independent of the number of parameters (600,000 samples: 192 MB).
+ * - The forward pass tapes, per sample, the quantities that are costly to recompute
+ *   (MC_MEKF_TAPE_DOUBLES = 40 doubles: the predicted attitude, Pp⁻¹, Λ⁻¹, u, η and the
+ *   magnetometer terms). The reverse pass recomputes the rest: the rotation matrix and its
+ *   rotation-vector coefficients, the accelerometer terms εa and za = Ai εa, mb = Rᵀ m,
+ *   and, for samples with c_t ≠ 0, Ai = (Σa + c_t I)⁻¹ (one more 3×3 inverse each; the
+ *   common c_t = 0 samples share the pass constant Σa⁻¹). Taping Ai instead would add 6
+ *   doubles to every record (records have one size) to save an inverse on the few inflated
+ *   samples. Memory is O(n · state) and independent of the number of parameters (600,000
+ *   samples: 192 MB).
  * - log det S: the constant parts are logged once per pass, the per-step determinants
  *   are multiplied and logged about once per hundred steps.
  */
@@ -202,8 +206,9 @@ static ALWAYS_INLINE void quat_mul(const double *restrict p, const double *restr
 }
 
 /* Series below |v| = 1e-2: no sqrt or trigonometric call, and gyroscope increments and
- * filter corrections are almost always this small. The truncation errors there are below
- * 1e-18 of the quaternion's components. */
+ * filter corrections are almost always this small. The first omitted terms are a⁸/8! in
+ * cos a (≤ 2.5e-21) and a⁶/7! in sin(a)/a, which multiplies v: an error ≤ 2e-18 in the
+ * vector part at |v| = 1e-2, about one ulp of components of that size. */
 #define QUAT_EXP_SERIES_A2 1e-4
 
 /* Series coefficients as products, not quotients: x / 6.0 is a division (tens of cycles)
@@ -297,6 +302,7 @@ typedef struct {
     double g;       /* gravity magnitude; g_n = (0, 0, −g)          */
     double Sw[9];   /* symmetrised Σω                               */
     double Sa[9];   /* symmetrised Σa                               */
+    double Sm[9];   /* symmetrised Σm (zero without magnetometer)   */
     double Ai0[9];  /* Σa⁻¹: the accelerometer information at c_t = 0 */
     double ld_Sa0;  /* log det Σa                                   */
     double Mi[9];   /* Σm⁻¹                                         */
@@ -318,13 +324,14 @@ static int make_pass(const mc_mekf_model_t *m, const mc_mekf_data_t *d, pass_t *
     if (!sym_inverse(p->Sa, p->Ai0, &det)) return 0;
     p->ld_Sa0 = log(det);
     if (d->use_mag) {
-        double Sm[9];
         for (int i = 0; i < 3; ++i)
-            for (int j = 0; j < 3; ++j) Sm[3 * i + j] = 0.5 * (m->Sm[3 * i + j] + m->Sm[3 * j + i]);
-        if (!sym_inverse(Sm, p->Mi, &det)) return 0;
+            for (int j = 0; j < 3; ++j)
+                p->Sm[3 * i + j] = 0.5 * (m->Sm[3 * i + j] + m->Sm[3 * j + i]);
+        if (!sym_inverse(p->Sm, p->Mi, &det)) return 0;
         p->ld_Sm = log(det);
         sym_sandwich_t(m->D, p->Mi, p->K);
     } else {
+        memset(p->Sm, 0, sizeof p->Sm);
         memset(p->Mi, 0, sizeof p->Mi);
         memset(p->K, 0, sizeof p->K);
         p->ld_Sm = 0.0;
@@ -537,7 +544,8 @@ typedef char tape_size_matches_header[TAPE_END == MC_MEKF_TAPE_DOUBLES ? 1 : -1]
 
 /* Adjoints summed over the samples. */
 typedef struct {
-    mc_mekf_model_t g; /* D, o, m, bias, Sw and the Sa of samples with c_t ≠ 0 */
+    mc_mekf_model_t g; /* D, o, m, bias, Sw and the Sa of samples with c_t ≠ 0; its Sm
+                        * stays zero (Σm's adjoint is formed from Mi_bar and K_bar) */
     double Ai0_bar[9]; /* Σ of Āi over the samples with c_t = 0 */
     double Mi_bar[9];  /* Σ m̄ of Σm⁻¹ (besides K)              */
     double K_bar[9];   /* Σ of K̄                                */
@@ -705,10 +713,11 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
         tq[0] += h * (dot3(X + 6, Sw + 3) - dot3(X + 3, Sw + 6));
         tq[1] += h * (dot3(X, Sw + 6) - dot3(X + 6, Sw));
         tq[2] += h * (dot3(X + 3, Sw) - dot3(X, Sw + 3));
-        /* q1 = q ⊙ Δ, Δ = exp_q(φ) (rotation vector 2φ), φ = ½ T (ω − δω) */
+        /* q1 = q ⊙ Δ, Δ = exp_q(φ) (rotation vector 2φ), φ = ½ T (ω − δω). 2φ = T (ω − δω)
+         * bit for bit: scaling by ½ and 2 is exact (barring underflow). */
         const double *wg = d->gyr + 3 * (k - 1);
         double rv[3], rv_bar[3];
-        for (int i = 0; i < 3; ++i) rv[i] = 2.0 * (0.5 * dt * (wg[i] - m->bias[i]));
+        for (int i = 0; i < 3; ++i) rv[i] = dt * (wg[i] - m->bias[i]);
         rotvec_apply(rv, tq, tq_in, rv_bar); /* φ̄ = 2 r̄v, δ̄ω = −½ T φ̄ */
         for (int i = 0; i < 3; ++i) gm->bias[i] -= dt * rv_bar[i];
     } else {
@@ -718,8 +727,10 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
 
 /* ---------------------------------------------------------------- passes */
 
-/* Cholesky-whitened innovation L⁻¹ε with S = H Pp Hᵀ + R = L Lᵀ (6×6 or 3×3). Diagnostics
- * only: H is rebuilt here, Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×]. */
+/* Cholesky-whitened innovation L⁻¹ε with S = H Pp Hᵀ + R = L Lᵀ (6×6 or 3×3), R built
+ * from the pass's symmetrised covariances. Diagnostics only: H is rebuilt here,
+ * Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×]. All NaN when a pivot of S is not positive (S is positive
+ * definite whenever the step succeeded, so only rounding can get here). */
 static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *out)
 {
     const mc_mekf_model_t *m = p->m;
@@ -727,9 +738,9 @@ static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *o
     const double *R = s->R;
     double H[18], S[36], L[36], eps[6], w[6];
     for (int i = 0; i < 3; ++i) {
-        /* [g_n×] = [[0, g, 0], [−g, 0, 0], [0, 0, 0]] */
-        H[3 * i + 0] = -(-g * R[3 + i]);
-        H[3 * i + 1] = -(g * R[i]);
+        /* [g_n×] = [[0, g, 0], [−g, 0, 0], [0, 0, 0]]: row i of −Rᵀ[g_n×] */
+        H[3 * i + 0] = g * R[3 + i];
+        H[3 * i + 1] = -g * R[i];
         H[3 * i + 2] = 0.0;
     }
     {
@@ -752,13 +763,17 @@ static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *o
             for (int a = 0; a < 3; ++a)
                 for (int b = 0; b < 3; ++b) v += H[3 * i + a] * s->Pp[3 * a + b] * H[3 * j + b];
             if (i < 3 && j < 3) v += p->Sa[3 * i + j] + (i == j ? cx : 0.0);
-            if (i >= 3 && j >= 3) v += m->Sm[3 * (i - 3) + (j - 3)];
+            if (i >= 3 && j >= 3) v += p->Sm[3 * (i - 3) + (j - 3)];
             S[ny * i + j] = v;
         }
     for (int j = 0; j < ny; ++j) {
         double v = S[ny * j + j];
         for (int a = 0; a < j; ++a) v -= L[ny * j + a] * L[ny * j + a];
-        L[ny * j + j] = sqrt(v > 0.0 ? v : 0.0);
+        if (!(v > 0.0)) {
+            for (int i = 0; i < 6; ++i) out[i] = NAN;
+            return;
+        }
+        L[ny * j + j] = sqrt(v);
         for (int i = j + 1; i < ny; ++i) {
             double x = S[ny * i + j];
             for (int a = 0; a < j; ++a) x -= L[ny * i + a] * L[ny * j + a];
@@ -935,7 +950,7 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
         for (int i = 0; i < 9; ++i) acc.Mi_bar[i] += DKb[i];
         /* Mi = Σm⁻¹ and n · ½ log det Σm */
         sym_sandwich(p.Mi, acc.Mi_bar, t);
-        for (int i = 0; i < 9; ++i) grad->Sm[i] = 0.5 * (double)n * p.Mi[i] - t[i];
+        for (int i = 0; i < 9; ++i) grad->Sm[i] += 0.5 * (double)n * p.Mi[i] - t[i];
     }
     return cost;
 }

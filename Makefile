@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT := out
 
-.PHONY: setup demo test lint accuracy bench clean
+.PHONY: setup demo test test-native lint accuracy bench clean
 
 setup: $(STAMP)
 
@@ -30,8 +30,17 @@ lint: setup
 	$(VENV)/bin/ruff check host tests tools bench
 	$(VENV)/bin/ruff format --check host tests tools bench
 
-test: setup lint
+test: setup lint test-native
 	$(PY) -m pytest -q tests
+
+# The C kernel on its own (no Python) under AddressSanitizer and UndefinedBehaviorSanitizer.
+NATIVE_CFLAGS := -std=c99 -O1 -g -Wall -Wextra -Wpedantic -Werror -ffp-contract=off \
+	-fsanitize=address,undefined -fno-sanitize-recover=all
+test-native:
+	@mkdir -p build
+	gcc $(NATIVE_CFLAGS) -Ihost/csrc tests/native/test_mekf_sanitizers.c \
+		host/csrc/mekf_likelihood.c -lm -o build/test_mekf_sanitizers
+	build/test_mekf_sanitizers
 
 accuracy: setup
 	$(PY) tools/accuracy_report.py --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy

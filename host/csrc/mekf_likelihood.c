@@ -729,9 +729,8 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
 
 /* Cholesky-whitened innovation L⁻¹ε with S = H Pp Hᵀ + blockdiag(Σa + c I, Σm) = L Lᵀ
  * (6×6 or 3×3), the noise from the pass's symmetrised covariances. Diagnostics only: H is
- * rebuilt here,
- * Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×]. All NaN when a pivot of S is not positive (S is positive
- * definite whenever the step succeeded, so only rounding can get here). */
+ * rebuilt here, Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×]. All NaN when a pivot of S is not positive
+ * (S is positive definite whenever the step succeeded, so only rounding can get here). */
 static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *out)
 {
     const mc_mekf_model_t *m = p->m;

@@ -141,16 +141,7 @@ def sample_mems(
     skew_angles = rng.uniform(-5.0, 5.0, 3) * deg
     rot_angles = rng.uniform(-5.0, 5.0, 3) * deg
     o = rng.uniform(-1.0, 1.0, 3) * offset_scale
-    bias, s_gyr, s_acc, s_mag = _mems_noise(rng, scale)
-    return SensorTruth(
-        D=scale * compose_d(diag, skew_angles, rot_angles),
-        o=o,
-        dip_rad=dip_deg * deg,
-        gyro_bias=bias,
-        Sigma_gyr=s_gyr,
-        Sigma_acc=s_acc,
-        Sigma_mag=s_mag,
-    )
+    return _mems_unit(rng, scale, dip_deg, diag, skew_angles, rot_angles, o)
 
 
 def sample_handheld_magnet(
@@ -176,11 +167,25 @@ def sample_handheld_magnet(
     skew_angles = rng.uniform(-20.0, 20.0, 3) * deg
     rot_angles = rng.uniform(-10.0, 10.0, 3) * deg
     o = _uniform_direction(rng) * rng.uniform(3.0, 6.0) * offset_scale
+    return _mems_unit(rng, scale, dip_deg, diag, skew_angles, rot_angles, o)
+
+
+def _mems_unit(
+    rng: np.random.Generator,
+    scale: float,
+    dip_deg: float,
+    diag: np.ndarray,
+    skew_angles: np.ndarray,
+    rot_angles: np.ndarray,
+    o: np.ndarray,
+) -> SensorTruth:
+    """A MEMS-noise unit with ``D = scale · D_diag D_skew D_rot`` (angles in rad); draws the
+    bias and noise from ``rng`` after the caller's draws, so the sequence is fixed."""
     bias, s_gyr, s_acc, s_mag = _mems_noise(rng, scale)
     return SensorTruth(
         D=scale * compose_d(diag, skew_angles, rot_angles),
         o=o,
-        dip_rad=dip_deg * deg,
+        dip_rad=dip_deg * (np.pi / 180.0),
         gyro_bias=bias,
         Sigma_gyr=s_gyr,
         Sigma_acc=s_acc,

@@ -52,6 +52,9 @@ class OptimizeReport:
     stopping_rule: str
     seconds: float
     history: list[float] = field(default_factory=list)
+    #: times the Hessian approximation lost positive definiteness in floating point and
+    #: was restarted from a scaled identity
+    hessian_resets: int = 0
 
     @property
     def converged(self) -> bool:
@@ -96,12 +99,22 @@ def minimize_bfgs(
             "unusable (check units: gyroscope rad/s, accelerometer m/s²)"
         )
     B = np.eye(n)
+    curvature = 1.0  # the Shanno–Phua scale, kept for restarts
+    resets = 0
     first = True
     history = [v]
     rule = "max_iter"
     iteration = 0
     for iteration in range(1, options.max_iter + 1):
-        L = np.linalg.cholesky(B)
+        try:
+            L = np.linalg.cholesky(B)
+        except np.linalg.LinAlgError:
+            # Damped BFGS keeps B positive definite in exact arithmetic only: after a step
+            # into a region of very high curvature (seen: eigenvalues 1e-3 to 1e18 when a
+            # noise scale collapsed) rounding can break it. Restart, as L-BFGS would.
+            resets += 1
+            B = np.eye(n) * curvature
+            L = np.linalg.cholesky(B)
         d = -np.linalg.solve(L.T, np.linalg.solve(L, g))
         decrement = -0.5 * float(g @ d)
         if progress:
@@ -142,7 +155,8 @@ def minimize_bfgs(
             # Shanno–Phua: scale the initial B to the curvature seen along the first step.
             sy = float(s @ y)
             if sy > 0:
-                B = np.eye(n) * (float(y @ y) / sy)
+                curvature = float(y @ y) / sy
+                B = np.eye(n) * curvature
             first = False
         Bs = B @ s
         sBs = float(s @ Bs)
@@ -169,4 +183,5 @@ def minimize_bfgs(
         stopping_rule=rule,
         seconds=time.perf_counter() - t_start,
         history=history,
+        hessian_resets=resets,
     )

@@ -129,6 +129,7 @@ def calibrate(
             "gradient_evaluations": r.gradient_evaluations,
             "final_cost": r.cost,
             "stopping_rule": r.stopping_rule,
+            "hessian_resets": r.hessian_resets,
             "seconds": r.seconds,
         }
         if not r.converged:

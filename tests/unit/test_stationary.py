@@ -233,3 +233,22 @@ def test_60k_samples_find_the_rest():
     sl = find_stationary(t, gyr, acc, mag)
     assert sl is not None and 30000 <= sl.start and sl.stop <= 31000
     assert sl.stop - sl.start > 900
+
+
+def test_motion_acceleration_variance_measures_the_shake_not_knocks_or_rest():
+    from magcal.sim.trajectory import accelerometer_bumps, band_limited_acceleration
+
+    rng = np.random.default_rng(5)
+    n_rest, n_move, g = 300, 6000, 9.81
+    shake = band_limited_acceleration(rng, n_move, FS_HZ, 0.3)  # ‖a‖ RMS 0.3 m/s²
+    _, knocks = accelerometer_bumps(rng, 0, n_move, 20)
+    up = np.array([0.0, 0.0, g])
+    acc = np.vstack([np.tile(up, (n_rest, 1)), up + shake + knocks])
+    acc += 0.02 * rng.normal(size=acc.shape)
+    var = st.motion_acceleration_variance(acc, g, slice(0, n_rest))
+    # ‖y_a‖ − g sees the vertical component: its variance plus the noise's.
+    expected = np.var(shake[:, 2]) + 0.02**2
+    assert abs(var - expected) < 0.15 * expected
+    # The rest alone shows only noise; a session at rest throughout gives nothing.
+    assert st.motion_acceleration_variance(acc[:n_rest], g, None) < 2 * 0.02**2
+    assert st.motion_acceleration_variance(acc[:n_rest], g, slice(0, n_rest)) == 0.0

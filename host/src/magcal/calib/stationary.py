@@ -354,6 +354,27 @@ def gyro_noise_from_differences(gyr: np.ndarray, floor_std: np.ndarray | float =
     return np.diag(std**2)
 
 
+def motion_acceleration_variance(acc: np.ndarray, g: float, stationary: slice | None) -> float:
+    """Per-axis variance (m/s²)² of the translational acceleration during motion.
+
+    The model's e_a must carry the hand's acceleration as well as the sensor noise: a
+    filter that starts with only the noise measured at rest reads a 0.3 m/s² shake as a
+    10σ tilt at every sample, and the ML search starts a million nats from home (issue 2,
+    accelerated MEMS sessions). ``‖y_a‖ − g`` sees the acceleration's component along
+    gravity, one axis' worth when it is isotropic; a robust spread (1.4826 × median absolute
+    deviation) ignores knocks. The stationary stretch is left out; with no motion, 0.
+
+    acc : (N, 3) m/s²; g : m/s²; stationary : the stretch from :func:`find_stationary`.
+    """
+    keep = np.ones(acc.shape[0], dtype=bool)
+    if stationary is not None:
+        keep[stationary] = False
+    if not keep.any():
+        return 0.0
+    dev = np.linalg.norm(acc[keep], axis=1) - g
+    return float((1.4826 * np.median(np.abs(dev - np.median(dev)))) ** 2)
+
+
 def initial_noise_and_bias(
     t: np.ndarray,
     gyr: np.ndarray,

@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT := out
 
-.PHONY: setup demo test test-native lint accuracy bench clean
+.PHONY: setup demo test test-native lint accuracy bench clean firmware-lib
 
 setup: $(STAMP)
 
@@ -30,17 +30,39 @@ lint: setup
 	$(VENV)/bin/ruff check host tests tools bench
 	$(VENV)/bin/ruff format --check host tests tools bench
 
-test: setup lint test-native
+test: setup lint test-native firmware-lib
 	$(PY) -m pytest -q tests
 
-# The C kernel on its own (no Python) under AddressSanitizer and UndefinedBehaviorSanitizer.
-NATIVE_CFLAGS := -std=c99 -O1 -g -Wall -Wextra -Wpedantic -Werror -ffp-contract=off \
+# ---------------------------------------------------------------- firmware (native)
+# The portable library is every file in firmware/src; ports (POSIX SIL device, Cortex-M4
+# target) live in firmware/port/ and are built by their own targets.
+FW_SRC := $(wildcard firmware/src/*.c)
+FW_HDR := $(wildcard firmware/include/magcal/*.h)
+FW_WARN := -std=c99 -Wall -Wextra -Wpedantic -Werror
+FW_INC := -Ifirmware/include
+
+# Native tests (no Python) under AddressSanitizer and UndefinedBehaviorSanitizer: the EKF
+# kernel's, and one program per tests/native/test_fw_*.c linked with the firmware library.
+NATIVE_CFLAGS := $(FW_WARN) -O1 -g -ffp-contract=off \
 	-fsanitize=address,undefined -fno-sanitize-recover=all
-test-native:
-	@mkdir -p build
+FW_TESTS := $(patsubst tests/native/%.c,build/native/%,$(wildcard tests/native/test_fw_*.c))
+test-native: build/native/test_mekf_sanitizers $(FW_TESTS)
+	@set -e; for t in $^; do echo "== $$t"; $$t; done
+
+build/native/test_mekf_sanitizers: tests/native/test_mekf_sanitizers.c host/csrc/mekf_likelihood.c host/csrc/mekf_likelihood.h
+	@mkdir -p $(@D)
 	gcc $(NATIVE_CFLAGS) -Ihost/csrc tests/native/test_mekf_sanitizers.c \
-		host/csrc/mekf_likelihood.c -lm -o build/test_mekf_sanitizers
-	build/test_mekf_sanitizers
+		host/csrc/mekf_likelihood.c -lm -o $@
+
+build/native/test_fw_%: tests/native/test_fw_%.c tests/native/check.h $(FW_SRC) $(FW_HDR)
+	@mkdir -p $(@D)
+	gcc $(NATIVE_CFLAGS) $(FW_INC) -Itests/native $< $(FW_SRC) -lm -o $@
+
+# The library as a shared object, for the pytest tests that drive it through ctypes.
+firmware-lib: build/libmagcal_fw.so
+build/libmagcal_fw.so: $(FW_SRC) $(FW_HDR)
+	@mkdir -p $(@D)
+	gcc $(FW_WARN) -O2 -fPIC -shared $(FW_INC) $(FW_SRC) -o $@
 
 accuracy: setup
 	$(PY) tools/accuracy_report.py --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy

@@ -8,6 +8,20 @@ OUT := out
 
 .PHONY: setup demo test test-native lint accuracy bench clean firmware-lib
 
+# The portable library is every file in firmware/src; ports (POSIX SIL device, Cortex-M4
+# target) live in firmware/port/ and are built by their own targets.
+FW_SRC := $(wildcard firmware/src/*.c)
+FW_HDR := $(wildcard firmware/include/magcal/*.h)
+FW_WARN := -std=c99 -Wall -Wextra -Wpedantic -Werror
+FW_INC := -Ifirmware/include
+
+# Each part of the build that grew its own rules has a fragment in mk/ (cross-building and
+# QEMU, protocol generation and fuzzing). A fragment adds what `make test` must also run to
+# TEST_EXTRA.
+TEST_EXTRA :=
+.DEFAULT_GOAL := setup
+include $(sort $(wildcard mk/*.mk))
+
 setup: $(STAMP)
 
 # Re-install when the package definition or the native kernel changes (the editable
@@ -30,17 +44,10 @@ lint: setup
 	$(VENV)/bin/ruff check host tests tools bench
 	$(VENV)/bin/ruff format --check host tests tools bench
 
-test: setup lint test-native firmware-lib
+test: setup lint test-native firmware-lib $(TEST_EXTRA)
 	$(PY) -m pytest -q tests
 
 # ---------------------------------------------------------------- firmware (native)
-# The portable library is every file in firmware/src; ports (POSIX SIL device, Cortex-M4
-# target) live in firmware/port/ and are built by their own targets.
-FW_SRC := $(wildcard firmware/src/*.c)
-FW_HDR := $(wildcard firmware/include/magcal/*.h)
-FW_WARN := -std=c99 -Wall -Wextra -Wpedantic -Werror
-FW_INC := -Ifirmware/include
-
 # Native tests (no Python) under AddressSanitizer and UndefinedBehaviorSanitizer: the EKF
 # kernel's, and one program per tests/native/test_fw_*.c linked with the firmware library.
 NATIVE_CFLAGS := $(FW_WARN) -O1 -g -ffp-contract=off \

@@ -7,6 +7,17 @@
 
 /* ---- correction and parameter validation (correction.h, params.h) ---- */
 
+/* Largest condition number kappa_inf(D^-1) = ||D^-1||_inf ||D||_inf that mc_params_validate
+ * accepts (MC_E_CONDITION above it). A magnetometer calibration is close to a scaled rotation
+ * (kappa_inf of 1 to about 3); 100 leaves room for strongly distorted sensors while refusing a
+ * nearly singular D^-1. An integer in [1, 1000000]; the host's fixed_point.COND_MAX must match. */
+#ifndef MC_PARAMS_COND_MAX
+#define MC_PARAMS_COND_MAX 100u
+#endif
+#if MC_PARAMS_COND_MAX < 1 || MC_PARAMS_COND_MAX > 1000000
+#error "MC_PARAMS_COND_MAX must be in [1, 1000000]"
+#endif
+
 /* ---- parameter storage (storage.h, flash.h) ---- */
 
 /* Largest payload (an encoded parameter set) mc_storage_commit accepts, in bytes. A slot must

@@ -17,6 +17,7 @@
  * It also enforces the driver contract of flash.h: programming a word that is not erased
  * (a second program without erase), a misaligned or out-of-range access, counts as a
  * violation (and fails), so a test can assert the library never does it.
+ * flip_reads_from = k >= 0 makes reads from the k-th on return a flipped bit (flaky reads).
  * lie_after = k >= 0 makes every program step from step k on silently do nothing while
  * reporting MC_OK (a flash that fails without telling): read-back must catch it.
  */
@@ -49,6 +50,8 @@ typedef struct {
     long violations; /* contract violations by the caller */
     long erases, programs, reads;
     int fail_erase;  /* erase_page returns MC_E_FLASH without erasing */
+    long flip_reads_from; /* reads numbered from here on return byte 0 with bit 0 flipped
+                           * (a flaky read; the flash itself is unchanged); -1: never */
 } flash_sim_t;
 
 /* One byte step. Returns 0 if done, -1 if power failed here (the sim is now dead). */
@@ -135,8 +138,11 @@ static mc_status_t flash_sim_read(void *ctx, uint32_t addr, uint8_t *buf, size_t
         ++sim->violations;
         return MC_E_RANGE;
     }
-    ++sim->reads;
     memcpy(buf, sim->mem + addr, len);
+    if (sim->flip_reads_from >= 0 && sim->reads >= sim->flip_reads_from && len > 0) {
+        buf[0] ^= 0x01u;
+    }
+    ++sim->reads;
     return MC_OK;
 }
 
@@ -159,6 +165,7 @@ static void flash_sim_init(flash_sim_t *sim, mc_flash_t *flash, uint32_t page_si
     sim->page_count = page_count;
     sim->cut_at = -1;
     sim->lie_after = -1;
+    sim->flip_reads_from = -1;
     flash->ops = &flash_sim_ops;
     flash->ctx = sim;
     flash->page_size = page_size;

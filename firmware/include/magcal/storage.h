@@ -89,7 +89,9 @@ typedef struct mc_storage {
 /*
  * Sets up st over flash with slot A at pages [slot_a_page, slot_a_page + pages_per_slot) and
  * slot B likewise, then scans both slots to find the best record (mc_storage_active).
- * The flash descriptor must outlive st. Returns:
+ * The flash descriptor must outlive st. init first clears *st, so after an MC_E_ARG or
+ * MC_E_RANGE load and commit refuse st with MC_E_ARG (they check st->flash; an instance
+ * that init never saw cannot be detected: call init first). Returns:
  *   MC_OK;
  *   MC_E_ARG: st, flash, flash->ops or one of its functions NULL, page_size 0 or not a
  *     multiple of MC_FLASH_WORD_SIZE, page_count or pages_per_slot 0;
@@ -121,6 +123,8 @@ mc_status_t mc_storage_load(mc_storage_t *st, uint8_t *payload, size_t cap, size
  * Atomically replaces the stored payload with payload[0 .. len) tagged format_version, by
  * the protocol above. On MC_OK the new record is the best, with sequence previous best + 1
  * (1 if there was none). On any error the previous best is untouched and still the best.
+ * Cost: pages_per_slot page erases and MC_STORAGE_RECORD_SIZE(len) / 4 word programs, all
+ * read back; slots alternate, so each slot page is erased once per two commits.
  * Returns:
  *   MC_OK;
  *   MC_E_ARG: st or payload NULL, st not initialised, len 0 or len > MC_STORAGE_PAYLOAD_MAX;

@@ -25,7 +25,7 @@ check-generated:
 	done; echo "check-generated: up to date"
 
 # The native frame test includes the generated vectors.
-build/native/test_fw_frame: protocol/vectors/vectors.h
+build/native/test_fw_frame build/native/test_fw_messages: protocol/vectors/vectors.h
 
 $(FUZZ_DIR)/fuzz_frame_decoder: firmware/fuzz/fuzz_frame_decoder.c $(FW_SRC) $(FW_HDR)
 	@command -v clang >/dev/null 2>&1 || { echo "fuzz-smoke: clang is not installed: run make deps-target (installs clang with libFuzzer)" >&2; exit 1; }

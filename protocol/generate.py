@@ -43,6 +43,9 @@ TYPES = {
     "int16": ("int16_t", "h", 2, -0x8000, 0x7FFF),
     "uint32": ("uint32_t", "I", 4, 0, 0xFFFFFFFF),
     "int32": ("int32_t", "i", 4, -0x80000000, 0x7FFFFFFF),
+    "uint64": ("uint64_t", "Q", 8, 0, 0xFFFFFFFFFFFFFFFF),
+    # count characters, NUL-padded; a str in Python (latin-1, trailing NULs stripped)
+    "char": ("char", "s", 1, 0, 0xFF),
 }
 HEADER = "\n".join(
     [
@@ -102,12 +105,50 @@ def load_schema(path: Path = SCHEMA) -> dict:
     return schema
 
 
+def format_schema(schema: dict) -> str:
+    """The schema's canonical layout: one line per status, unit and field."""
+
+    def one(o) -> str:
+        return json.dumps(o, ensure_ascii=False)
+
+    def rows(items: list, indent: str) -> list[str]:
+        return [indent + one(e) + ("," if i < len(items) - 1 else "") for i, e in enumerate(items)]
+
+    def obj(d: dict, indent: str, listed: tuple[str, ...]) -> list[str]:
+        out, keys = [], list(d)
+        for i, k in enumerate(keys):
+            comma = "," if i < len(keys) - 1 else ""
+            if k in listed and d[k]:
+                out += [f'{indent}"{k}": [', *rows(d[k], indent + "  "), f"{indent}]{comma}"]
+            else:
+                out.append(f'{indent}"{k}": {one(d[k])}{comma}')
+        return out
+
+    out, keys = ["{"], list(schema)
+    for i, k in enumerate(keys):
+        comma = "," if i < len(keys) - 1 else ""
+        v = schema[k]
+        if k in ("status", "units"):
+            out += [f'  "{k}": [', *rows(v, "    "), f"  ]{comma}"]
+        elif k == "framing":
+            out += ['  "framing": {', *obj(v, "    ", ("header",)), f"  }}{comma}"]
+        elif k == "messages":
+            out.append('  "messages": [')
+            for j, m in enumerate(v):
+                out += ["    {", *obj(m, "      ", ("fields",)), "    }" + (
+                    "," if j < len(v) - 1 else "")]
+            out.append(f"  ]{comma}")
+        else:
+            out.append(f'  "{k}": {one(v)}{comma}')
+    return "\n".join(out + ["}", ""])
+
+
 def struct_format(m: dict) -> str:
     parts = []
     for f in m["fields"]:
         if f["type"] != "bytes":
             code = TYPES[f["type"]][1]
-            parts.append(code if f["count"] == 1 else f"{f['count']}{code}")
+            parts.append(code if f["count"] == 1 and code != "s" else f"{f['count']}{code}")
     return "<" + "".join(parts)
 
 
@@ -187,7 +228,10 @@ def pack_payload(m: dict, values: dict) -> bytes:
         if f["type"] == "bytes":
             continue
         v = values[f["name"]]
-        flat += list(v) if f["count"] > 1 else [v]
+        if f["type"] == "char":
+            flat.append(v.encode("latin-1"))
+        else:
+            flat += list(v) if f["count"] > 1 else [v]
     out = struct.pack(struct_format(m), *flat)
     if m["bytes_max"]:
         out += bytes.fromhex(values[m["fields"][-1]["name"]])
@@ -217,12 +261,15 @@ def message_cases(schema: dict) -> list[dict]:
         ("info", 3, {}),
         ("info_resp", 3, {
             "status": 0, "fw_version": [0, 4, 1], "fw_build": 0xD61F7602,
-            "protocol_version": 1, "params_format_version": 1, "params_size": 64,
+            "protocol_version": 1, "params_format_version": 1, "params_size": 52,
             "device_uid": [0x00470031, 0x3432510B, 0x30383739], "sample_rate_mhz": 100000,
-            "sensor_id": [0x3D, 0x6A, 0x6A], "full_scale": [32767, 32767, 32767],
-            # LIS3MDL +/-4 G: 1/6842 G per count; LSM6 +/-8 g: 0.244 mg; +/-2000 dps: 70 mdps
+            "sensor_id": [0x3D, 0x6C, 0x6C], "mag_name": "LIS3MDL", "acc_name": "LSM6DSO",
+            "gyr_name": "LSM6DSO+gyro",  # 12 characters: no NUL
+            # LIS3MDL +/-4 G, 1/6842 G per count; LSM6DSO +/-8 g, 0.244 mg; +/-2000 dps, 70 mdps
+            "fs_num": [4, 8, 2000], "fs_den": [1, 1, 1], "fs_exp10": [0, 0, 0],
+            "fs_unit": [2, 4, 6],
             "scale_num": [1, 244, 70], "scale_den": [6842, 1, 1],
-            "scale_exp10": [0, -6, -3], "unit": [6, 4, 5]}),
+            "scale_exp10": [0, -6, -3], "scale_unit": [2, 4, 6]}),
         ("stream_start", 4, {"kind": 0, "decimation": 1, "count": 0}),
         ("stream_start_resp", 4, {"status": 0}),
         ("stream_stop", 5, {}),
@@ -241,9 +288,9 @@ def message_cases(schema: dict) -> list[dict]:
         ("reset_resp", 11, {"status": 0}),
         ("sample", 4, {"seq": 1, "t_us": 10000, "mag": [120, -340, 4095],
                        "acc": [0, 0, 4096], "gyr": [-1, 2, -3]}),
-        ("sample", 0xFFFF, {"seq": 0xFFFFFFFF, "t_us": 0xFFFFFFFF, "mag": [-32768, 32767, 0],
+        ("sample", 0xFFFF, {"seq": 0xFFFFFFFF, "t_us": 0xFFFFFFFFFFFFFFFF, "mag": [-32768, 32767, 0],
                             "acc": [256, -256, 1], "gyr": [0x7F00, -0x0100, 0]}),
-        ("corrected", 12, {"seq": 77, "t_us": 770000, "mag": [100, 200, -300],
+        ("corrected", 12, {"seq": 77, "t_us": 0x123456789A, "mag": [100, 200, -300],
                            "out_exp": 9,
                            "m_b": [1 << 30, -(1 << 31), (1 << 31) - 1]}),
         ("nack", 0, {"status": -13, "request_id": 0x7E}),
@@ -419,12 +466,9 @@ def gen_messages_h(schema: dict) -> str:
           "/* COBS adds one byte per 254 and one at the start; then the delimiter. */",
           "#define MC_FRAME_MAX_ENCODED (MC_FRAME_MAX_BODY + MC_FRAME_MAX_BODY / 254u + 2u)",
           "#define MC_RESET_MAGIC 0x54455352u /* \"RSET\" little-endian */", "",
-          "/* ---- units of a sensor count (info_resp.unit) */", "typedef enum {"]
-    units = schema["units"]
-    for i, u in enumerate(units):
-        sep = "," if i < len(units) - 1 else ""
-        L.append(f"    MC_UNIT_{u['name']} = {u['value']}{sep} /* {u['doc']} */")
-    L += ["} mc_unit_t;", "", "/* ---- message ids: bit 7 set = from the device */", "typedef enum {"]
+          "/* The unit table (info_resp.fs_unit, scale_unit) is mc_unit_t of sensor_hal.h; a native",
+          " * test checks it against the schema. */", "",
+          "/* ---- message ids: bit 7 set = from the device */", "typedef enum {"]
     msgs = schema["messages"]
     for i, m in enumerate(msgs):
         sep = "," if i < len(msgs) - 1 else ""
@@ -493,6 +537,9 @@ def gen_messages_c(schema: dict) -> str:
          "static void put_u32(uint8_t *p, uint32_t v)", "{",
          "    p[0] = (uint8_t)(v & 0xFFu);", "    p[1] = (uint8_t)((v >> 8) & 0xFFu);",
          "    p[2] = (uint8_t)((v >> 16) & 0xFFu);", "    p[3] = (uint8_t)(v >> 24);", "}",
+         "static void put_u64(uint8_t *p, uint64_t v)", "{",
+         "    put_u32(p, (uint32_t)(v & 0xFFFFFFFFu));", "    put_u32(p + 4, (uint32_t)(v >> 32));",
+         "}",
          "static void put_i8(uint8_t *p, int8_t v) { p[0] = (uint8_t)v; }",
          "static void put_i16(uint8_t *p, int16_t v) { put_u16(p, (uint16_t)v); }",
          "static void put_i32(uint8_t *p, int32_t v) { put_u32(p, (uint32_t)v); }",
@@ -502,6 +549,8 @@ def gen_messages_c(schema: dict) -> str:
          "static uint32_t get_u32(const uint8_t *p)", "{",
          "    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |",
          "           ((uint32_t)p[3] << 24);", "}",
+         "static uint64_t get_u64(const uint8_t *p)", "{",
+         "    return (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);", "}",
          "static int8_t get_i8(const uint8_t *p)", "{",
          "    return (int8_t)(p[0] >= 0x80u ? (int)p[0] - 0x100 : (int)p[0]);", "}",
          "static int16_t get_i16(const uint8_t *p)", "{",
@@ -511,7 +560,7 @@ def gen_messages_c(schema: dict) -> str:
          "    const uint32_t v = get_u32(p);",
          "    return v >= 0x80000000u ? -(int32_t)(~v) - 1 : (int32_t)v;", "}", ""]
     short = {"uint8": "u8", "int8": "i8", "uint16": "u16", "int16": "i16", "uint32": "u32",
-             "int32": "i32"}
+             "int32": "i32", "uint64": "u64"}
     for m in schema["messages"]:
         n, up = m["name"], m["name"].upper()
         size_min = f"MC_MSG_{up}_MIN_SIZE" if m["bytes_max"] else f"MC_MSG_{up}_SIZE"
@@ -536,6 +585,9 @@ def gen_messages_c(schema: dict) -> str:
             if f["type"] == "bytes":
                 L += [f"    if (msg->{f['name']}_len > 0u) {{",
                       f"        memcpy(p, msg->{f['name']}, msg->{f['name']}_len);", "    }"]
+                continue
+            if f["type"] == "char":
+                L += [f"    memcpy(p, msg->{f['name']}, {f['count']}u);", f"    p += {f['count']};"]
                 continue
             size = TYPES[f["type"]][2]
             fn = "put_" + short[f["type"]]
@@ -563,6 +615,9 @@ def gen_messages_c(schema: dict) -> str:
                 L += [f"    msg->{f['name']}_len = len - MC_MSG_{up}_MIN_SIZE;",
                       f"    if (msg->{f['name']}_len > 0u) {{",
                       f"        memcpy(msg->{f['name']}, p, msg->{f['name']}_len);", "    }"]
+                continue
+            if f["type"] == "char":
+                L += [f"    memcpy(msg->{f['name']}, p, {f['count']}u);", f"    p += {f['count']};"]
                 continue
             size = TYPES[f["type"]][2]
             fn = "get_" + short[f["type"]]
@@ -623,6 +678,9 @@ def c_value(f: dict, v) -> str:
     if f["type"] == "bytes":
         data = bytes.fromhex(v)
         return "{" + ", ".join(f"0x{b:02X}" for b in data) + "}" if data else "{0}"
+    if f["type"] == "char":
+        data = v.encode("latin-1")
+        return "{" + ", ".join(f"0x{b:02X}" for b in data) + "}" if data else "{0}"
     if isinstance(v, list):
         return "{" + ", ".join(c_int(f["type"], x) for x in v) + "}"
     return c_int(f["type"], v)
@@ -630,7 +688,7 @@ def c_value(f: dict, v) -> str:
 
 def c_int(t: str, v: int) -> str:
     if t.startswith("u"):
-        return f"{v}u"
+        return f"{v}u" if v <= 0xFFFFFFFF else f"UINT64_C({v})"
     if v == TYPES[t][3] and t == "int32":
         return "(-2147483647 - 1)"
     return str(v)
@@ -644,7 +702,13 @@ def gen_vectors_h(schema: dict, messages: list[dict], streams: list[dict]) -> st
         "The golden vectors of protocol/vectors (messages.json, frames.json) as C data, for tests/native. Include from\n"
         "one translation unit. Status names are spelled as mc_status_t values."
     )
-    L += ["", "#include <stddef.h>", "#include <stdint.h>", "", '#include "magcal/messages.h"', "",
+    L += ["", "#include <stddef.h>", "#include <stdint.h>", "", '#include "magcal/messages.h"',
+          '#include "magcal/sensor_hal.h"', "",
+          "/* {mc_unit_t of sensor_hal.h, the schema's value}: they must agree. */",
+          "static const int mc_vec_units[][2] = {"]
+    for u in schema["units"]:
+        L.append(f"    {{MC_UNIT_{u['name']}, {u['value']}}},")
+    L += ["};", f"#define MC_VEC_N_UNITS {len(schema['units'])}u", "",
           "typedef struct {", "    const char *name;", "    uint8_t id;", "    uint16_t seq;",
           "    const uint8_t *payload;", "    size_t payload_len;", "    const uint8_t *wire;",
           "    size_t wire_len;", "    mc_msg_t msg; /* the decoded values */", "} mc_vec_message_t;",

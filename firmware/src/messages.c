@@ -19,6 +19,11 @@ static void put_u32(uint8_t *p, uint32_t v)
     p[2] = (uint8_t)((v >> 16) & 0xFFu);
     p[3] = (uint8_t)(v >> 24);
 }
+static void put_u64(uint8_t *p, uint64_t v)
+{
+    put_u32(p, (uint32_t)(v & 0xFFFFFFFFu));
+    put_u32(p + 4, (uint32_t)(v >> 32));
+}
 static void put_i8(uint8_t *p, int8_t v) { p[0] = (uint8_t)v; }
 static void put_i16(uint8_t *p, int16_t v) { put_u16(p, (uint16_t)v); }
 static void put_i32(uint8_t *p, int32_t v) { put_u32(p, (uint32_t)v); }
@@ -31,6 +36,10 @@ static uint32_t get_u32(const uint8_t *p)
 {
     return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |
            ((uint32_t)p[3] << 24);
+}
+static uint64_t get_u64(const uint8_t *p)
+{
+    return (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);
 }
 static int8_t get_i8(const uint8_t *p)
 {
@@ -205,12 +214,30 @@ mc_status_t mc_msg_info_resp_pack(const mc_msg_info_resp_t *msg, uint8_t *out, s
     put_u32(p, msg->sample_rate_mhz);
     p += 4;
     for (size_t i = 0; i < 3u; ++i) {
-        put_u16(p, msg->sensor_id[i]);
-        p += 2;
+        put_u8(p, msg->sensor_id[i]);
+        p += 1;
+    }
+    memcpy(p, msg->mag_name, 12u);
+    p += 12;
+    memcpy(p, msg->acc_name, 12u);
+    p += 12;
+    memcpy(p, msg->gyr_name, 12u);
+    p += 12;
+    for (size_t i = 0; i < 3u; ++i) {
+        put_i32(p, msg->fs_num[i]);
+        p += 4;
     }
     for (size_t i = 0; i < 3u; ++i) {
-        put_u16(p, msg->full_scale[i]);
-        p += 2;
+        put_u32(p, msg->fs_den[i]);
+        p += 4;
+    }
+    for (size_t i = 0; i < 3u; ++i) {
+        put_i8(p, msg->fs_exp10[i]);
+        p += 1;
+    }
+    for (size_t i = 0; i < 3u; ++i) {
+        put_u8(p, msg->fs_unit[i]);
+        p += 1;
     }
     for (size_t i = 0; i < 3u; ++i) {
         put_i32(p, msg->scale_num[i]);
@@ -225,7 +252,7 @@ mc_status_t mc_msg_info_resp_pack(const mc_msg_info_resp_t *msg, uint8_t *out, s
         p += 1;
     }
     for (size_t i = 0; i < 3u; ++i) {
-        put_u8(p, msg->unit[i]);
+        put_u8(p, msg->scale_unit[i]);
         p += 1;
     }
     *out_len = need;
@@ -263,12 +290,30 @@ mc_status_t mc_msg_info_resp_unpack(const uint8_t *payload, size_t len, mc_msg_i
     msg->sample_rate_mhz = get_u32(p);
     p += 4;
     for (size_t i = 0; i < 3u; ++i) {
-        msg->sensor_id[i] = get_u16(p);
-        p += 2;
+        msg->sensor_id[i] = get_u8(p);
+        p += 1;
+    }
+    memcpy(msg->mag_name, p, 12u);
+    p += 12;
+    memcpy(msg->acc_name, p, 12u);
+    p += 12;
+    memcpy(msg->gyr_name, p, 12u);
+    p += 12;
+    for (size_t i = 0; i < 3u; ++i) {
+        msg->fs_num[i] = get_i32(p);
+        p += 4;
     }
     for (size_t i = 0; i < 3u; ++i) {
-        msg->full_scale[i] = get_u16(p);
-        p += 2;
+        msg->fs_den[i] = get_u32(p);
+        p += 4;
+    }
+    for (size_t i = 0; i < 3u; ++i) {
+        msg->fs_exp10[i] = get_i8(p);
+        p += 1;
+    }
+    for (size_t i = 0; i < 3u; ++i) {
+        msg->fs_unit[i] = get_u8(p);
+        p += 1;
     }
     for (size_t i = 0; i < 3u; ++i) {
         msg->scale_num[i] = get_i32(p);
@@ -283,7 +328,7 @@ mc_status_t mc_msg_info_resp_unpack(const uint8_t *payload, size_t len, mc_msg_i
         p += 1;
     }
     for (size_t i = 0; i < 3u; ++i) {
-        msg->unit[i] = get_u8(p);
+        msg->scale_unit[i] = get_u8(p);
         p += 1;
     }
     (void)p;
@@ -800,8 +845,8 @@ mc_status_t mc_msg_sample_pack(const mc_msg_sample_t *msg, uint8_t *out, size_t 
     }
     put_u32(p, msg->seq);
     p += 4;
-    put_u32(p, msg->t_us);
-    p += 4;
+    put_u64(p, msg->t_us);
+    p += 8;
     for (size_t i = 0; i < 3u; ++i) {
         put_i16(p, msg->mag[i]);
         p += 2;
@@ -830,8 +875,8 @@ mc_status_t mc_msg_sample_unpack(const uint8_t *payload, size_t len, mc_msg_samp
     }
     msg->seq = get_u32(p);
     p += 4;
-    msg->t_us = get_u32(p);
-    p += 4;
+    msg->t_us = get_u64(p);
+    p += 8;
     for (size_t i = 0; i < 3u; ++i) {
         msg->mag[i] = get_i16(p);
         p += 2;
@@ -865,8 +910,8 @@ mc_status_t mc_msg_corrected_pack(const mc_msg_corrected_t *msg, uint8_t *out, s
     }
     put_u32(p, msg->seq);
     p += 4;
-    put_u32(p, msg->t_us);
-    p += 4;
+    put_u64(p, msg->t_us);
+    p += 8;
     for (size_t i = 0; i < 3u; ++i) {
         put_i16(p, msg->mag[i]);
         p += 2;
@@ -893,8 +938,8 @@ mc_status_t mc_msg_corrected_unpack(const uint8_t *payload, size_t len, mc_msg_c
     }
     msg->seq = get_u32(p);
     p += 4;
-    msg->t_us = get_u32(p);
-    p += 4;
+    msg->t_us = get_u64(p);
+    p += 8;
     for (size_t i = 0; i < 3u; ++i) {
         msg->mag[i] = get_i16(p);
         p += 2;

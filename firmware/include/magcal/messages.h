@@ -32,16 +32,8 @@
 #define MC_FRAME_MAX_ENCODED (MC_FRAME_MAX_BODY + MC_FRAME_MAX_BODY / 254u + 2u)
 #define MC_RESET_MAGIC 0x54455352u /* "RSET" little-endian */
 
-/* ---- units of a sensor count (info_resp.unit) */
-typedef enum {
-    MC_UNIT_NONE = 0, /* no unit given: the counts cannot be converted */
-    MC_UNIT_TESLA = 1, /* tesla */
-    MC_UNIT_METRE_PER_SECOND2 = 2, /* metre per second squared */
-    MC_UNIT_RADIAN_PER_SECOND = 3, /* radian per second */
-    MC_UNIT_STANDARD_GRAVITY = 4, /* standard acceleration of gravity, exactly 9.80665 m/s^2 */
-    MC_UNIT_DEGREE_PER_SECOND = 5, /* degree per second, exactly pi/180 rad/s */
-    MC_UNIT_GAUSS = 6 /* gauss, exactly 1e-4 T */
-} mc_unit_t;
+/* The unit table (info_resp.fs_unit, scale_unit) is mc_unit_t of sensor_hal.h; a native
+ * test checks it against the schema. */
 
 /* ---- message ids: bit 7 set = from the device */
 typedef enum {
@@ -106,11 +98,12 @@ mc_status_t mc_msg_info_unpack(const uint8_t *payload, size_t len, mc_msg_info_t
 
 /*
  * ---- info_resp (0x82, from device): Firmware and protocol versions, parameter-set format,
- * and per sensor (index 0 = magnetometer, 1 = accelerometer, 2 = gyroscope) its id, full-scale
- * range and the exact size of one count: value = count * scale_num / scale_den *
- * 10^scale_exp10 in unit.
+ * and per sensor (index 0 = magnetometer, 1 = accelerometer, 2 = gyroscope; sensor_hal.h
+ * mc_sensor_info_t) its id, name, configured range and the exact value of one count: value =
+ * count * scale_num / scale_den * 10^scale_exp10 of scale_unit (unit table; each unit has an
+ * exact SI factor).
  */
-#define MC_MSG_INFO_RESP_SIZE 72u
+#define MC_MSG_INFO_RESP_SIZE 129u
 typedef struct {
     int8_t status; /* status of the request: 0 = OK, negative = error (status table) */
     uint8_t fw_version[3]; /* firmware version major, minor, patch */
@@ -121,14 +114,18 @@ typedef struct {
     uint16_t params_size; /* size of the parameter blob (MC_PARAMS_ENCODED_SIZE) [unit byte] */
     uint32_t device_uid[3]; /* unique device id (e.g. the MCU's 96-bit UID), 0 if none */
     uint32_t sample_rate_mhz; /* nominal sample rate [unit mHz] */
-    uint16_t sensor_id[3]; /* sensor part id (driver-defined: e.g. its WHO_AM_I value) */
-    /* largest in-range magnitude of a count; the range is +/- full_scale counts [unit count] */
-    uint16_t full_scale[3];
-    int32_t scale_num[3]; /* numerator of the size of one count */
-    /* denominator of the size of one count (never 0 when unit is not NONE) */
-    uint32_t scale_den[3];
-    int8_t scale_exp10[3]; /* power of ten of the size of one count */
-    uint8_t unit[3]; /* unit of the size of one count (unit table) */
+    uint8_t sensor_id[3]; /* the port's part id per sensor, e.g. its WHO_AM_I value */
+    char mag_name[12]; /* magnetometer part name, NUL-padded (not terminated when 12 characters) */
+    char acc_name[12]; /* accelerometer part name, NUL-padded */
+    char gyr_name[12]; /* gyroscope part name, NUL-padded */
+    int32_t fs_num[3]; /* numerator of the configured range: the sensor measures +/- full scale */
+    uint32_t fs_den[3]; /* denominator of the configured range */
+    int8_t fs_exp10[3]; /* power of ten of the configured range */
+    uint8_t fs_unit[3]; /* unit of the configured range (unit table) */
+    int32_t scale_num[3]; /* numerator of the value of one count */
+    uint32_t scale_den[3]; /* denominator of the value of one count */
+    int8_t scale_exp10[3]; /* power of ten of the value of one count */
+    uint8_t scale_unit[3]; /* unit of the value of one count (unit table) */
 } mc_msg_info_resp_t;
 mc_status_t mc_msg_info_resp_pack(const mc_msg_info_resp_t *msg, uint8_t *out, size_t cap,
                                   size_t *out_len);
@@ -303,13 +300,15 @@ mc_status_t mc_msg_reset_resp_unpack(const uint8_t *payload, size_t len, mc_msg_
  * ---- sample (0xC0, from device): One raw sample of a kind-0 stream, unsolicited; header seq
  * = the stream_start's seq.
  */
-#define MC_MSG_SAMPLE_SIZE 26u
+#define MC_MSG_SAMPLE_SIZE 30u
 typedef struct {
     /*
-     * sample sequence number from acquisition: +1 per acquired sample (gaps = decimation or drops)
+     * sample sequence number from acquisition: +1 per acquired sample modulo 2^32 (a gap =
+     * decimation or a drop)
      */
     uint32_t seq;
-    uint32_t t_us; /* device time of the sample, wraps every 2^32 us (71.6 min) [unit us] */
+    /* device time of the sample (sensor_hal.h: never decreasing, never wraps) [unit us] */
+    uint64_t t_us;
     int16_t mag[3]; /* magnetometer x, y, z [unit count, scale info sensor 0] */
     int16_t acc[3]; /* accelerometer x, y, z [unit count, scale info sensor 1] */
     int16_t gyr[3]; /* gyroscope x, y, z [unit count, scale info sensor 2] */
@@ -323,10 +322,11 @@ mc_status_t mc_msg_sample_unpack(const uint8_t *payload, size_t len, mc_msg_samp
  * magnetometer counts and the device's correction m_b = D^-1 (y - o) (correction.h), in the
  * body frame.
  */
-#define MC_MSG_CORRECTED_SIZE 27u
+#define MC_MSG_CORRECTED_SIZE 31u
 typedef struct {
     uint32_t seq; /* sample sequence number, as in sample */
-    uint32_t t_us; /* device time of the sample [unit us] */
+    /* device time of the sample (sensor_hal.h: never decreasing, never wraps) [unit us] */
+    uint64_t t_us;
     int16_t mag[3]; /* raw magnetometer x, y, z [unit count, scale info sensor 0] */
     int8_t out_exp; /* E_m, the exponent of m_b (params out_exp): m_b[i] * 2^(out_exp - 31) */
     /*

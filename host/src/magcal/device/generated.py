@@ -52,13 +52,13 @@ class Status(enum.IntEnum):
 class Unit(enum.IntEnum):
     """The unit of one sensor count (info_resp.unit)."""
 
-    NONE = 0  # no unit given: the counts cannot be converted
+    INVALID = 0  # no unit: a zeroed (forgotten) scale is rejected
     TESLA = 1  # tesla
-    METRE_PER_SECOND2 = 2  # metre per second squared
-    RADIAN_PER_SECOND = 3  # radian per second
+    GAUSS = 2  # gauss, exactly 1e-4 T
+    METRE_PER_S2 = 3  # metre per second squared
     STANDARD_GRAVITY = 4  # standard acceleration of gravity, exactly 9.80665 m/s^2
-    DEGREE_PER_SECOND = 5  # degree per second, exactly pi/180 rad/s
-    GAUSS = 6  # gauss, exactly 1e-4 T
+    RAD_PER_S = 5  # radian per second
+    DEG_PER_S = 6  # degree per second, exactly pi/180 rad/s
 
 
 @dataclass(frozen=True)
@@ -71,13 +71,13 @@ class UnitDef:
 
 
 UNITS: dict[Unit, UnitDef] = {
-    Unit.NONE: UnitDef('', '', '1'),
+    Unit.INVALID: UnitDef('', '', '0'),
     Unit.TESLA: UnitDef('T', 'T', '1'),
-    Unit.METRE_PER_SECOND2: UnitDef('m/s^2', 'm/s^2', '1'),
-    Unit.RADIAN_PER_SECOND: UnitDef('rad/s', 'rad/s', '1'),
-    Unit.STANDARD_GRAVITY: UnitDef('g_n', 'm/s^2', '9.80665'),
-    Unit.DEGREE_PER_SECOND: UnitDef('deg/s', 'rad/s', 'pi/180'),
     Unit.GAUSS: UnitDef('G', 'T', '1/10000'),
+    Unit.METRE_PER_S2: UnitDef('m/s^2', 'm/s^2', '1'),
+    Unit.STANDARD_GRAVITY: UnitDef('g0', 'm/s^2', '980665/100000'),
+    Unit.RAD_PER_S: UnitDef('rad/s', 'rad/s', '1'),
+    Unit.DEG_PER_S: UnitDef('deg/s', 'rad/s', 'pi/180'),
 }
 
 
@@ -185,8 +185,8 @@ MESSAGES: tuple[Message, ...] = (
         'info_resp',
         'from_device',
         '',
-        '<b3BIHHH3II3H3H3i3I3b3B',
-        72,
+        '<b3BIHHH3II3B12s12s12s3i3I3b3B3i3I3b3B',
+        129,
         0,
         (
             Field('status', 'int8', 1, '', '1', 'status of the request: 0 = OK, negative = error (status table)', enum='status'),
@@ -197,14 +197,20 @@ MESSAGES: tuple[Message, ...] = (
             Field('params_size', 'uint16', 1, 'byte', '1', 'size of the parameter blob (MC_PARAMS_ENCODED_SIZE)'),
             Field('device_uid', 'uint32', 3, '', '1', "unique device id (e.g. the MCU's 96-bit UID), 0 if none"),
             Field('sample_rate_mhz', 'uint32', 1, 'mHz', '1', 'nominal sample rate'),
-            Field('sensor_id', 'uint16', 3, '', '1', 'sensor part id (driver-defined: e.g. its WHO_AM_I value)'),
-            Field('full_scale', 'uint16', 3, 'count', '1', 'largest in-range magnitude of a count; the range is +/- full_scale counts'),
-            Field('scale_num', 'int32', 3, '', '1', 'numerator of the size of one count'),
-            Field('scale_den', 'uint32', 3, '', '1', 'denominator of the size of one count (never 0 when unit is not NONE)'),
-            Field('scale_exp10', 'int8', 3, '', '1', 'power of ten of the size of one count'),
-            Field('unit', 'uint8', 3, '', '1', 'unit of the size of one count (unit table)', enum='unit'),
+            Field('sensor_id', 'uint8', 3, '', '1', "the port's part id per sensor, e.g. its WHO_AM_I value"),
+            Field('mag_name', 'char', 12, '', '1', 'magnetometer part name, NUL-padded (not terminated when 12 characters)'),
+            Field('acc_name', 'char', 12, '', '1', 'accelerometer part name, NUL-padded'),
+            Field('gyr_name', 'char', 12, '', '1', 'gyroscope part name, NUL-padded'),
+            Field('fs_num', 'int32', 3, '', '1', 'numerator of the configured range: the sensor measures +/- full scale'),
+            Field('fs_den', 'uint32', 3, '', '1', 'denominator of the configured range'),
+            Field('fs_exp10', 'int8', 3, '', '1', 'power of ten of the configured range'),
+            Field('fs_unit', 'uint8', 3, '', '1', 'unit of the configured range (unit table)', enum='unit'),
+            Field('scale_num', 'int32', 3, '', '1', 'numerator of the value of one count'),
+            Field('scale_den', 'uint32', 3, '', '1', 'denominator of the value of one count'),
+            Field('scale_exp10', 'int8', 3, '', '1', 'power of ten of the value of one count'),
+            Field('scale_unit', 'uint8', 3, '', '1', 'unit of the value of one count (unit table)', enum='unit'),
         ),
-        'Firmware and protocol versions, parameter-set format, and per sensor (index 0 = magnetometer, 1 = accelerometer, 2 = gyroscope) its id, full-scale range and the exact size of one count: value = count * scale_num / scale_den * 10^scale_exp10 in unit.',
+        'Firmware and protocol versions, parameter-set format, and per sensor (index 0 = magnetometer, 1 = accelerometer, 2 = gyroscope; sensor_hal.h mc_sensor_info_t) its id, name, configured range and the exact value of one count: value = count * scale_num / scale_den * 10^scale_exp10 of scale_unit (unit table; each unit has an exact SI factor).',
     ),
     Message(
         0x03,
@@ -376,12 +382,12 @@ MESSAGES: tuple[Message, ...] = (
         'sample',
         'from_device',
         '',
-        '<II3h3h3h',
-        26,
+        '<IQ3h3h3h',
+        30,
         0,
         (
-            Field('seq', 'uint32', 1, '', '1', 'sample sequence number from acquisition: +1 per acquired sample (gaps = decimation or drops)'),
-            Field('t_us', 'uint32', 1, 'us', '1', 'device time of the sample, wraps every 2^32 us (71.6 min)'),
+            Field('seq', 'uint32', 1, '', '1', 'sample sequence number from acquisition: +1 per acquired sample modulo 2^32 (a gap = decimation or a drop)'),
+            Field('t_us', 'uint64', 1, 'us', '1', 'device time of the sample (sensor_hal.h: never decreasing, never wraps)'),
             Field('mag', 'int16', 3, 'count', 'info sensor 0', 'magnetometer x, y, z'),
             Field('acc', 'int16', 3, 'count', 'info sensor 1', 'accelerometer x, y, z'),
             Field('gyr', 'int16', 3, 'count', 'info sensor 2', 'gyroscope x, y, z'),
@@ -393,12 +399,12 @@ MESSAGES: tuple[Message, ...] = (
         'corrected',
         'from_device',
         '',
-        '<II3hb3i',
-        27,
+        '<IQ3hb3i',
+        31,
         0,
         (
             Field('seq', 'uint32', 1, '', '1', 'sample sequence number, as in sample'),
-            Field('t_us', 'uint32', 1, 'us', '1', 'device time of the sample'),
+            Field('t_us', 'uint64', 1, 'us', '1', 'device time of the sample (sensor_hal.h: never decreasing, never wraps)'),
             Field('mag', 'int16', 3, 'count', 'info sensor 0', 'raw magnetometer x, y, z'),
             Field('out_exp', 'int8', 1, '', '1', 'E_m, the exponent of m_b (params out_exp): m_b[i] * 2^(out_exp - 31)'),
             Field('m_b', 'int32', 3, 'params', '2^(out_exp-31)', "mc_correction_apply's output D^-1 (y - o), body frame (unit norm for a counts-scale D^-1)"),

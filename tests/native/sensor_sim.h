@@ -1,6 +1,6 @@
 /*
- * A simulated sensor HAL for the native tests (static functions: include it from the one
- * translation unit of a test program).
+ * A simulated sensor HAL for the native tests (static inline functions, so that a test
+ * program may include it and use only some of them).
  *
  * Read call number c (from 0) happens at time t0_us + c * period_us, so failed reads show as
  * gaps in the timestamps. The k-th successful read (from 0) returns sensor_sim_expected(k):
@@ -30,14 +30,14 @@ typedef struct {
 } sensor_sim_t;
 
 /* A count from k and a salt, wrapped into int16_t's range without overflow. */
-static int16_t sensor_sim_count(uint32_t k, uint32_t salt)
+static inline int16_t sensor_sim_count(uint32_t k, uint32_t salt)
 {
     const uint32_t u = (k * 2654435761u + salt * 40503u) & 0xFFFFu;
     return (int16_t)((int32_t)u - 32768);
 }
 
 /* The counts of the k-th successful read (t_us is left 0: it depends on failures). */
-static void sensor_sim_expected(uint32_t k, mc_raw_sample_t *out)
+static inline void sensor_sim_expected(uint32_t k, mc_raw_sample_t *out)
 {
     out->t_us = 0u;
     for (uint32_t i = 0; i < 3u; ++i) {
@@ -47,7 +47,7 @@ static void sensor_sim_expected(uint32_t k, mc_raw_sample_t *out)
     }
 }
 
-static mc_status_t sensor_sim_read(void *ctx, mc_raw_sample_t *out)
+static inline mc_status_t sensor_sim_read(void *ctx, mc_raw_sample_t *out)
 {
     sensor_sim_t *sim = (sensor_sim_t *)ctx;
     const uint32_t c = sim->calls++;
@@ -68,13 +68,13 @@ static mc_status_t sensor_sim_read(void *ctx, mc_raw_sample_t *out)
     return MC_OK;
 }
 
-static uint64_t sensor_sim_now_us(void *ctx)
+static inline uint64_t sensor_sim_now_us(void *ctx)
 {
     const sensor_sim_t *sim = (const sensor_sim_t *)ctx;
     return sim->t0_us + (uint64_t)sim->calls * sim->period_us;
 }
 
-static mc_status_t sensor_sim_describe(void *ctx, mc_sensor_info_t out[MC_SENSOR_COUNT])
+static inline mc_status_t sensor_sim_describe(void *ctx, mc_sensor_info_t out[MC_SENSOR_COUNT])
 {
     const sensor_sim_t *sim = (const sensor_sim_t *)ctx;
     if (sim->describe_fails) {
@@ -88,7 +88,7 @@ static const mc_sensor_hal_ops_t sensor_sim_ops = {
     sensor_sim_read, sensor_sim_now_us, sensor_sim_describe
 };
 
-static void sensor_sim_set_info(mc_sensor_info_t *info, mc_sensor_kind_t kind, uint8_t id,
+static inline void sensor_sim_set_info(mc_sensor_info_t *info, mc_sensor_kind_t kind, uint8_t id,
                                 const char *name, mc_scale_t full_scale, mc_scale_t count_scale)
 {
     memset(info, 0, sizeof *info);
@@ -101,7 +101,7 @@ static void sensor_sim_set_info(mc_sensor_info_t *info, mc_sensor_kind_t kind, u
 
 /* A simulator at 100 Hz from t0_us = 1000000, never failing, describing an LIS3MDL at +-4 G,
  * an MPU-6050 accelerometer at +-2 g and its gyroscope at +-2000 deg/s (sensor_hal.h). */
-static void sensor_sim_init(sensor_sim_t *sim)
+static inline void sensor_sim_init(sensor_sim_t *sim)
 {
     memset(sim, 0, sizeof *sim);
     sim->t0_us = 1000000u;
@@ -119,7 +119,7 @@ static void sensor_sim_init(sensor_sim_t *sim)
                         gyr_count);
 }
 
-static mc_sensor_hal_t sensor_sim_hal(sensor_sim_t *sim)
+static inline mc_sensor_hal_t sensor_sim_hal(sensor_sim_t *sim)
 {
     mc_sensor_hal_t hal = {&sensor_sim_ops, sim};
     return hal;

@@ -38,18 +38,19 @@
  *     MC_UNIT_RAD_PER_S           rad/s     1
  *     MC_UNIT_DEG_PER_S           rad/s     pi/180                (rational multiple of pi)
  *
- *   So value_SI = count * Fraction(num, den) * Fraction(10)**exp10 * factor(unit). Degrees
- *   per second are the one unit whose factor is not rational: the host keeps
- *   count * num/den * 10^exp10 / 180 as a Fraction and multiplies by pi once in float64 (one
- *   rounding); a port that knows its gyro in rad/s reports MC_UNIT_RAD_PER_S instead.
- *   Units that are decimal multiples (nT, uT, mg, mdps, urad/s) are exp10, so datasheet
- *   figures go in as printed. Examples:
+ *   So value_SI = count * Fraction(num, den) * Fraction(10)**exp10 * factor(unit), exact for
+ *   every unit but one: degrees per second, whose factor pi/180 is not rational. There the
+ *   host keeps count * num/den * 10^exp10 / 180 as an exact Fraction and multiplies by pi
+ *   only at the end (in float64, a few ulp); a port that knows its gyroscope's scale in rad/s
+ *   reports MC_UNIT_RAD_PER_S instead. Decimal multiples (nT, uT, mg, mdps, urad/s) are
+ *   written with exp10, so datasheet figures go in as printed. Examples:
  *
- *     LIS3MDL  +-4 G:        6842 LSB/G     count = {1, 6842, 0, GAUSS}      FS {4, 1, 0, GAUSS}
- *     AK8963   16-bit:       0.15 uT/LSB    count = {15, 100, -6, TESLA}     FS {4912, 1, -6, TESLA}
- *     MPU-6050 +-2 g:        16384 LSB/g    count = {1, 16384, 0, STANDARD_GRAVITY}
- *     MPU-6050 +-2000 dps:   16.4 LSB/dps   count = {10, 164, 0, DEG_PER_S}  FS {2000, 1, 0, DEG_PER_S}
- *     LSM6DSO  +-2000 dps:   70 mdps/LSB    count = {70, 1, -3, DEG_PER_S}
+ *     part, setting        datasheet        count_scale                       full_scale
+ *     LIS3MDL  +-4 G       6842 LSB/G       {1, 6842, 0, GAUSS}               {4, 1, 0, GAUSS}
+ *     AK8963   16-bit      0.15 uT/LSB      {15, 100, -6, TESLA}              {4912, 1, -6, TESLA}
+ *     MPU-6050 +-2 g       16384 LSB/g      {1, 16384, 0, STANDARD_GRAVITY}   {2, 1, 0, ...}
+ *     MPU-6050 +-2000 dps  16.4 LSB/dps     {10, 164, 0, DEG_PER_S}           {2000, 1, 0, ...}
+ *     LSM6DSO  +-2000 dps  70 mdps/LSB      {70, 1, -3, DEG_PER_S}            {2000, 1, 0, ...}
  *
  *   The scale is the sensor's nominal sensitivity, the same on all three axes; per-axis gain
  *   and offset errors are what the calibration estimates. The full-scale setting is a scale
@@ -105,9 +106,9 @@ typedef struct {
 
 /* What the host needs to know about one sensor. */
 typedef struct {
-    uint8_t kind;                   /* mc_sensor_kind_t, equal to its index in describe()'s output */
-    uint8_t id;                     /* the port's id for the part, e.g. its WHO_AM_I register value */
-    char name[MC_SENSOR_NAME_SIZE]; /* short part name, e.g. "LIS3MDL", NUL-terminated, may be "" */
+    uint8_t kind;                   /* mc_sensor_kind_t: its index in describe()'s output */
+    uint8_t id;                     /* the port's id for the part, e.g. its WHO_AM_I value */
+    char name[MC_SENSOR_NAME_SIZE]; /* short part name ("LIS3MDL"), NUL-terminated, may be "" */
     mc_scale_t full_scale;          /* configured range: the sensor measures +-full_scale */
     mc_scale_t count_scale;         /* exact value of one count */
 } mc_sensor_info_t;

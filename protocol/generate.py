@@ -70,8 +70,10 @@ def load_schema(path: Path = SCHEMA) -> dict:
     framing = schema["framing"]
     header = [(f["name"], f["type"]) for f in framing["header"]]
     if header != [("id", "uint8"), ("seq", "uint16")] or framing["crc"] != "CRC-16/CCITT-FALSE":
-        raise SchemaError("framing: the hand-written codecs implement header id:uint8 seq:uint16 "
-                          "and CRC-16/CCITT-FALSE only")
+        raise SchemaError(
+            "framing: the hand-written codecs implement header id:uint8 seq:uint16 "
+            "and CRC-16/CCITT-FALSE only"
+        )
     max_payload = framing["max_payload"]
     ids, names = set(), set()
     for m in schema["messages"]:
@@ -135,8 +137,11 @@ def format_schema(schema: dict) -> str:
         elif k == "messages":
             out.append('  "messages": [')
             for j, m in enumerate(v):
-                out += ["    {", *obj(m, "      ", ("fields",)), "    }" + (
-                    "," if j < len(v) - 1 else "")]
+                out += [
+                    "    {",
+                    *obj(m, "      ", ("fields",)),
+                    "    }" + ("," if j < len(v) - 1 else ""),
+                ]
             out.append(f"  ]{comma}")
         else:
             out.append(f'  "{k}": {one(v)}{comma}')
@@ -216,9 +221,7 @@ def ref_deframe(wire: bytes, cap: int) -> list[dict]:
             events.append({"status": "E_CRC"})
         else:
             msg_id, seq = struct.unpack_from("<BH", out)
-            events.append(
-                {"status": "OK", "id": msg_id, "seq": seq, "payload": out[3:-2].hex()}
-            )
+            events.append({"status": "OK", "id": msg_id, "seq": seq, "payload": out[3:-2].hex()})
     return events
 
 
@@ -254,31 +257,77 @@ def message_cases(schema: dict) -> list[dict]:
     full_blob = (bytes(range(1, 225))[::-1][:224]).hex()
     cases = [
         ("hello", 1, {"host_min_version": 1, "host_max_version": 1}),
-        ("hello_resp", 1, {"status": 0, "version": 1, "device_min_version": 1,
-                           "device_max_version": 1, "max_payload": 240}),
-        ("hello_resp", 2, {"status": -5, "version": 0, "device_min_version": 1,
-                           "device_max_version": 1, "max_payload": 240}),
+        (
+            "hello_resp",
+            1,
+            {
+                "status": 0,
+                "version": 1,
+                "device_min_version": 1,
+                "device_max_version": 1,
+                "max_payload": 240,
+            },
+        ),
+        (
+            "hello_resp",
+            2,
+            {
+                "status": -5,
+                "version": 0,
+                "device_min_version": 1,
+                "device_max_version": 1,
+                "max_payload": 240,
+            },
+        ),
         ("info", 3, {}),
-        ("info_resp", 3, {
-            "status": 0, "fw_version": [0, 4, 1], "fw_build": 0xD61F7602,
-            "protocol_version": 1, "params_format_version": 1, "params_size": 52,
-            "device_uid": [0x00470031, 0x3432510B, 0x30383739], "sample_rate_mhz": 100000,
-            "sensor_id": [0x3D, 0x6C, 0x6C], "mag_name": "LIS3MDL", "acc_name": "LSM6DSO",
-            "gyr_name": "LSM6DSO+gyro",  # 12 characters: no NUL
-            # LIS3MDL +/-4 G, 1/6842 G per count; LSM6DSO +/-8 g, 0.244 mg; +/-2000 dps, 70 mdps
-            "fs_num": [4, 8, 2000], "fs_den": [1, 1, 1], "fs_exp10": [0, 0, 0],
-            "fs_unit": [2, 4, 6],
-            "scale_num": [1, 244, 70], "scale_den": [6842, 1, 1],
-            "scale_exp10": [0, -6, -3], "scale_unit": [2, 4, 6]}),
+        (
+            "info_resp",
+            3,
+            {
+                "status": 0,
+                "fw_version": [0, 4, 1],
+                "fw_build": 0xD61F7602,
+                "protocol_version": 1,
+                "params_format_version": 1,
+                "params_size": 52,
+                "device_uid": [0x00470031, 0x3432510B, 0x30383739],
+                "sample_rate_mhz": 100000,
+                "sensor_id": [0x3D, 0x6C, 0x6C],
+                "mag_name": "LIS3MDL",
+                "acc_name": "LSM6DSO",
+                "gyr_name": "LSM6DSO+gyro",  # 12 characters: no NUL
+                # LIS3MDL +/-4 G, 1/6842 G per count; LSM6DSO +/-8 g, 0.244 mg; +/-2000 dps, 70 mdps
+                "fs_num": [4, 8, 2000],
+                "fs_den": [1, 1, 1],
+                "fs_exp10": [0, 0, 0],
+                "fs_unit": [2, 4, 6],
+                "scale_num": [1, 244, 70],
+                "scale_den": [6842, 1, 1],
+                "scale_exp10": [0, -6, -3],
+                "scale_unit": [2, 4, 6],
+            },
+        ),
         ("stream_start", 4, {"kind": 0, "decimation": 1, "count": 0}),
         ("stream_start_resp", 4, {"status": 0}),
         ("stream_stop", 5, {}),
         ("stream_stop_resp", 5, {"status": 0, "sent": 123456, "dropped": 7}),
         ("param_get", 6, {"which": 0}),
-        ("param_get_resp", 6, {"status": 0, "which": 0, "format_version": 1,
-                               "crc32": binascii.crc32(bytes.fromhex(blob)), "blob": blob}),
-        ("param_get_resp", 7, {"status": -7, "which": 1, "format_version": 0, "crc32": 0,
-                               "blob": ""}),
+        (
+            "param_get_resp",
+            6,
+            {
+                "status": 0,
+                "which": 0,
+                "format_version": 1,
+                "crc32": binascii.crc32(bytes.fromhex(blob)),
+                "blob": blob,
+            },
+        ),
+        (
+            "param_get_resp",
+            7,
+            {"status": -7, "which": 1, "format_version": 0, "crc32": 0, "blob": ""},
+        ),
         ("param_set", 8, {"format_version": 1, "blob": blob}),
         ("param_set", 9, {"format_version": 0xFFFF, "blob": full_blob}),
         ("param_set_resp", 8, {"status": 0, "crc32": binascii.crc32(bytes.fromhex(blob))}),
@@ -286,13 +335,39 @@ def message_cases(schema: dict) -> list[dict]:
         ("param_commit_resp", 10, {"status": -8}),
         ("reset", 11, {"magic": 0x54455352}),
         ("reset_resp", 11, {"status": 0}),
-        ("sample", 4, {"seq": 1, "t_us": 10000, "mag": [120, -340, 4095],
-                       "acc": [0, 0, 4096], "gyr": [-1, 2, -3]}),
-        ("sample", 0xFFFF, {"seq": 0xFFFFFFFF, "t_us": 0xFFFFFFFFFFFFFFFF, "mag": [-32768, 32767, 0],
-                            "acc": [256, -256, 1], "gyr": [0x7F00, -0x0100, 0]}),
-        ("corrected", 12, {"seq": 77, "t_us": 0x123456789A, "mag": [100, 200, -300],
-                           "out_exp": 9,
-                           "m_b": [1 << 30, -(1 << 31), (1 << 31) - 1]}),
+        (
+            "sample",
+            4,
+            {
+                "seq": 1,
+                "t_us": 10000,
+                "mag": [120, -340, 4095],
+                "acc": [0, 0, 4096],
+                "gyr": [-1, 2, -3],
+            },
+        ),
+        (
+            "sample",
+            0xFFFF,
+            {
+                "seq": 0xFFFFFFFF,
+                "t_us": 0xFFFFFFFFFFFFFFFF,
+                "mag": [-32768, 32767, 0],
+                "acc": [256, -256, 1],
+                "gyr": [0x7F00, -0x0100, 0],
+            },
+        ),
+        (
+            "corrected",
+            12,
+            {
+                "seq": 77,
+                "t_us": 0x123456789A,
+                "mag": [100, 200, -300],
+                "out_exp": 9,
+                "m_b": [1 << 30, -(1 << 31), (1 << 31) - 1],
+            },
+        ),
         ("nack", 0, {"status": -13, "request_id": 0x7E}),
     ]
     by_name = {m["name"]: m for m in schema["messages"]}
@@ -305,11 +380,17 @@ def message_cases(schema: dict) -> list[dict]:
         m = by_name[name]
         k = count[name] = count.get(name, -1) + 1
         payload = pack_payload(m, values)
-        out.append({
-            "name": f"{name}_{k}", "message": name, "id": m["id_int"], "seq": seq,
-            "fields": values, "payload": payload.hex(),
-            "wire": ref_frame(m["id_int"], seq, payload).hex(),
-        })
+        out.append(
+            {
+                "name": f"{name}_{k}",
+                "message": name,
+                "id": m["id_int"],
+                "seq": seq,
+                "fields": values,
+                "payload": payload.hex(),
+                "wire": ref_frame(m["id_int"], seq, payload).hex(),
+            }
+        )
     return out
 
 
@@ -329,43 +410,97 @@ def stream_cases(schema: dict, messages: list[dict]) -> list[dict]:
     sample_no_delim = sample[:-1]
     cases = [
         ("one_frame", "a single sample frame", sample),
-        ("back_to_back", "three frames, one delimiter between each, none before",
-         w["hello_0"] + w["info_resp_0"] + w["sample_1"]),
-        ("leading_delimiters", "extra 0x00 before and between frames are ignored",
-         b"\x00\x00" + w["stream_start_0"] + b"\x00\x00\x00" + w["nack_0"]),
-        ("garbage_between", "line noise before the first delimiter, then two frames",
-         b"\x13\x37\xff\xfe\x01" + b"\x00" + w["param_get_0"] + b"\x42\x42\x00" + sample),
-        ("bad_crc_payload", "a flipped payload bit: E_CRC, then the next frame decodes",
-         bytes(bad_crc) + sample),
+        (
+            "back_to_back",
+            "three frames, one delimiter between each, none before",
+            w["hello_0"] + w["info_resp_0"] + w["sample_1"],
+        ),
+        (
+            "leading_delimiters",
+            "extra 0x00 before and between frames are ignored",
+            b"\x00\x00" + w["stream_start_0"] + b"\x00\x00\x00" + w["nack_0"],
+        ),
+        (
+            "garbage_between",
+            "line noise before the first delimiter, then two frames",
+            b"\x13\x37\xff\xfe\x01" + b"\x00" + w["param_get_0"] + b"\x42\x42\x00" + sample,
+        ),
+        (
+            "bad_crc_payload",
+            "a flipped payload bit: E_CRC, then the next frame decodes",
+            bytes(bad_crc) + sample,
+        ),
         ("bad_crc_crc", "a flipped CRC bit: E_CRC", bytes(flipped_crc)),
-        ("truncated_block", "the delimiter arrives inside a COBS block: E_FRAME",
-         sample_no_delim[:12] + b"\x00" + sample),
-        ("truncated_whole_blocks", "a frame cut at a block boundary: CRC over the wrong bytes",
-         bytes([0x04, 0x01, 0x02, 0x03, 0x00])),
-        ("too_short", "bodies shorter than header + CRC (5 bytes): E_FRAME",
-         bytes([0x02, 0xC0, 0x00]) + bytes([0x05, 0x01, 0x02, 0x03, 0x04, 0x00])),
-        ("bad_cobs_code", "a code byte pointing past the delimiter: E_FRAME",
-         bytes([0x09, 0x11, 0x22, 0x00])),
-        ("unterminated", "bytes after the last delimiter give no event yet",
-         sample + sample_no_delim),
-        ("oversize_resync", "a run of 300 non-zero bytes: E_OVERFLOW, then a good frame",
-         lcg_bytes(300, 3).replace(b"\x00", b"\x5a") + b"\x00" + sample),
-        ("oversize_ff_blocks", "0xFF COBS codes (254-byte blocks) in an oversize frame",
-         b"\xff" + b"\x11" * 254 + b"\xff" + b"\x22" * 254 + b"\x03\x33\x33\x00" + sample),
-        ("max_payload", f"an unknown id with the largest payload ({cap - 5} bytes): OK",
-         ref_frame(0x7E, 0x1234, lcg_bytes(cap - 5, 11)) + sample),
-        ("one_over_max_payload", "one payload byte more than allowed: E_OVERFLOW",
-         ref_frame(0x7E, 0x1234, lcg_bytes(cap - 4, 11)) + sample),
-        ("zeros_in_payload", "a payload of zeros",
-         ref_frame(0x7E, 0, bytes(16)) + ref_frame(0xC0, 0, bytes(26))),
-        ("unknown_id", "a good frame whose id is no message: E_UNKNOWN_MESSAGE above framing",
-         ref_frame(0x7E, 9, b"")),
-        ("wrong_length", "a sample frame with 25 payload bytes: E_LENGTH above framing",
-         ref_frame(0xC0, 9, bytes.fromhex(messages[0]["payload"]) + lcg_bytes(23, 5)[:23])),
-        ("long_for_message", "param_set with one blob byte too many: E_LENGTH above framing",
-         ref_frame(0x06, 9, b"\x01\x00" + b"\xaa" * 225)),
-        ("split_by_delimiter", "a delimiter in the middle of a frame: two bad frames",
-         sample[:10] + b"\x00" + sample[10:]),
+        (
+            "truncated_block",
+            "the delimiter arrives inside a COBS block: E_FRAME",
+            sample_no_delim[:12] + b"\x00" + sample,
+        ),
+        (
+            "truncated_whole_blocks",
+            "a frame cut at a block boundary: CRC over the wrong bytes",
+            bytes([0x04, 0x01, 0x02, 0x03, 0x00]),
+        ),
+        (
+            "too_short",
+            "bodies shorter than header + CRC (5 bytes): E_FRAME",
+            bytes([0x02, 0xC0, 0x00]) + bytes([0x05, 0x01, 0x02, 0x03, 0x04, 0x00]),
+        ),
+        (
+            "bad_cobs_code",
+            "a code byte pointing past the delimiter: E_FRAME",
+            bytes([0x09, 0x11, 0x22, 0x00]),
+        ),
+        (
+            "unterminated",
+            "bytes after the last delimiter give no event yet",
+            sample + sample_no_delim,
+        ),
+        (
+            "oversize_resync",
+            "a run of 300 non-zero bytes: E_OVERFLOW, then a good frame",
+            lcg_bytes(300, 3).replace(b"\x00", b"\x5a") + b"\x00" + sample,
+        ),
+        (
+            "oversize_ff_blocks",
+            "0xFF COBS codes (254-byte blocks) in an oversize frame",
+            b"\xff" + b"\x11" * 254 + b"\xff" + b"\x22" * 254 + b"\x03\x33\x33\x00" + sample,
+        ),
+        (
+            "max_payload",
+            f"an unknown id with the largest payload ({cap - 5} bytes): OK",
+            ref_frame(0x7E, 0x1234, lcg_bytes(cap - 5, 11)) + sample,
+        ),
+        (
+            "one_over_max_payload",
+            "one payload byte more than allowed: E_OVERFLOW",
+            ref_frame(0x7E, 0x1234, lcg_bytes(cap - 4, 11)) + sample,
+        ),
+        (
+            "zeros_in_payload",
+            "a payload of zeros",
+            ref_frame(0x7E, 0, bytes(16)) + ref_frame(0xC0, 0, bytes(26)),
+        ),
+        (
+            "unknown_id",
+            "a good frame whose id is no message: E_UNKNOWN_MESSAGE above framing",
+            ref_frame(0x7E, 9, b""),
+        ),
+        (
+            "wrong_length",
+            "a sample frame with 25 payload bytes: E_LENGTH above framing",
+            ref_frame(0xC0, 9, bytes.fromhex(messages[0]["payload"]) + lcg_bytes(23, 5)[:23]),
+        ),
+        (
+            "long_for_message",
+            "param_set with one blob byte too many: E_LENGTH above framing",
+            ref_frame(0x06, 9, b"\x01\x00" + b"\xaa" * 225),
+        ),
+        (
+            "split_by_delimiter",
+            "a delimiter in the middle of a frame: two bad frames",
+            sample[:10] + b"\x00" + sample[10:],
+        ),
     ]
     by_id = {m["id_int"]: m for m in schema["messages"]}
     out = []
@@ -398,11 +533,15 @@ def c_comment_block(text: str, indent: str = "") -> list[str]:
 def gen_status_h(schema: dict) -> str:
     entries = schema["status"]
     width = max(len(f"MC_{e['name']} = {e['value']},") for e in entries)
-    lines = [C_HEADER, "#ifndef MAGCAL_STATUS_H",
-             "#define MAGCAL_STATUS_H", "",
-             "/* The one status type of the library: MC_OK = 0, errors negative. The same table is",
-             " * generated into Python (magcal.device.generated.Status). */",
-             "typedef enum {"]
+    lines = [
+        C_HEADER,
+        "#ifndef MAGCAL_STATUS_H",
+        "#define MAGCAL_STATUS_H",
+        "",
+        "/* The one status type of the library: MC_OK = 0, errors negative. The same table is",
+        " * generated into Python (magcal.device.generated.Status). */",
+        "typedef enum {",
+    ]
     for i, e in enumerate(entries):
         sep = "," if i < len(entries) - 1 else ""
         text = f"MC_{e['name']} = {e['value']}{sep}"
@@ -442,8 +581,7 @@ def field_comment(f: dict) -> str:
 
 def gen_messages_h(schema: dict) -> str:
     fr, pv = schema["framing"], schema["protocol"]
-    L = [C_HEADER, "#ifndef MAGCAL_MESSAGES_H",
-         "#define MAGCAL_MESSAGES_H", ""]
+    L = [C_HEADER, "#ifndef MAGCAL_MESSAGES_H", "#define MAGCAL_MESSAGES_H", ""]
     L += c_comment_block(
         "The device protocol's messages (protocol/SPEC.md): ids, one struct per message, and\n"
         "pack/unpack between a struct and a frame payload with explicit little-endian byte\n"
@@ -453,22 +591,33 @@ def gen_messages_h(schema: dict) -> str:
         "unpack: checks the payload size (MC_E_LENGTH); on any error *msg is zeroed.\n"
         "Messages without fields have a struct with one unused member (C has no empty struct)."
     )
-    L += ["", "#include <stddef.h>", "#include <stdint.h>", "", '#include "magcal/status.h"', "",
-          "/* ---- protocol versions and framing constants */",
-          f"#define MC_PROTOCOL_VERSION {pv['version']}u",
-          f"#define MC_PROTOCOL_MIN_VERSION {pv['min_version']}u",
-          f"#define MC_FRAME_DELIMITER 0x{fr['delimiter']:02X}u",
-          "#define MC_FRAME_HEADER_SIZE 3u /* id uint8, seq uint16 */",
-          "#define MC_FRAME_CRC_SIZE 2u /* CRC-16/CCITT-FALSE, little-endian */",
-          f"#define MC_FRAME_MAX_PAYLOAD {fr['max_payload']}u",
-          "#define MC_FRAME_MIN_BODY (MC_FRAME_HEADER_SIZE + MC_FRAME_CRC_SIZE)",
-          "#define MC_FRAME_MAX_BODY (MC_FRAME_HEADER_SIZE + MC_FRAME_MAX_PAYLOAD + MC_FRAME_CRC_SIZE)",
-          "/* COBS adds one byte per 254 and one at the start; then the delimiter. */",
-          "#define MC_FRAME_MAX_ENCODED (MC_FRAME_MAX_BODY + MC_FRAME_MAX_BODY / 254u + 2u)",
-          "#define MC_RESET_MAGIC 0x54455352u /* \"RSET\" little-endian */", "",
-          "/* The unit table (info_resp.fs_unit, scale_unit) is mc_unit_t of sensor_hal.h; a native",
-          " * test checks it against the schema. */", "",
-          "/* ---- message ids: bit 7 set = from the device */", "typedef enum {"]
+    L += [
+        "",
+        "#include <stddef.h>",
+        "#include <stdint.h>",
+        "",
+        '#include "magcal/status.h"',
+        "",
+        "/* ---- protocol versions and framing constants */",
+        f"#define MC_PROTOCOL_VERSION {pv['version']}u",
+        f"#define MC_PROTOCOL_MIN_VERSION {pv['min_version']}u",
+        f"#define MC_FRAME_DELIMITER 0x{fr['delimiter']:02X}u",
+        "#define MC_FRAME_HEADER_SIZE 3u /* id uint8, seq uint16 */",
+        "#define MC_FRAME_CRC_SIZE 2u /* CRC-16/CCITT-FALSE, little-endian */",
+        f"#define MC_FRAME_MAX_PAYLOAD {fr['max_payload']}u",
+        "#define MC_FRAME_MIN_BODY (MC_FRAME_HEADER_SIZE + MC_FRAME_CRC_SIZE)",
+        "#define MC_FRAME_MAX_BODY (MC_FRAME_HEADER_SIZE + MC_FRAME_MAX_PAYLOAD + "
+        "MC_FRAME_CRC_SIZE)",
+        "/* COBS adds one byte per 254 and one at the start; then the delimiter. */",
+        "#define MC_FRAME_MAX_ENCODED (MC_FRAME_MAX_BODY + MC_FRAME_MAX_BODY / 254u + 2u)",
+        '#define MC_RESET_MAGIC 0x54455352u /* "RSET" little-endian */',
+        "",
+        "/* The unit table (info_resp.fs_unit, scale_unit) is mc_unit_t of sensor_hal.h; a native",
+        " * test checks it against the schema. */",
+        "",
+        "/* ---- message ids: bit 7 set = from the device */",
+        "typedef enum {",
+    ]
     msgs = schema["messages"]
     for i, m in enumerate(msgs):
         sep = "," if i < len(msgs) - 1 else ""
@@ -501,12 +650,19 @@ def gen_messages_h(schema: dict) -> str:
                 L.append(f"    size_t {f['name']}_len; /* bytes used in {f['name']} */")
         pack, unpack = f"mc_status_t mc_msg_{n}_pack(", f"mc_status_t mc_msg_{n}_unpack("
         L.append(f"}} mc_msg_{n}_t;")
-        L += c_signature(pack, [f"const mc_msg_{n}_t *msg", "uint8_t *out", "size_t cap",
-                                "size_t *out_len"], ";")
-        L += c_signature(unpack, ["const uint8_t *payload", "size_t len", f"mc_msg_{n}_t *msg"], ";")
+        L += c_signature(
+            pack, [f"const mc_msg_{n}_t *msg", "uint8_t *out", "size_t cap", "size_t *out_len"], ";"
+        )
+        L += c_signature(
+            unpack, ["const uint8_t *payload", "size_t len", f"mc_msg_{n}_t *msg"], ";"
+        )
         L.append("")
-    L += ["/* ---- any message: the id and a union of the structs */", "typedef struct {",
-          "    uint8_t id; /* mc_msg_id_t */", "    union {"]
+    L += [
+        "/* ---- any message: the id and a union of the structs */",
+        "typedef struct {",
+        "    uint8_t id; /* mc_msg_id_t */",
+        "    union {",
+    ]
     for m in msgs:
         L.append(f"        mc_msg_{m['name']}_t {m['name']};")
     L += ["    } u;", "} mc_msg_t;", ""]
@@ -519,72 +675,126 @@ def gen_messages_h(schema: dict) -> str:
         "Unpacks a payload of message id into msg (msg->id = id): MC_E_UNKNOWN_MESSAGE,\n"
         "MC_E_LENGTH, MC_E_ARG. pack packs msg->u by msg->id."
     )
-    L += ["mc_status_t mc_msg_unpack(uint8_t id, const uint8_t *payload, size_t len, mc_msg_t *msg);",
-          "mc_status_t mc_msg_pack(const mc_msg_t *msg, uint8_t *out, size_t cap, size_t *out_len);",
-          "", "/* The message's schema name (\"sample\"), or NULL for an unknown id. */",
-          "const char *mc_msg_name(uint8_t id);", "", "#endif /* MAGCAL_MESSAGES_H */", ""]
+    L += [
+        "mc_status_t mc_msg_unpack(uint8_t id, const uint8_t *payload, size_t len, mc_msg_t *msg);",
+        "mc_status_t mc_msg_pack(const mc_msg_t *msg, uint8_t *out, size_t cap, size_t *out_len);",
+        "",
+        '/* The message\'s schema name ("sample"), or NULL for an unknown id. */',
+        "const char *mc_msg_name(uint8_t id);",
+        "",
+        "#endif /* MAGCAL_MESSAGES_H */",
+        "",
+    ]
     return "\n".join(L)
 
 
 def gen_messages_c(schema: dict) -> str:
-    L = [C_HEADER, '#include "magcal/messages.h"', "",
-         "#include <string.h>", "",
-         "/* Little-endian byte packing. Unsigned to signed goes through an explicit range test,",
-         " * never an implementation-defined conversion. */",
-         "static void put_u8(uint8_t *p, uint8_t v) { p[0] = v; }",
-         "static void put_u16(uint8_t *p, uint16_t v)", "{",
-         "    p[0] = (uint8_t)(v & 0xFFu);", "    p[1] = (uint8_t)(v >> 8);", "}",
-         "static void put_u32(uint8_t *p, uint32_t v)", "{",
-         "    p[0] = (uint8_t)(v & 0xFFu);", "    p[1] = (uint8_t)((v >> 8) & 0xFFu);",
-         "    p[2] = (uint8_t)((v >> 16) & 0xFFu);", "    p[3] = (uint8_t)(v >> 24);", "}",
-         "static void put_u64(uint8_t *p, uint64_t v)", "{",
-         "    put_u32(p, (uint32_t)(v & 0xFFFFFFFFu));", "    put_u32(p + 4, (uint32_t)(v >> 32));",
-         "}",
-         "static void put_i8(uint8_t *p, int8_t v) { p[0] = (uint8_t)v; }",
-         "static void put_i16(uint8_t *p, int16_t v) { put_u16(p, (uint16_t)v); }",
-         "static void put_i32(uint8_t *p, int32_t v) { put_u32(p, (uint32_t)v); }",
-         "static uint8_t get_u8(const uint8_t *p) { return p[0]; }",
-         "static uint16_t get_u16(const uint8_t *p)", "{",
-         "    return (uint16_t)((uint16_t)p[0] | (uint16_t)((uint16_t)p[1] << 8));", "}",
-         "static uint32_t get_u32(const uint8_t *p)", "{",
-         "    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |",
-         "           ((uint32_t)p[3] << 24);", "}",
-         "static uint64_t get_u64(const uint8_t *p)", "{",
-         "    return (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);", "}",
-         "static int8_t get_i8(const uint8_t *p)", "{",
-         "    return (int8_t)(p[0] >= 0x80u ? (int)p[0] - 0x100 : (int)p[0]);", "}",
-         "static int16_t get_i16(const uint8_t *p)", "{",
-         "    const uint16_t v = get_u16(p);",
-         "    return (int16_t)(v >= 0x8000u ? (int32_t)v - 0x10000 : (int32_t)v);", "}",
-         "static int32_t get_i32(const uint8_t *p)", "{",
-         "    const uint32_t v = get_u32(p);",
-         "    return v >= 0x80000000u ? -(int32_t)(~v) - 1 : (int32_t)v;", "}", ""]
-    short = {"uint8": "u8", "int8": "i8", "uint16": "u16", "int16": "i16", "uint32": "u32",
-             "int32": "i32", "uint64": "u64"}
+    L = [
+        C_HEADER,
+        '#include "magcal/messages.h"',
+        "",
+        "#include <string.h>",
+        "",
+        "/* Little-endian byte packing. Unsigned to signed goes through an explicit range test,",
+        " * never an implementation-defined conversion. */",
+        "static void put_u8(uint8_t *p, uint8_t v) { p[0] = v; }",
+        "static void put_u16(uint8_t *p, uint16_t v)",
+        "{",
+        "    p[0] = (uint8_t)(v & 0xFFu);",
+        "    p[1] = (uint8_t)(v >> 8);",
+        "}",
+        "static void put_u32(uint8_t *p, uint32_t v)",
+        "{",
+        "    p[0] = (uint8_t)(v & 0xFFu);",
+        "    p[1] = (uint8_t)((v >> 8) & 0xFFu);",
+        "    p[2] = (uint8_t)((v >> 16) & 0xFFu);",
+        "    p[3] = (uint8_t)(v >> 24);",
+        "}",
+        "static void put_u64(uint8_t *p, uint64_t v)",
+        "{",
+        "    put_u32(p, (uint32_t)(v & 0xFFFFFFFFu));",
+        "    put_u32(p + 4, (uint32_t)(v >> 32));",
+        "}",
+        "static void put_i8(uint8_t *p, int8_t v) { p[0] = (uint8_t)v; }",
+        "static void put_i16(uint8_t *p, int16_t v) { put_u16(p, (uint16_t)v); }",
+        "static void put_i32(uint8_t *p, int32_t v) { put_u32(p, (uint32_t)v); }",
+        "static uint8_t get_u8(const uint8_t *p) { return p[0]; }",
+        "static uint16_t get_u16(const uint8_t *p)",
+        "{",
+        "    return (uint16_t)((uint16_t)p[0] | (uint16_t)((uint16_t)p[1] << 8));",
+        "}",
+        "static uint32_t get_u32(const uint8_t *p)",
+        "{",
+        "    return (uint32_t)p[0] | ((uint32_t)p[1] << 8) | ((uint32_t)p[2] << 16) |",
+        "           ((uint32_t)p[3] << 24);",
+        "}",
+        "static uint64_t get_u64(const uint8_t *p)",
+        "{",
+        "    return (uint64_t)get_u32(p) | ((uint64_t)get_u32(p + 4) << 32);",
+        "}",
+        "static int8_t get_i8(const uint8_t *p)",
+        "{",
+        "    return (int8_t)(p[0] >= 0x80u ? (int)p[0] - 0x100 : (int)p[0]);",
+        "}",
+        "static int16_t get_i16(const uint8_t *p)",
+        "{",
+        "    const uint16_t v = get_u16(p);",
+        "    return (int16_t)(v >= 0x8000u ? (int32_t)v - 0x10000 : (int32_t)v);",
+        "}",
+        "static int32_t get_i32(const uint8_t *p)",
+        "{",
+        "    const uint32_t v = get_u32(p);",
+        "    return v >= 0x80000000u ? -(int32_t)(~v) - 1 : (int32_t)v;",
+        "}",
+        "",
+    ]
+    short = {
+        "uint8": "u8",
+        "int8": "i8",
+        "uint16": "u16",
+        "int16": "i16",
+        "uint32": "u32",
+        "int32": "i32",
+        "uint64": "u64",
+    }
     for m in schema["messages"]:
         n, up = m["name"], m["name"].upper()
         size_min = f"MC_MSG_{up}_MIN_SIZE" if m["bytes_max"] else f"MC_MSG_{up}_SIZE"
         used = bool(m["fields"])
-        L += c_signature(f"mc_status_t mc_msg_{n}_pack(", [f"const mc_msg_{n}_t *msg",
-                         "uint8_t *out", "size_t cap", "size_t *out_len"], "")
+        L += c_signature(
+            f"mc_status_t mc_msg_{n}_pack(",
+            [f"const mc_msg_{n}_t *msg", "uint8_t *out", "size_t cap", "size_t *out_len"],
+            "",
+        )
         L += ["{", "    size_t need;"]
         if used:
             L.append("    uint8_t *p = out;")
-        L += ["    if (out_len != NULL) {", "        *out_len = 0;", "    }",
-              "    if (msg == NULL || out == NULL || out_len == NULL) {",
-              "        return MC_E_ARG;", "    }"]
+        L += [
+            "    if (out_len != NULL) {",
+            "        *out_len = 0;",
+            "    }",
+            "    if (msg == NULL || out == NULL || out_len == NULL) {",
+            "        return MC_E_ARG;",
+            "    }",
+        ]
         if m["bytes_max"]:
             b = m["fields"][-1]["name"]
-            L += [f"    if (msg->{b}_len > MC_MSG_{up}_{b.upper()}_MAX) {{",
-                  "        return MC_E_RANGE;", "    }",
-                  f"    need = {size_min} + msg->{b}_len;"]
+            L += [
+                f"    if (msg->{b}_len > MC_MSG_{up}_{b.upper()}_MAX) {{",
+                "        return MC_E_RANGE;",
+                "    }",
+                f"    need = {size_min} + msg->{b}_len;",
+            ]
         else:
             L.append(f"    need = {size_min};")
         L += ["    if (cap < need) {", "        return MC_E_NO_SPACE;", "    }"]
         for f in m["fields"]:
             if f["type"] == "bytes":
-                L += [f"    if (msg->{f['name']}_len > 0u) {{",
-                      f"        memcpy(p, msg->{f['name']}, msg->{f['name']}_len);", "    }"]
+                L += [
+                    f"    if (msg->{f['name']}_len > 0u) {{",
+                    f"        memcpy(p, msg->{f['name']}, msg->{f['name']}_len);",
+                    "    }",
+                ]
                 continue
             if f["type"] == "char":
                 L += [f"    memcpy(p, msg->{f['name']}, {f['count']}u);", f"    p += {f['count']};"]
@@ -595,16 +805,27 @@ def gen_messages_c(schema: dict) -> str:
                 L.append(f"    {fn}(p, msg->{f['name']});")
                 L.append(f"    p += {size};")
             else:
-                L += [f"    for (size_t i = 0; i < {f['count']}u; ++i) {{",
-                      f"        {fn}(p, msg->{f['name']}[i]);", f"        p += {size};", "    }"]
+                L += [
+                    f"    for (size_t i = 0; i < {f['count']}u; ++i) {{",
+                    f"        {fn}(p, msg->{f['name']}[i]);",
+                    f"        p += {size};",
+                    "    }",
+                ]
         L += ["    *out_len = need;", "    return MC_OK;", "}", ""]
-        L += c_signature(f"mc_status_t mc_msg_{n}_unpack(", ["const uint8_t *payload",
-                         "size_t len", f"mc_msg_{n}_t *msg"], "")
+        L += c_signature(
+            f"mc_status_t mc_msg_{n}_unpack(",
+            ["const uint8_t *payload", "size_t len", f"mc_msg_{n}_t *msg"],
+            "",
+        )
         L.append("{")
         if used:
             L.append("    const uint8_t *p = payload;")
-        L += ["    if (msg == NULL || (payload == NULL && len > 0u)) {", "        return MC_E_ARG;",
-              "    }", "    memset(msg, 0, sizeof *msg);"]
+        L += [
+            "    if (msg == NULL || (payload == NULL && len > 0u)) {",
+            "        return MC_E_ARG;",
+            "    }",
+            "    memset(msg, 0, sizeof *msg);",
+        ]
         if m["bytes_max"]:
             L += [f"    if (len < MC_MSG_{up}_MIN_SIZE || len > MC_MSG_{up}_MAX_SIZE) {{"]
         else:
@@ -612,9 +833,12 @@ def gen_messages_c(schema: dict) -> str:
         L += ["        return MC_E_LENGTH;", "    }"]
         for f in m["fields"]:
             if f["type"] == "bytes":
-                L += [f"    msg->{f['name']}_len = len - MC_MSG_{up}_MIN_SIZE;",
-                      f"    if (msg->{f['name']}_len > 0u) {{",
-                      f"        memcpy(msg->{f['name']}, p, msg->{f['name']}_len);", "    }"]
+                L += [
+                    f"    msg->{f['name']}_len = len - MC_MSG_{up}_MIN_SIZE;",
+                    f"    if (msg->{f['name']}_len > 0u) {{",
+                    f"        memcpy(msg->{f['name']}, p, msg->{f['name']}_len);",
+                    "    }",
+                ]
                 continue
             if f["type"] == "char":
                 L += [f"    memcpy(msg->{f['name']}, p, {f['count']}u);", f"    p += {f['count']};"]
@@ -625,42 +849,97 @@ def gen_messages_c(schema: dict) -> str:
                 L.append(f"    msg->{f['name']} = {fn}(p);")
                 L.append(f"    p += {size};")
             else:
-                L += [f"    for (size_t i = 0; i < {f['count']}u; ++i) {{",
-                      f"        msg->{f['name']}[i] = {fn}(p);", f"        p += {size};", "    }"]
+                L += [
+                    f"    for (size_t i = 0; i < {f['count']}u; ++i) {{",
+                    f"        msg->{f['name']}[i] = {fn}(p);",
+                    f"        p += {size};",
+                    "    }",
+                ]
         if not m["bytes_max"] and used:
             L.append("    (void)p;")
         L += ["    return MC_OK;", "}", ""]
     # Generic functions.
-    L += ["mc_status_t mc_msg_payload_size(uint8_t id, size_t *min_len, size_t *max_len)", "{",
-          "    size_t lo, hi;", "    switch (id) {"]
+    L += [
+        "mc_status_t mc_msg_payload_size(uint8_t id, size_t *min_len, size_t *max_len)",
+        "{",
+        "    size_t lo, hi;",
+        "    switch (id) {",
+    ]
     for m in schema["messages"]:
         up = m["name"].upper()
         if m["bytes_max"]:
-            L += [f"    case MC_MSG_{up}:", f"        lo = MC_MSG_{up}_MIN_SIZE;",
-                  f"        hi = MC_MSG_{up}_MAX_SIZE;", "        break;"]
+            L += [
+                f"    case MC_MSG_{up}:",
+                f"        lo = MC_MSG_{up}_MIN_SIZE;",
+                f"        hi = MC_MSG_{up}_MAX_SIZE;",
+                "        break;",
+            ]
         else:
-            L += [f"    case MC_MSG_{up}:", f"        lo = hi = MC_MSG_{up}_SIZE;", "        break;"]
-    L += ["    default:", "        return MC_E_UNKNOWN_MESSAGE;", "    }",
-          "    if (min_len != NULL) {", "        *min_len = lo;", "    }",
-          "    if (max_len != NULL) {", "        *max_len = hi;", "    }", "    return MC_OK;", "}",
-          "",
-          "mc_status_t mc_msg_unpack(uint8_t id, const uint8_t *payload, size_t len, mc_msg_t *msg)",
-          "{", "    if (msg == NULL || (payload == NULL && len > 0u)) {", "        return MC_E_ARG;",
-          "    }", "    memset(msg, 0, sizeof *msg);", "    msg->id = id;", "    switch (id) {"]
+            L += [
+                f"    case MC_MSG_{up}:",
+                f"        lo = hi = MC_MSG_{up}_SIZE;",
+                "        break;",
+            ]
+    L += [
+        "    default:",
+        "        return MC_E_UNKNOWN_MESSAGE;",
+        "    }",
+        "    if (min_len != NULL) {",
+        "        *min_len = lo;",
+        "    }",
+        "    if (max_len != NULL) {",
+        "        *max_len = hi;",
+        "    }",
+        "    return MC_OK;",
+        "}",
+        "",
+        "mc_status_t mc_msg_unpack(uint8_t id, const uint8_t *payload, size_t len, mc_msg_t *msg)",
+        "{",
+        "    if (msg == NULL || (payload == NULL && len > 0u)) {",
+        "        return MC_E_ARG;",
+        "    }",
+        "    memset(msg, 0, sizeof *msg);",
+        "    msg->id = id;",
+        "    switch (id) {",
+    ]
     for m in schema["messages"]:
-        L += [f"    case MC_MSG_{m['name'].upper()}:",
-              f"        return mc_msg_{m['name']}_unpack(payload, len, &msg->u.{m['name']});"]
-    L += ["    default:", "        return MC_E_UNKNOWN_MESSAGE;", "    }", "}", "",
-          "mc_status_t mc_msg_pack(const mc_msg_t *msg, uint8_t *out, size_t cap, size_t *out_len)",
-          "{", "    if (out_len != NULL) {", "        *out_len = 0;", "    }",
-          "    if (msg == NULL) {", "        return MC_E_ARG;", "    }", "    switch (msg->id) {"]
+        L += [
+            f"    case MC_MSG_{m['name'].upper()}:",
+            f"        return mc_msg_{m['name']}_unpack(payload, len, &msg->u.{m['name']});",
+        ]
+    L += [
+        "    default:",
+        "        return MC_E_UNKNOWN_MESSAGE;",
+        "    }",
+        "}",
+        "",
+        "mc_status_t mc_msg_pack(const mc_msg_t *msg, uint8_t *out, size_t cap, size_t *out_len)",
+        "{",
+        "    if (out_len != NULL) {",
+        "        *out_len = 0;",
+        "    }",
+        "    if (msg == NULL) {",
+        "        return MC_E_ARG;",
+        "    }",
+        "    switch (msg->id) {",
+    ]
     for m in schema["messages"]:
-        L += [f"    case MC_MSG_{m['name'].upper()}:",
-              f"        return mc_msg_{m['name']}_pack(&msg->u.{m['name']}, out, cap, out_len);"]
-    L += ["    default:", "        return MC_E_UNKNOWN_MESSAGE;", "    }", "}", "",
-          "const char *mc_msg_name(uint8_t id)", "{", "    switch (id) {"]
+        L += [
+            f"    case MC_MSG_{m['name'].upper()}:",
+            f"        return mc_msg_{m['name']}_pack(&msg->u.{m['name']}, out, cap, out_len);",
+        ]
+    L += [
+        "    default:",
+        "        return MC_E_UNKNOWN_MESSAGE;",
+        "    }",
+        "}",
+        "",
+        "const char *mc_msg_name(uint8_t id)",
+        "{",
+        "    switch (id) {",
+    ]
     for m in schema["messages"]:
-        L += [f"    case MC_MSG_{m['name'].upper()}:", f"        return \"{m['name']}\";"]
+        L += [f"    case MC_MSG_{m['name'].upper()}:", f'        return "{m["name"]}";']
     L += ["    default:", "        return NULL;", "    }", "}", ""]
     return "\n".join(L)
 
@@ -696,28 +975,57 @@ def c_int(t: str, v: int) -> str:
 
 def gen_vectors_h(schema: dict, messages: list[dict], streams: list[dict]) -> str:
     by_name = {m["name"]: m for m in schema["messages"]}
-    L = [C_HEADER, "#ifndef MAGCAL_PROTOCOL_VECTORS_H",
-         "#define MAGCAL_PROTOCOL_VECTORS_H", ""]
+    L = [C_HEADER, "#ifndef MAGCAL_PROTOCOL_VECTORS_H", "#define MAGCAL_PROTOCOL_VECTORS_H", ""]
     L += c_comment_block(
-        "The golden vectors of protocol/vectors (messages.json, frames.json) as C data, for tests/native. Include from\n"
-        "one translation unit. Status names are spelled as mc_status_t values."
+        "The golden vectors of protocol/vectors (messages.json, frames.json) as C data, for\n"
+        "tests/native. Include from one translation unit. Statuses are mc_status_t values."
     )
-    L += ["", "#include <stddef.h>", "#include <stdint.h>", "", '#include "magcal/messages.h"',
-          '#include "magcal/sensor_hal.h"', "",
-          "/* {mc_unit_t of sensor_hal.h, the schema's value}: they must agree. */",
-          "static const int mc_vec_units[][2] = {"]
+    L += [
+        "",
+        "#include <stddef.h>",
+        "#include <stdint.h>",
+        "",
+        '#include "magcal/messages.h"',
+        '#include "magcal/sensor_hal.h"',
+        "",
+        "/* {mc_unit_t of sensor_hal.h, the schema's value}: they must agree. */",
+        "static const int mc_vec_units[][2] = {",
+    ]
     for u in schema["units"]:
         L.append(f"    {{MC_UNIT_{u['name']}, {u['value']}}},")
-    L += ["};", f"#define MC_VEC_N_UNITS {len(schema['units'])}u", "",
-          "typedef struct {", "    const char *name;", "    uint8_t id;", "    uint16_t seq;",
-          "    const uint8_t *payload;", "    size_t payload_len;", "    const uint8_t *wire;",
-          "    size_t wire_len;", "    mc_msg_t msg; /* the decoded values */", "} mc_vec_message_t;",
-          "", "typedef struct {", "    mc_status_t status; /* of the frame decoder */",
-          "    uint8_t id;", "    uint16_t seq;", "    const uint8_t *payload;",
-          "    size_t payload_len;", "    mc_status_t message_status; /* of mc_msg_unpack */",
-          "} mc_vec_event_t;", "", "typedef struct {", "    const char *name;",
-          "    const uint8_t *wire;", "    size_t wire_len;", "    const mc_vec_event_t *events;",
-          "    size_t n_events;", "} mc_vec_stream_t;", ""]
+    L += [
+        "};",
+        f"#define MC_VEC_N_UNITS {len(schema['units'])}u",
+        "",
+        "typedef struct {",
+        "    const char *name;",
+        "    uint8_t id;",
+        "    uint16_t seq;",
+        "    const uint8_t *payload;",
+        "    size_t payload_len;",
+        "    const uint8_t *wire;",
+        "    size_t wire_len;",
+        "    mc_msg_t msg; /* the decoded values */",
+        "} mc_vec_message_t;",
+        "",
+        "typedef struct {",
+        "    mc_status_t status; /* of the frame decoder */",
+        "    uint8_t id;",
+        "    uint16_t seq;",
+        "    const uint8_t *payload;",
+        "    size_t payload_len;",
+        "    mc_status_t message_status; /* of mc_msg_unpack */",
+        "} mc_vec_event_t;",
+        "",
+        "typedef struct {",
+        "    const char *name;",
+        "    const uint8_t *wire;",
+        "    size_t wire_len;",
+        "    const mc_vec_event_t *events;",
+        "    size_t n_events;",
+        "} mc_vec_stream_t;",
+        "",
+    ]
     for i, v in enumerate(messages):
         L.append(f"static const uint8_t mc_vec_m{i}_payload[] = {{")
         L += c_bytes(bytes.fromhex(v["payload"]))
@@ -733,10 +1041,12 @@ def gen_vectors_h(schema: dict, messages: list[dict], streams: list[dict]) -> st
             if f["type"] == "bytes":
                 inits.append(f".{f['name']}_len = {len(v['fields'][f['name']]) // 2}u")
         body = ", ".join(inits) if inits else ".unused_ = 0"
-        L += [f"    {{\"{v['name']}\", 0x{v['id']:02X}u, {v['seq']}u, mc_vec_m{i}_payload, "
-              f"{len(v['payload']) // 2}u,",
-              f"     mc_vec_m{i}_wire, {len(v['wire']) // 2}u,",
-              f"     {{.id = 0x{v['id']:02X}u, .u.{v['message']} = {{{body}}}}}}},"]
+        L += [
+            f'    {{"{v["name"]}", 0x{v["id"]:02X}u, {v["seq"]}u, mc_vec_m{i}_payload, '
+            f"{len(v['payload']) // 2}u,",
+            f"     mc_vec_m{i}_wire, {len(v['wire']) // 2}u,",
+            f"     {{.id = 0x{v['id']:02X}u, .u.{v['message']} = {{{body}}}}}}},",
+        ]
     L += ["};", f"#define MC_VEC_N_MESSAGES {len(messages)}u", ""]
     for i, s in enumerate(streams):
         L.append(f"static const uint8_t mc_vec_s{i}_wire[] = {{")
@@ -750,8 +1060,10 @@ def gen_vectors_h(schema: dict, messages: list[dict], streams: list[dict]) -> st
         L.append(f"static const mc_vec_event_t mc_vec_s{i}_events[] = {{")
         for j, e in enumerate(s["events"]):
             if e["status"] == "OK":
-                L.append(f"    {{MC_OK, 0x{e['id']:02X}u, {e['seq']}u, mc_vec_s{i}_e{j}_payload, "
-                         f"{len(e['payload']) // 2}u, MC_{e['message_status']}}},")
+                L.append(
+                    f"    {{MC_OK, 0x{e['id']:02X}u, {e['seq']}u, mc_vec_s{i}_e{j}_payload, "
+                    f"{len(e['payload']) // 2}u, MC_{e['message_status']}}},"
+                )
             else:
                 L.append(f"    {{MC_{e['status']}, 0u, 0u, NULL, 0u, MC_OK}},")
         if not s["events"]:
@@ -759,75 +1071,181 @@ def gen_vectors_h(schema: dict, messages: list[dict], streams: list[dict]) -> st
         L.append("};")
     L += ["", "static const mc_vec_stream_t mc_vec_streams[] = {"]
     for i, s in enumerate(streams):
-        L.append(f"    {{\"{s['name']}\", mc_vec_s{i}_wire, {len(s['wire']) // 2}u, "
-                 f"mc_vec_s{i}_events, {len(s['events'])}u}},")
-    L += ["};", f"#define MC_VEC_N_STREAMS {len(streams)}u", "",
-          "#endif /* MAGCAL_PROTOCOL_VECTORS_H */", ""]
+        L.append(
+            f'    {{"{s["name"]}", mc_vec_s{i}_wire, {len(s["wire"]) // 2}u, '
+            f"mc_vec_s{i}_events, {len(s['events'])}u}},"
+        )
+    L += [
+        "};",
+        f"#define MC_VEC_N_STREAMS {len(streams)}u",
+        "",
+        "#endif /* MAGCAL_PROTOCOL_VECTORS_H */",
+        "",
+    ]
     return "\n".join(L)
 
 
 # ----------------------------------------------------------------------------- Python output
+def py_str(s: str) -> str:
+    """A string literal as ruff format writes it: double quotes unless that needs escapes."""
+    if '"' in s and "'" not in s:
+        return "'" + s.replace("\\", "\\\\") + "'"
+    return '"' + s.replace("\\", "\\\\").replace('"', '\\"') + '"'
+
+
+def py_kw(name: str, value: str, indent: int) -> list[str]:
+    """`name=value,` at indent; a string too long for 100 columns is split in parentheses."""
+    pad = " " * indent
+    line = f"{pad}{name}={py_str(value)},"
+    if len(line) <= 100:
+        return [line]
+    width = 100 - indent - 4 - 2
+    pieces = textwrap.wrap(value, width, drop_whitespace=False)
+    return [f"{pad}{name}=(", *[f"{pad}    {py_str(p)}" for p in pieces], f"{pad}),"]
+
+
 def gen_python(schema: dict) -> str:
     fr, pv = schema["framing"], schema["protocol"]
-    L = ['"""' + HEADER, "", "The device protocol's tables for magcal.device.framing: status codes, units,",
-         "message ids and field layouts (struct formats, units, scales).", '"""', "",
-         "from __future__ import annotations", "", "import enum",
-         "from dataclasses import dataclass", "",
-         f"PROTOCOL_VERSION = {pv['version']}", f"PROTOCOL_MIN_VERSION = {pv['min_version']}",
-         f"FRAME_DELIMITER = {fr['delimiter']}", 'FRAME_HEADER_FORMAT = "<BH"  # id, seq',
-         "FRAME_HEADER_SIZE = 3", f'FRAME_CRC = "{fr["crc"]}"',
-         "FRAME_CRC_SIZE = 2  # little-endian", f"FRAME_MAX_PAYLOAD = {fr['max_payload']}",
-         "FRAME_MIN_BODY = FRAME_HEADER_SIZE + FRAME_CRC_SIZE",
-         "FRAME_MAX_BODY = FRAME_HEADER_SIZE + FRAME_MAX_PAYLOAD + FRAME_CRC_SIZE",
-         "# COBS adds one byte per 254 and one at the start; then the delimiter.",
-         "FRAME_MAX_ENCODED = FRAME_MAX_BODY + FRAME_MAX_BODY // 254 + 2",
-         "RESET_MAGIC = 0x54455352  # b'RSET' little-endian", "", "",
-         "class Status(enum.IntEnum):",
-         '    """mc_status_t: 0 = OK, errors negative."""', ""]
+    L = [
+        '"""' + HEADER,
+        "",
+        "The device protocol's tables for magcal.device.framing: status codes, units,",
+        "message ids and field layouts (struct formats, units, scales).",
+        '"""',
+        "",
+        "from __future__ import annotations",
+        "",
+        "import enum",
+        "from dataclasses import dataclass",
+        "",
+        f"PROTOCOL_VERSION = {pv['version']}",
+        f"PROTOCOL_MIN_VERSION = {pv['min_version']}",
+        f"FRAME_DELIMITER = {fr['delimiter']}",
+        'FRAME_HEADER_FORMAT = "<BH"  # id, seq',
+        "FRAME_HEADER_SIZE = 3",
+        f'FRAME_CRC = "{fr["crc"]}"',
+        "FRAME_CRC_SIZE = 2  # little-endian",
+        f"FRAME_MAX_PAYLOAD = {fr['max_payload']}",
+        "FRAME_MIN_BODY = FRAME_HEADER_SIZE + FRAME_CRC_SIZE",
+        "FRAME_MAX_BODY = FRAME_HEADER_SIZE + FRAME_MAX_PAYLOAD + FRAME_CRC_SIZE",
+        "# COBS adds one byte per 254 and one at the start; then the delimiter.",
+        "FRAME_MAX_ENCODED = FRAME_MAX_BODY + FRAME_MAX_BODY // 254 + 2",
+        "RESET_MAGIC = 0x54455352  # b'RSET' little-endian",
+        "",
+        "",
+        "class Status(enum.IntEnum):",
+        '    """mc_status_t: 0 = OK, errors negative."""',
+        "",
+    ]
     for e in schema["status"]:
         L.append(f"    {e['name']} = {e['value']}  # {e['doc']}")
-    L += ["", "", "class Unit(enum.IntEnum):", '    """The unit of one sensor count (info_resp.unit)."""',
-          ""]
+    L += [
+        "",
+        "",
+        "class Unit(enum.IntEnum):",
+        '    """The unit of one sensor count (info_resp.unit)."""',
+        "",
+    ]
     for u in schema["units"]:
         L.append(f"    {u['name']} = {u['value']}  # {u['doc']}")
-    L += ["", "", "@dataclass(frozen=True)", "class UnitDef:",
-          '    """A unit\'s symbol and its exact factor to the SI unit (a rational or "pi/180")."""',
-          "", "    symbol: str", "    si_symbol: str", "    si_factor: str", "", "",
-          "UNITS: dict[Unit, UnitDef] = {"]
+    L += [
+        "",
+        "",
+        "@dataclass(frozen=True)",
+        "class UnitDef:",
+        '    """A unit\'s symbol and its exact factor to the SI unit (a rational or "pi/180")."""',
+        "",
+        "    symbol: str",
+        "    si_symbol: str",
+        "    si_factor: str",
+        "",
+        "",
+        "UNITS: dict[Unit, UnitDef] = {",
+    ]
     for u in schema["units"]:
-        L.append(f"    Unit.{u['name']}: UnitDef({u['symbol']!r}, {u['si_symbol']!r}, "
-                 f"{u['si_factor']!r}),")
-    L += ["}", "", "", "class MessageId(enum.IntEnum):",
-          '    """Message ids: bit 7 set = from the device."""', ""]
+        L.append(
+            f"    Unit.{u['name']}: UnitDef({py_str(u['symbol'])}, {py_str(u['si_symbol'])}, "
+            f"{py_str(u['si_factor'])}),"
+        )
+    L += [
+        "}",
+        "",
+        "",
+        "class MessageId(enum.IntEnum):",
+        '    """Message ids: bit 7 set = from the device."""',
+        "",
+    ]
     for m in schema["messages"]:
         L.append(f"    {m['name'].upper()} = 0x{m['id_int']:02X}")
-    L += ["", "", "@dataclass(frozen=True)", "class Field:",
-          '    """One field: type is a schema type (uint8 ... int32, bytes); count > 1 for arrays;',
-          '    max is the largest length of a bytes field; enum names the table of its values."""',
-          "", "    name: str", "    type: str", "    count: int", "    unit: str", "    scale: str",
-          "    doc: str", "    max: int = 0", "    enum: str = \"\"", "", "",
-          "@dataclass(frozen=True)", "class Message:",
-          '    """One message: struct_format packs the fixed-size fields (little-endian) in order;',
-          '    a bytes field, if any, is last and takes the rest of the payload (up to bytes_max)."""',
-          "", "    id: int", "    name: str", "    direction: str", "    response: str",
-          "    struct_format: str", "    fixed_size: int", "    bytes_max: int",
-          "    fields: tuple[Field, ...]", "    doc: str", "", "", "MESSAGES: tuple[Message, ...] = ("]
+    L += [
+        "",
+        "",
+        "@dataclass(frozen=True)",
+        "class Field:",
+        '    """One field: type is a schema type (uint8 ... uint64, char, bytes); count > 1',
+        "    for arrays and char; max is the largest length of a bytes",
+        '    field; enum names the table of its values."""',
+        "",
+        "    name: str",
+        "    type: str",
+        "    count: int",
+        "    unit: str",
+        "    scale: str",
+        "    doc: str",
+        "    max: int = 0",
+        '    enum: str = ""',
+        "",
+        "",
+        "@dataclass(frozen=True)",
+        "class Message:",
+        '    """One message: struct_format packs the fixed-size fields (little-endian) in',
+        "    order; a bytes field, if any, is last and takes the rest of the payload (up to",
+        '    bytes_max)."""',
+        "",
+        "    id: int",
+        "    name: str",
+        "    direction: str",
+        "    response: str",
+        "    struct_format: str",
+        "    fixed_size: int",
+        "    bytes_max: int",
+        "    fields: tuple[Field, ...]",
+        "    doc: str",
+        "",
+        "",
+        "MESSAGES: tuple[Message, ...] = (",
+    ]
     for m in schema["messages"]:
-        L += ["    Message(", f"        0x{m['id_int']:02X},", f"        {m['name']!r},",
-              f"        {m['direction']!r},", f"        {m.get('response', '')!r},",
-              f"        {struct_format(m)!r},", f"        {m['fixed_size']},",
-              f"        {m['bytes_max']},", "        ("]
+        L += ["    Message(", f"        id=0x{m['id_int']:02X},"]
+        L += py_kw("name", m["name"], 8)
+        L += py_kw("direction", m["direction"], 8)
+        L += py_kw("response", m.get("response", ""), 8)
+        L += py_kw("struct_format", struct_format(m), 8)
+        L += [f"        fixed_size={m['fixed_size']},", f"        bytes_max={m['bytes_max']},"]
+        L.append("        fields=(" if m["fields"] else "        fields=(),")
         for f in m["fields"]:
-            args = [repr(f["name"]), repr(f["type"]), str(f["count"]), repr(f["unit"]),
-                    repr(f["scale"]), repr(f["doc"])]
+            L.append("            Field(")
+            L += py_kw("name", f["name"], 16)
+            L += py_kw("type", f["type"], 16)
+            L.append(f"                count={f['count']},")
+            L += py_kw("unit", f["unit"], 16)
+            L += py_kw("scale", f["scale"], 16)
+            L += py_kw("doc", f["doc"], 16)
             if f["type"] == "bytes":
-                args.append(f"max={f['max']}")
+                L.append(f"                max={f['max']},")
             if f.get("enum"):
-                args.append(f"enum={f['enum']!r}")
-            L.append(f"            Field({', '.join(args)}),")
-        L += ["        ),", f"        {m['doc']!r},", "    ),"]
-    L += [")", "MESSAGES_BY_ID: dict[int, Message] = {m.id: m for m in MESSAGES}",
-          "MESSAGES_BY_NAME: dict[str, Message] = {m.name: m for m in MESSAGES}", ""]
+                L += py_kw("enum", f["enum"], 16)
+            L.append("            ),")
+        if m["fields"]:
+            L.append("        ),")
+        L += py_kw("doc", m["doc"], 8)
+        L.append("    ),")
+    L += [
+        ")",
+        "MESSAGES_BY_ID: dict[int, Message] = {m.id: m for m in MESSAGES}",
+        "MESSAGES_BY_NAME: dict[str, Message] = {m.name: m for m in MESSAGES}",
+        "",
+    ]
     return "\n".join(L)
 
 
@@ -849,9 +1267,13 @@ def outputs(schema: dict) -> dict[str, str]:
         "firmware/src/messages.c": gen_messages_c(schema),
         "host/src/magcal/device/generated.py": gen_python(schema),
         "protocol/vectors/messages.json": json.dumps(
-            {"doc": vec_doc["messages.json"], "vectors": messages}, indent=1) + "\n",
+            {"doc": vec_doc["messages.json"], "vectors": messages}, indent=1
+        )
+        + "\n",
         "protocol/vectors/frames.json": json.dumps(
-            {"doc": vec_doc["frames.json"], "vectors": streams}, indent=1) + "\n",
+            {"doc": vec_doc["frames.json"], "vectors": streams}, indent=1
+        )
+        + "\n",
         "protocol/vectors/vectors.h": gen_vectors_h(schema, messages, streams),
     }
 

@@ -4,8 +4,8 @@
 #define MAGCAL_PROTOCOL_VECTORS_H
 
 /*
- * The golden vectors of protocol/vectors (messages.json, frames.json) as C data, for tests/native. Include from
- * one translation unit. Status names are spelled as mc_status_t values.
+ * The golden vectors of protocol/vectors (messages.json, frames.json) as C data, for
+ * tests/native. Include from one translation unit. Statuses are mc_status_t values.
  */
 
 #include <stddef.h>

@@ -28,8 +28,10 @@ check-generated:
 build/native/test_fw_frame build/native/test_fw_messages: protocol/vectors/vectors.h
 
 $(FUZZ_DIR)/fuzz_frame_decoder: firmware/fuzz/fuzz_frame_decoder.c $(FW_SRC) $(FW_HDR)
-	@command -v clang >/dev/null 2>&1 || { echo "fuzz-smoke: clang is not installed: run make deps-target (installs clang with libFuzzer)" >&2; exit 1; }
 	@mkdir -p $(@D)
+	@command -v clang >/dev/null 2>&1 || { echo "fuzz-smoke: clang is not installed: run make deps-target (installs clang and its libFuzzer runtime)" >&2; exit 1; }
+	@printf 'int LLVMFuzzerTestOneInput(const unsigned char *d, unsigned long n) { (void)d; (void)n; return 0; }\n' > $(@D)/probe.c
+	@clang -fsanitize=fuzzer,address,undefined $(@D)/probe.c -o $(@D)/probe 2>/dev/null || { echo "fuzz-smoke: clang cannot link -fsanitize=fuzzer,address,undefined (libFuzzer/sanitizer runtime missing, Debian package libclang-rt-<version>-dev): run make deps-target" >&2; exit 1; }
 	clang $(FW_WARN) -O1 -g -fsanitize=fuzzer,address,undefined -fno-sanitize-recover=all \
 		$(FW_INC) firmware/fuzz/fuzz_frame_decoder.c $(FW_SRC) -o $@
 

@@ -1283,7 +1283,8 @@ def write_corpus(schema: dict, directory: Path) -> int:
     streams = stream_cases(schema, messages)
     directory.mkdir(parents=True, exist_ok=True)
     for v in messages + streams:
-        (directory / f"{v['name']}.bin").write_bytes(bytes.fromhex(v["wire"]))
+        # The fuzz target's first byte picks its buffer size: 0xFF is the full MC_FRAME_MAX_BODY.
+        (directory / f"{v['name']}.bin").write_bytes(b"\xff" + bytes.fromhex(v["wire"]))
     return len(messages) + len(streams)
 
 

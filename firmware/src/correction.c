@@ -22,10 +22,16 @@ mc_status_t mc_correction_init(mc_correction_t *c, const mc_params_t *p)
     return MC_OK;
 }
 
-/* The per-sample kernel; c, raw and out are valid and c is ready. Scaling and overflow: see
- * mc_correction_apply in correction.h. */
-static void correct_one(const mc_correction_t *c, const int16_t raw[3], int32_t out[3])
+mc_status_t mc_correction_apply(const mc_correction_t *c, const int16_t raw[3], int32_t out[3])
 {
+    if (c == NULL || raw == NULL || out == NULL) {
+        return MC_E_ARG;
+    }
+    if (c->ready != MC_CORRECTION_READY) {
+        return MC_E_STATE;
+    }
+    /* Scaling and overflow: see correction.h. The kernel lives here, not in a helper, so that
+     * this symbol's disassembly is the whole per-sample cost. */
     const int32_t *d = c->params.d_inv;
     const int32_t *o = c->params.offset;
     /* y 2^15 as a product (|.| <= 2^30), not a shift, which would be undefined for y < 0. */
@@ -38,17 +44,6 @@ static void correct_one(const mc_correction_t *c, const int16_t raw[3], int32_t 
             + (int64_t)d[3 * i + 2] * diff2;
         out[i] = mc_fx_sat_i32(mc_fx_rshift_round_i64(acc, s));
     }
-}
-
-mc_status_t mc_correction_apply(const mc_correction_t *c, const int16_t raw[3], int32_t out[3])
-{
-    if (c == NULL || raw == NULL || out == NULL) {
-        return MC_E_ARG;
-    }
-    if (c->ready != MC_CORRECTION_READY) {
-        return MC_E_STATE;
-    }
-    correct_one(c, raw, out);
     return MC_OK;
 }
 
@@ -62,7 +57,7 @@ mc_status_t mc_correction_apply_n(const mc_correction_t *c, const int16_t *raw, 
         return MC_E_STATE;
     }
     for (size_t k = 0; k < n; ++k) {
-        correct_one(c, raw + 3 * k, out + 3 * k);
+        (void)mc_correction_apply(c, raw + 3 * k, out + 3 * k); /* cannot fail: checked above */
     }
     return MC_OK;
 }

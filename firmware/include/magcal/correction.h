@@ -9,10 +9,11 @@
  *   out[i]   int32 m[i] = out[i] * 2^(E_m - 31), E_m = params.out_exp: a signed value in
  *            [-2^E_m, 2^E_m) with 31 - E_m fractional bits. The exponent is per parameter set
  *            so that both kinds of calibration keep 31 significant bits: a counts-scale D^-1
- *            (unit-norm output, |m| about 1, e.g. E_m = 9 leaves room for any int16 input
- *            with a step of 2^-22 of the field) and a unit-scale one (output in counts,
- *            e.g. E_m = 18 with a step of 2^-13 count). The host chooses E_m (by default the
- *            smallest that no int16 input can saturate; fixed_point.py).
+ *            (unit-norm output; for a field of 500 counts, D^-1 = I/500 has E_d = -8 and the
+ *            default E_m = 7 holds any int16 input with a step of 2^-24 of the field) and a
+ *            unit-scale one (output in counts; D^-1 = 1.1 I has E_d = 1, E_m = 16, a step of
+ *            2^-15 count). The host chooses E_m (by default the smallest that no int16 input
+ *            can saturate; host/src/magcal/device/fixed_point.py).
  *
  * Arithmetic, per axis i:
  *   diff[j] = y[j] 2^15 - offset[j]                 int32, exact (Q16.15, |.| <= 2^31)

@@ -82,8 +82,9 @@ typedef struct {
     int32_t offset[3];   /* o, raw counts in Q16.15 (|.| <= 2^30) */
 } mc_params_t;
 
-/* Checks p as described above. MC_E_ARG when p is NULL. Runs in about 200 integer
- * operations, no floating point. */
+/* Checks p as described above (MC_OK, or the first refusal's code). MC_E_ARG when p is
+ * NULL. Integer arithmetic only (a few hundred operations, no division, no floating point);
+ * call it once per parameter write. */
 mc_status_t mc_params_validate(const mc_params_t *p);
 
 /* Writes the MC_PARAMS_ENCODED_SIZE bytes of p's encoding to buf[0..len) and sets *written.

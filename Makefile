@@ -45,7 +45,7 @@ lint: setup
 	$(VENV)/bin/ruff format --check host tests tools bench
 
 test: setup lint test-native firmware-lib $(TEST_EXTRA)
-	$(PY) -m pytest -q tests
+	$(PY) -m pytest -q tests --ignore=tests/target
 
 # ---------------------------------------------------------------- firmware (native)
 # Native tests (no Python) under AddressSanitizer and UndefinedBehaviorSanitizer: the EKF
@@ -61,7 +61,9 @@ build/native/test_mekf_sanitizers: tests/native/test_mekf_sanitizers.c host/csrc
 	gcc $(NATIVE_CFLAGS) -Ihost/csrc tests/native/test_mekf_sanitizers.c \
 		host/csrc/mekf_likelihood.c -lm -o $@
 
-build/native/test_fw_%: tests/native/test_fw_%.c tests/native/check.h $(FW_SRC) $(FW_HDR)
+# Tests of the POSIX port #include its .c files, so those are prerequisites too.
+build/native/test_fw_%: tests/native/test_fw_%.c tests/native/check.h $(wildcard tests/native/*.h) \
+		$(FW_SRC) $(FW_HDR) $(wildcard firmware/port/posix/*.[ch])
 	@mkdir -p $(@D)
 	gcc $(NATIVE_CFLAGS) $(FW_INC) -Itests/native $< $(FW_SRC) -lm -o $@
 
@@ -76,6 +78,7 @@ accuracy: setup
 
 bench: setup
 	$(PY) bench/run_bench.py --out bench/results.json
+	$(PY) bench/firmware_figures.py --out bench/firmware.json
 
 clean:
 	rm -rf $(OUT) build host/build host/src/*.egg-info $(STAMP)

@@ -11,7 +11,7 @@
 # ---------------------------------------------------------------- deps-target
 # Installs only what is missing, so a second run is instant and works offline.
 # clang is for the protocol decoder's libFuzzer target (mk/ of the protocol fragment).
-TARGET_DEB_PKGS := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm clang
+TARGET_DEB_PKGS := gcc-arm-none-eabi libnewlib-arm-none-eabi qemu-system-arm clang libclang-rt-14-dev
 SUDO := $(if $(filter 0,$(shell id -u)),,sudo)
 
 deps-target:

@@ -394,6 +394,7 @@ class LossyLink:
     def _budget(self, data: bytes) -> bytes:
         """Cut data at the disconnect point (then the link is gone)."""
         if self.disconnect_after is None:
+            self.bytes_passed += len(data)
             return data
         left = self.disconnect_after - self.bytes_passed
         if left < len(data):

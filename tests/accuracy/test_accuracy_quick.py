@@ -36,7 +36,7 @@ NOT_MET_YET = {
     "mems-acc": (
         "issue 2, open: with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the ML "
         "misalignment sits at about 2× the known-attitude floor (20 seeds 2.04×, 60 seeds "
-        "1.98×; bound 2×): the EKF has no state for the acceleration"
+        "1.98×; bound 2×); re-weighting Σ_a and a Gauss-Markov acceleration state did not help"
     ),
 }
 

@@ -44,7 +44,7 @@ lint: setup
 	$(VENV)/bin/ruff check host tests tools bench
 	$(VENV)/bin/ruff format --check host tests tools bench
 
-test: setup lint test-native firmware-lib $(TEST_EXTRA)
+test: setup deps-target lint test-native firmware-lib $(TEST_EXTRA)
 	$(PY) -m pytest -q tests --ignore=tests/target
 
 # ---------------------------------------------------------------- firmware (native)

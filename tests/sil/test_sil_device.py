@@ -297,3 +297,50 @@ def test_raw_stream_round_trip_and_reconnect(start_sil, flash):
     assert dev.request("info")["status"] == Status.OK
     dev.close()
     assert sil.stop() == 0
+
+
+def test_full_link_drops_stream_messages_and_keeps_responses(start_sil, flash):
+    sil = start_sil(flash)
+    dev = RawDevice.__new__(RawDevice)
+    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a slow, small link
+    sock.settimeout(CONNECT_TIMEOUT_S)
+    sock.connect(("127.0.0.1", sil.proto_port))
+    sock.settimeout(RECV_CHUNK_TIMEOUT_S)
+    dev.sock, dev.deframer, dev.frames, dev.seq = sock, framing.Deframer(), [], 0
+    assert dev.request("stream_start", {"kind": 0, "decimation": 1, "count": 0}) == {
+        "status": Status.OK
+    }
+    n = 50_000  # about 1.8 MB of sample messages, far more than the link buffers hold
+    with socket.create_connection(("127.0.0.1", sil.feed_port), timeout=CONNECT_TIMEOUT_S) as f:
+        f.sendall("".join(f"S {k + 1} {k % 1000} 0 0 0 0 0 0 0 0\n" for k in range(n)).encode())
+        # Feed lines are handled in order: once a marker sample (t_us > n) arrives, every
+        # line fed before it was handled. A marker may itself be dropped: feed another.
+        markers = 0
+        deadline = time.monotonic() + STREAM_TIMEOUT_S
+
+        def marker_seen() -> bool:
+            return any(
+                fr.id == MessageId.SAMPLE and struct.unpack_from("<Q", fr.payload, 4)[0] > n
+                for fr in dev.frames
+            )
+
+        while not marker_seen():
+            f.sendall(f"S {n + 1 + markers} 0 0 0 0 0 0 0 0 0\n".encode())
+            markers += 1
+            pause = time.monotonic() + 0.2
+            while time.monotonic() < pause:
+                dev._receive(deadline, "a marker sample")
+    stop = dev.request("stream_stop")
+    samples = [
+        framing.unpack_message(fr.id, fr.payload)[1]
+        for fr in dev.frames
+        if fr.id == MessageId.SAMPLE
+    ]
+    assert stop["status"] == Status.OK
+    assert stop["dropped"] > 0
+    assert stop["sent"] == len(samples)
+    assert stop["sent"] + stop["dropped"] == n + markers
+    seqs = [m["seq"] for m in samples]
+    assert seqs == sorted(set(seqs))  # increasing; the gaps are the drops
+    dev.close()

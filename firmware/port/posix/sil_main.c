@@ -39,7 +39,9 @@
  * are non-blocking through a bounded transmit queue (SIL_TXQ_SIZE bytes): the device's tx
  * takes what fits, so when the link is slow stream messages are dropped and counted by the
  * device, and a response that does not fit stays pending in the device, which then stops
- * reading requests until it is out (device.h). With no TCP client, tx takes nothing.
+ * reading requests until it is out (device.h). With no TCP client, tx takes nothing. A TCP
+ * client's kernel send buffer is limited (SIL_SOCK_SNDBUF) so the link fills like a serial
+ * line's buffers do, in hundreds of messages rather than megabytes.
  *
  * reset (the protocol request) resets the device state in-process (device.h: no stream, no
  * staged set, an empty retry cache, the active set re-read from the flash file); the pty or
@@ -76,6 +78,9 @@
 #define SIL_FLASH_PAGES 2u
 #define SIL_SAMPLE_RATE_MHZ 100000u
 #define SIL_TXQ_SIZE 16384u
+/* The TCP client socket's kernel send buffer: without a limit Linux lets megabytes of stream
+ * queue up on loopback, so a slow host would see stale samples instead of counted drops. */
+#define SIL_SOCK_SNDBUF 16384u
 #define SIL_RX_SIZE 4096u
 #define SIL_FEED_LINE_MAX 256u
 
@@ -467,6 +472,7 @@ enum { FD_SIG, FD_PROTO, FD_FEED, FD_COUNT };
 static void accept_proto(void)
 {
     const int one = 1;
+    const int sndbuf = (int)SIL_SOCK_SNDBUF;
     const int fd = accept(S.proto_listen, NULL, NULL);
     if (fd < 0) {
         if (errno == EAGAIN || errno == EWOULDBLOCK || errno == EINTR ||
@@ -479,6 +485,7 @@ static void accept_proto(void)
         fail("protocol client");
     }
     (void)setsockopt(fd, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+    (void)setsockopt(fd, SOL_SOCKET, SO_SNDBUF, &sndbuf, sizeof sndbuf);
     drop_client();
     S.proto_fd = fd;
 }

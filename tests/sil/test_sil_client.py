@@ -21,9 +21,8 @@ from magcal.device.client import (
     ParamWhich,
     Sample,
     StreamKind,
-    flash_parameters,
-    read_backup,
 )
+from magcal.device.flash import flash_parameters, read_backup
 from magcal.device.generated import Unit
 from magcal.link import open_link
 from magcal.sim.scenarios import preset, simulate

@@ -1,7 +1,7 @@
-"""magcal.device.client and magcal.link against the pure-Python fake device (tests/fake_device.py):
-negotiation, exact unit conversion, seq and same-bytes retries, refusals, stream routing,
-line noise, a lossy link, the flash flow interrupted at every byte, restore, and real
-sockets and pseudo-terminals through open_link."""
+"""magcal.device.client, magcal.device.flash and magcal.link against the pure-Python fake
+device (tests/fake_device.py): negotiation, exact unit conversion, seq and same-bytes retries,
+refusals, stream routing, line noise, a lossy link, the flash flow interrupted at every byte,
+restore, and real sockets and pseudo-terminals through open_link."""
 
 from __future__ import annotations
 
@@ -21,13 +21,15 @@ from magcal.device.client import (
     DeviceClient,
     DeviceError,
     DeviceTimeoutError,
-    FlashError,
-    FlashInterruptedError,
     ParamWhich,
     Sample,
     Scale,
     StreamKind,
     VersionMismatchError,
+)
+from magcal.device.flash import (
+    FlashError,
+    FlashInterruptedError,
     flash_parameters,
     read_backup,
     restore,

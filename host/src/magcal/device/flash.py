@@ -1,0 +1,375 @@
+"""SPEC §5's flash flow (protocol/SPEC.md) on top of :class:`DeviceClient`.
+
+:func:`flash_parameters` writes a parameter set with a backup of the device's current set
+saved first and every step read back bit for bit; after a link failure it finds out which
+complete set the device holds (:class:`FlashInterruptedError` says "old", "new" or
+"unknown"). :func:`restore` writes a backup back; :func:`read_backup` reads and checks one.
+
+Example::
+
+    with open_link("socket://127.0.0.1:5760") as link:
+        client = DeviceClient(link)
+        result = flash_parameters(client, blob, fixed_point.FORMAT_VERSION, "backup.json")
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any
+
+from magcal.device.client import (
+    DeviceClient,
+    DeviceError,
+    DeviceInfo,
+    DeviceTimeoutError,
+    ParamSet,
+    ParamWhich,
+)
+from magcal.device.framing import crc32_iso_hdlc
+from magcal.device.generated import Status
+from magcal.errors import MagcalError
+from magcal.link.base import LinkClosedError, LinkError
+
+log = logging.getLogger(__name__)
+
+BACKUP_FORMAT = "magcal-param-backup/1"
+
+
+class FlashError(MagcalError):
+    """flash_parameters or restore stopped before writing, or a read-back did not match."""
+
+
+class FlashInterruptedError(FlashError):
+    """The flash flow was interrupted by a link failure. ``active`` says which complete set
+    the device holds: "old", "new" or "unknown" (it could not be asked); ``step`` is the step
+    that failed."""
+
+    def __init__(self, message: str, active: str, step: str) -> None:
+        super().__init__(message)
+        self.active = active
+        self.step = step
+
+
+Reconnect = Callable[[], DeviceClient]
+
+
+@dataclass(frozen=True)
+class FlashResult:
+    """The outcome of a completed flash: the new set is active (read back bit-exact).
+
+    active        : "new"
+    crc32         : the set's CRC-32/ISO-HDLC
+    backup_path   : where the previous set was saved
+    recovered_from: the link failure the flow recovered from ("" when none)
+    client        : the client to go on with (a reconnected one after a recovery)
+    """
+
+    active: str
+    crc32: int
+    backup_path: Path
+    recovered_from: str = ""
+    client: DeviceClient | None = field(default=None, compare=False, repr=False)
+
+
+def _read_active(client: DeviceClient) -> ParamSet | None:
+    """The active set, or None when the device has none (E_NO_PARAMS)."""
+    try:
+        return client.param_get(ParamWhich.ACTIVE)
+    except DeviceError as exc:
+        if exc.status == Status.E_NO_PARAMS and not isinstance(exc, DeviceTimeoutError):
+            return None
+        raise
+
+
+def _write_backup(
+    path: Path, old: ParamSet | None, info: DeviceInfo, url: str, overwrite: bool
+) -> None:
+    """Save the device's current set (atomically: temporary file, fsync, rename)."""
+    if path.exists() and not overwrite:
+        raise FlashError(
+            f"flash: backup file {path} exists; nothing was written to the device: give "
+            "another backup path (an earlier backup is worth keeping) or allow overwriting"
+        )
+    doc = {
+        "format": BACKUP_FORMAT,
+        "format_version": None if old is None else old.format_version,
+        "blob": None if old is None else old.blob.hex(),
+        "crc32": None if old is None else old.crc32,
+        "device_uid": info.uid_hex,
+        "fw_version": info.fw_version_str,
+        "fw_build": f"{info.fw_build:08x}",
+        "port": url,
+        "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+    }
+    tmp = path.with_name(path.name + ".tmp")
+    try:
+        with open(tmp, "w", encoding="utf-8") as fh:
+            json.dump(doc, fh, indent=2)
+            fh.write("\n")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except OSError as exc:
+        raise FlashError(
+            f"flash: cannot save the backup to {path} ({exc.strerror or exc}); nothing was "
+            "written to the device: choose a writable backup path"
+        ) from exc
+
+
+def read_backup(path: str | os.PathLike) -> dict[str, Any]:
+    """A backup written by flash_parameters, checked (format, hex blob, CRC-32)."""
+    p = Path(path)
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise FlashError(f"restore: cannot read backup {p} ({exc}); check the path") from exc
+    if not isinstance(doc, dict) or doc.get("format") != BACKUP_FORMAT:
+        raise FlashError(f"restore: {p} is not a {BACKUP_FORMAT} backup; check the file")
+    if doc.get("blob") is not None:
+        try:
+            blob = bytes.fromhex(doc["blob"])
+        except (TypeError, ValueError) as exc:
+            raise FlashError(
+                f"restore: backup {p} has a malformed blob; the file is damaged"
+            ) from exc
+        if crc32_iso_hdlc(blob) != doc.get("crc32"):
+            raise FlashError(
+                f"restore: backup {p}'s blob does not match its CRC-32; the file is damaged: "
+                "do not write it"
+            )
+        doc["blob"] = blob
+    return doc
+
+
+def _hello_after_reset(client: DeviceClient, reconnect: Reconnect | None) -> DeviceClient:
+    """hello until the restarted device answers (reconnecting when the link dropped)."""
+    deadline = time.monotonic() + client.config.reset_recovery_timeout_s
+    attempt = 0
+    while True:
+        attempt += 1
+        try:
+            client.hello()
+            return client
+        except (LinkError, DeviceTimeoutError) as exc:
+            if time.monotonic() >= deadline:
+                raise
+            log.info("hello after reset on %s: attempt %d failed (%s)", client.url, attempt, exc)
+            if isinstance(exc, LinkError) and reconnect is not None:
+                client.close()
+                try:
+                    client = reconnect()
+                except LinkError as exc2:
+                    log.info("reconnect after reset failed (%s)", exc2)
+                    if time.monotonic() >= deadline:
+                        raise
+                    time.sleep(0.1)
+            elif isinstance(exc, LinkClosedError):
+                raise
+
+
+def _same(p: ParamSet | None, blob: bytes | None, format_version: int | None) -> bool:
+    if p is None or blob is None:
+        return p is None and blob is None
+    return p.blob == blob and p.format_version == format_version
+
+
+def flash_parameters(
+    client: DeviceClient,
+    blob: bytes,
+    format_version: int,
+    backup_path: str | os.PathLike,
+    *,
+    reconnect: Reconnect | None = None,
+    overwrite_backup: bool = False,
+) -> FlashResult:
+    """Write a parameter set with SPEC §5's flow, every step checked:
+
+    hello (when not done) and info (format version and size must match) -> param_get(active)
+    -> backup file saved (before anything is written) -> param_set -> param_get(staged)
+    compared bit for bit -> param_commit(crc32) -> reset -> hello -> param_get(active)
+    compared bit for bit with ``blob``.
+
+    reconnect : makes a new client on a fresh link (used after a reset that dropped the link,
+        and after a link failure to find out what the device holds)
+
+    Returns FlashResult(active="new"), also when a link failure was recovered from and the
+    device was found to hold the new set. Raises FlashInterruptedError with ``active`` "old"
+    or "unknown" when a link failure left the device without the new set (or nobody could
+    ask it); DeviceError when the device refused a step (it then keeps its old set);
+    FlashError when a read-back differs or before writing anything (backup, format checks).
+    """
+    blob = bytes(blob)
+    crc = crc32_iso_hdlc(blob)
+    path = Path(backup_path)
+    commit_sent = False
+    step = "hello"
+    old: ParamSet | None = None
+    try:
+        if client.version is None:
+            client.hello()
+        step = "info"
+        info = client.info()
+        if info.params_format_version != format_version or info.params_size != len(blob):
+            raise FlashError(
+                f"flash on {client.url}: the device takes parameter format "
+                f"{info.params_format_version} of {info.params_size} bytes; this set is format "
+                f"{format_version} of {len(blob)} bytes; nothing was written: convert the "
+                "calibration for this firmware"
+            )
+        step = "param_get(active)"
+        old = _read_active(client)
+        _write_backup(path, old, info, client.url, overwrite_backup)
+        log.info("flash on %s: previous set saved to %s", client.url, path)
+        step = "param_set"
+        client.param_set(format_version, blob)
+        step = "param_get(staged)"
+        staged = client.param_get(ParamWhich.STAGED)
+        if not _same(staged, blob, format_version) or staged.crc32 != crc:
+            raise FlashError(
+                f"flash on {client.url}: the staged set read back differs from the one sent "
+                "(nothing committed; the device keeps its old set): check the link and retry"
+            )
+        step = "param_commit"
+        commit_sent = True
+        client.param_commit(crc)
+        step = "reset"
+        client.reset()
+        step = "hello after reset"
+        client = _hello_after_reset(client, reconnect)
+        step = "param_get(active) after reset"
+        active = _read_active(client)
+    except (LinkError, DeviceTimeoutError) as exc:
+        return _recover(client, exc, step, commit_sent, reconnect, old, blob, format_version, path)
+    if _same(active, blob, format_version):
+        log.info(
+            "flash on %s: new set active (CRC-32 0x%08x), verified bit for bit", client.url, crc
+        )
+        return FlashResult("new", crc, path, "", client)
+    which = (
+        "its old set"
+        if _same(active, old.blob if old else None, format_version if old else None)
+        else "another set"
+    )
+    raise FlashError(
+        f"flash on {client.url}: after commit and reset the device uses {which}, not the new "
+        f"one (CRC-32 0x{crc:08x}); the commit did not take effect: run flash again, and "
+        f"restore {path} if needed"
+    )
+
+
+def _recover(
+    client: DeviceClient,
+    exc: Exception,
+    step: str,
+    commit_sent: bool,
+    reconnect: Reconnect | None,
+    old: ParamSet | None,
+    blob: bytes,
+    format_version: int,
+    path: Path,
+) -> FlashResult:
+    """After a link failure at ``step``: find which complete set the device holds."""
+    url = client.url
+    log.warning(
+        "flash on %s: link failure at %s (%s); finding out what the device holds", url, step, exc
+    )
+    prefix = f"flash on {url}: link failure at {step} ({exc})"
+    if reconnect is None:
+        if not commit_sent:
+            raise FlashInterruptedError(
+                f"{prefix}; the commit was never sent, so the device holds its old complete "
+                "set: reconnect and run flash again",
+                "old",
+                step,
+            ) from exc
+        raise FlashInterruptedError(
+            f"{prefix}; the commit was sent, so the device holds either its old or the new "
+            "complete set (a commit is atomic): reconnect, read the active set (magcal verify) "
+            "and flash again if it is the old one",
+            "unknown",
+            step,
+        ) from exc
+    client.close()
+    try:
+        fresh = reconnect()
+        fresh.hello()
+        if commit_sent:
+            # A committed set becomes active at the next reset: restart to find out.
+            fresh.reset()
+            fresh = _hello_after_reset(fresh, reconnect)
+        active = _read_active(fresh)
+    except (LinkError, DeviceError) as exc2:
+        state = "unknown" if commit_sent else "old"
+        holds = (
+            "either its old or the new complete set"
+            if commit_sent
+            else "its old complete set (the commit was never sent)"
+        )
+        raise FlashInterruptedError(
+            f"{prefix}; reconnecting failed too ({exc2}); the device holds {holds}: check the "
+            "link, then read the active set (magcal verify) and flash again if needed",
+            state,
+            step,
+        ) from exc
+    if _same(active, blob, format_version):
+        log.warning("flash on %s: recovered; the device holds the new set (verified)", url)
+        return FlashResult("new", crc32_iso_hdlc(blob), path, f"{step}: {exc}", fresh)
+    # Without a commit nothing was stored: whatever is active is the set from before.
+    if not commit_sent or _same(
+        active, old.blob if old else None, old.format_version if old else None
+    ):
+        fresh.close()
+        raise FlashInterruptedError(
+            f"{prefix}; reconnected: the device holds its old complete set (verified bit for "
+            "bit): run flash again",
+            "old",
+            step,
+        ) from exc
+    fresh.close()
+    raise FlashInterruptedError(
+        f"{prefix}; reconnected: the device's active set is neither the old nor the new one: "
+        f"restore {path} or flash again",
+        "unknown",
+        step,
+    ) from exc
+
+
+def restore(
+    client: DeviceClient,
+    backup_path: str | os.PathLike,
+    *,
+    new_backup_path: str | os.PathLike | None = None,
+    reconnect: Reconnect | None = None,
+    force: bool = False,
+) -> FlashResult:
+    """Write a backup back with :func:`flash_parameters` (the current set is backed up first,
+    to ``new_backup_path``, default ``<backup>.before-restore-<time>.json``). Refuses a backup
+    of another device (its uid) unless force."""
+    p = Path(backup_path)
+    doc = read_backup(p)
+    if doc.get("blob") is None:
+        raise FlashError(
+            f"restore: backup {p} records that the device had no parameter set; there is "
+            "nothing to write back (the protocol has no erase)"
+        )
+    if client.version is None:
+        client.hello()
+    info = client.info()
+    if doc.get("device_uid") != info.uid_hex and not force:
+        raise FlashError(
+            f"restore: backup {p} is of device {doc.get('device_uid')}, this is device "
+            f"{info.uid_hex}; nothing was written: use that device's backup (or force)"
+        )
+    if new_backup_path is None:
+        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+        new_backup_path = p.with_name(f"{p.stem}.before-restore-{stamp}.json")
+    return flash_parameters(
+        client, doc["blob"], int(doc["format_version"]), new_backup_path, reconnect=reconnect
+    )

@@ -19,12 +19,42 @@
  * read or a clock line), so a SIL run is deterministic. Times never decrease: an earlier time
  * is refused with MC_E_RANGE.
  *
- * Line format (ASCII decimal integers, fields separated by spaces or tabs, optional "\r\n"
- * or "\n" at the end, nothing else):
+ * Line format (ASCII, fields separated by spaces or tabs, optional "\r\n" or "\n" at the
+ * end, nothing else; t_us a decimal integer in 0 .. 2^64-1):
  *     S <t_us> <mag_x> <mag_y> <mag_z> <acc_x> <acc_y> <acc_z> <gyr_x> <gyr_y> <gyr_z>
- *                         a sample: t_us in 0 .. 2^64-1, counts in -32768 .. 32767
+ *                         a sample in raw counts: decimal integers in -32768 .. 32767
+ *     P <t_us> <b_x> <b_y> <b_z> <a_x> <a_y> <a_z> <w_x> <w_y> <w_z>
+ *                         a sample in physical units, which the feed quantises to counts as
+ *                         the sensors' ADCs would (mc_sensor_quantise, below): the magnetic
+ *                         field in tesla in the magnetometer's own axes (the world has applied
+ *                         its distortion: soft iron D, hard iron o, misalignment), the specific
+ *                         force in m/s^2 and the angular rate in rad/s in the body frame.
+ *                         Each is a decimal real: an optional '-', digits with an optional
+ *                         '.' and fraction (or '.' and a fraction), an optional exponent
+ *                         ('e' or 'E', optional sign, digits), e.g. 4.5e-05, -9.80665, 0, .5.
+ *                         The world simulator writes Python's repr() of each float, which
+ *                         strtod reads back to the same double (the SIL keeps the "C" locale).
  *     E <t_us>            a read at t_us that fails (sensor error injection)
  *     T <t_us>            the clock advances to t_us, no read
+ *
+ * Quantisation of a P line (mc_sensor_quantise), per value x and the sensor's count_scale
+ * (the table describe() reports, so the host converts back with the same scales):
+ *   lsb   = mc_sensor_count_si(count_scale): num / den, times (or divided by, for exp10 < 0)
+ *           10^|exp10|, times the unit's SI factor (GAUSS 1e-4, STANDARD_GRAVITY 9.80665,
+ *           DEG_PER_S pi / 180, others 1), each step one IEEE-754 double operation;
+ *   q     = x / lsb (one double division);
+ *   count = q rounded to the nearest integer, halves AWAY FROM ZERO (0.5 -> 1, -0.5 -> -1,
+ *           2.5 -> 3), computed exactly (no q + 0.5 double rounding);
+ *   saturation at the int16 register limits: q >= 32767 gives 32767, q <= -32768 gives
+ *           -32768. Not at the nominal full scale: ST's full scale (LIS3MDL +-4 G, LSM6DSO
+ *           +-4 g, +-500 dps) is the guaranteed range, and the 16-bit output goes on past it
+ *           to the register limits (LIS3MDL 4.79 G, LSM6DSO 3.998 g, 573 dps), where it clips.
+ *   A non-finite value (written nan, inf or infinity in any case, with an optional '-', or a
+ *   decimal too large for a double, like 1e999) is refused with MC_E_RANGE; any other text
+ *   that is not a decimal real (hexadecimal, '+' first, "1.2.3", "1e", ",") with MC_E_FRAME.
+ *   The refused line is not applied (the SIL device reports and skips it).
+ *   tests/sil/world.py (device_counts) mirrors this rule operation for operation, so the
+ *   tests predict the counts exactly.
  *
  * Not interrupt-safe: the SIL device calls put/apply and mc_acquire_poll from one thread.
  */
@@ -68,9 +98,25 @@ mc_status_t mc_sensor_feed_set_time(mc_sensor_feed_t *feed, uint64_t t_us);
 /* 1 when a sample or a failed read awaits a read, 0 otherwise (and for NULL). */
 int mc_sensor_feed_pending(const mc_sensor_feed_t *feed);
 
-/* Parse one line of the format above and apply it (put, put_error or set_time). Returns what
- * that returns, MC_E_FRAME for a malformed line (unknown letter, missing, extra or non-decimal
- * fields) or MC_E_RANGE for a number out of range; nothing is applied unless MC_OK. */
+/* Parse one line of the format above and apply it (put, put_error or set_time; a P line's
+ * values quantised with the feed's count scales). Returns what that returns, MC_E_FRAME for a
+ * malformed line (unknown letter, missing, extra or non-decimal fields), MC_E_RANGE for a
+ * number out of range or a non-finite P value; a malformed field wins over an out-of-range
+ * one. Nothing is applied unless MC_OK. */
 mc_status_t mc_sensor_feed_apply_line(mc_sensor_feed_t *feed, const char *line);
+
+/* Why apply_line refused a line, for a log message ("malformed line", ...); "ok" for MC_OK. */
+const char *mc_sensor_feed_refusal(mc_status_t st);
+
+/* The value of one count in SI units (T, m/s^2, rad/s) as the quantiser computes it (see
+ * above), or 0.0 for NULL or an invalid scale (num <= 0, den == 0, exp10 out of range or an
+ * unknown unit). */
+double mc_sensor_count_si(const mc_scale_t *count_scale);
+
+/* One physical value (SI units of count_scale's unit) to the int16 count a sensor with that
+ * count scale outputs, by the rule above, into *count. Returns MC_OK (also when saturated),
+ * MC_E_ARG (count NULL, or mc_sensor_count_si gives 0) or MC_E_RANGE (value not finite; *count
+ * untouched). */
+mc_status_t mc_sensor_quantise(double value_si, const mc_scale_t *count_scale, int16_t *count);
 
 #endif /* MAGCAL_PORT_POSIX_SENSOR_FEED_H */

@@ -11,10 +11,13 @@
  *   --tcp PORT       serve it on 127.0.0.1:PORT instead (0: an ephemeral port). One client at
  *                    a time; further clients wait in the backlog until it disconnects.
  *   --feed-tcp PORT  the sensor feed on 127.0.0.1:PORT (default 0: ephemeral), one client,
- *                    lines in sensor_feed.h's format. Each S line is one acquired sample
- *                    (then streamed as the running stream says), an E line a failed read, a
- *                    T line only moves the clock. A line the feed refuses is reported on
- *                    stderr ("magcal-sil: feed line N: ...") and skipped; the device goes on.
+ *                    lines in sensor_feed.h's format. Each S line (raw counts) or P line
+ *                    (physical values, which the feed quantises with the sensors' count
+ *                    scales below, as their ADCs would) is one acquired sample (then
+ *                    streamed as the running stream says), an E line a failed read, a T line
+ *                    only moves the clock. A line the feed refuses is reported on stderr
+ *                    ("magcal-sil: feed line N: status S (why), skipped: LINE") and skipped;
+ *                    the device goes on.
  *   --uid HEX        the 96-bit device uid, 1 to 24 hex digits (optional 0x); info's
  *                    device_uid[0] is its least significant 32 bits. Default 0 (none).
  *
@@ -82,7 +85,8 @@
  * queue up on loopback, so a slow host would see stale samples instead of counted drops. */
 #define SIL_SOCK_SNDBUF 16384u
 #define SIL_RX_SIZE 4096u
-#define SIL_FEED_LINE_MAX 256u
+/* A P line of nine 24-character reprs ("-1.2345678901234567e-05") is about 250 bytes. */
+#define SIL_FEED_LINE_MAX 512u
 
 typedef struct {
     uint8_t buf[SIL_TXQ_SIZE];
@@ -376,8 +380,8 @@ static void feed_line(void)
         if (S.line_len > 0u && S.line[S.line_len - 1u] == '\r') {
             S.line[S.line_len - 1u] = '\0';
         }
-        fprintf(stderr, "magcal-sil: feed line %lu: status %d, skipped: %s\n", S.line_no,
-                (int)st, S.line);
+        fprintf(stderr, "magcal-sil: feed line %lu: status %d (%s), skipped: %s\n", S.line_no,
+                (int)st, mc_sensor_feed_refusal(st), S.line);
         return;
     }
     if (mc_sensor_feed_pending(&S.feed)) {

@@ -1,30 +1,62 @@
 /*
- * The magcal firmware on mps2-an386 (Cortex-M4 under QEMU): UART0 is the host link.
+ * The magcal firmware on mps2-an386 (Cortex-M4 under QEMU): the protocol endpoint
+ * (mc_device_t, device.h; protocol/SPEC.md) on UART0, with synthetic sensors
+ * (synthetic_sensors.h) and a RAM-backed parameter flash (ram_flash.h).
+ * tests/target/test_qemu_target.py drives it.
  *
- * Until the protocol endpoint exists this is a bring-up program: it prints a banner line,
- * runs a self-test of the library modules that exist (CRC check values) and of the time
- * source, then echoes every byte it receives. tests/target/test_qemu_target.py drives it.
- * The protocol loop (frames in, dispatcher, frames out) replaces run_echo().
- *
- * Lines it prints (CR LF ended, key=value fields):
+ * Boot: it prints three text lines (CR LF ended, key=value fields), then one 0x00 byte, the
+ * protocol's frame delimiter, so the host's deframer starts clean at the first frame:
  *   magcal-target fw=<version> lib=<git revision> board=mps2-an386 cpu=cortex-m4
  *   selftest crc16=29B1 crc32=CBF43926 time=ok|backwards|stuck boot_us=<n> result=PASS|FAIL
- *   echo
- *   FAULT exception=<n>       (only from the fault hook)
+ *   protocol flash=erased|kept boots=<n>
+ *   FAULT exception=<n>       (only from the fault hook, at any time)
+ * "flash=kept" means the RAM flash held a formatted store from an earlier boot (a reset of
+ * the MCU), "boots" counts the boots since it was formatted. After the 0x00 only frames.
+ *
+ * Main loop (no interrupt but SysTick's millisecond tick):
+ *   - mc_device_poll: pending output to the UART, a due reset, queued samples streamed;
+ *   - the UART's received bytes into s_rx (MAIN_RX_SIZE), mc_device_rx_bytes on them, and
+ *     what it did not use kept for the next pass (it stops while a response is pending);
+ *   - mc_device_sample when the synthetic sensors have a sample due (every 10 ms of the
+ *     SysTick clock, one per pass). The acquisition's producer is thus the main loop, which
+ *     acquire.h allows; a late pass catches up, each sample with its own instant.
+ *   tx is mc_uart_cmsdk_try_write: it takes what the UART takes now and never waits, so a
+ *   full link drops (and counts) stream messages and holds responses (device.h).
+ *
+ * Reset: the protocol's reset (mc_device handles it) is followed by a real reboot: the reset
+ * hook waits until the UART has sent reset_resp, then requests a system reset (AIRCR
+ * SYSRESETREQ). QEMU resets the machine and reloads the image; the RAM flash is in .noinit,
+ * so the committed set survives and the new boot loads it as the active set. Time and the
+ * sample numbers start again from 0 after the reboot (both come from this boot).
  */
 #include <stddef.h>
 #include <stdint.h>
 
 #include "board.h"
 #include "magcal/crc.h"
+#include "magcal/device.h"
 #include "mc_target_version.h"
+#include "ram_flash.h"
 #include "startup.h"
+#include "synthetic_sensors.h"
 #include "systick_time.h"
 #include "uart_cmsdk.h"
 
-#ifndef MC_TARGET_FW_VERSION
-#define MC_TARGET_FW_VERSION "0.1.0"
+#define MC_STR_(x) #x
+#define MC_STR(x) MC_STR_(x)
+#define MC_TARGET_FW_MAJOR 0
+#define MC_TARGET_FW_MINOR 1
+#define MC_TARGET_FW_PATCH 0
+#define MC_TARGET_FW_VERSION                                                                   \
+    MC_STR(MC_TARGET_FW_MAJOR) "." MC_STR(MC_TARGET_FW_MINOR) "." MC_STR(MC_TARGET_FW_PATCH)
+#ifndef MC_TARGET_FW_BUILD
+#define MC_TARGET_FW_BUILD 0u
 #endif
+/* The device uid (info_resp), word 0 least significant: "MPS2" "AN386" as text, fixed since
+ * the emulated board has none. */
+#define MC_TARGET_UID0 0x36383341u /* "A386" */
+#define MC_TARGET_UID1 0x0000004Eu /* "N" */
+#define MC_TARGET_UID2 0x4D505332u /* "MPS2" */
 
 /* The catalogue check values of crc.h for "123456789". */
 #define SELFTEST_CRC16_CHECK 0x29B1u
@@ -34,7 +66,25 @@
 #define SELFTEST_TIME_STEP_US 20000u
 #define SELFTEST_SPIN_LIMIT 100000000u
 
+/* Received bytes the device has not used yet. */
+#define MAIN_RX_SIZE 64u
+/* After the UART's buffer has emptied, the shifter still sends the last byte: two character
+ * times at 115200 baud (10 bits each) before the reboot cuts the line. */
+#define RESET_DRAIN_US 200u
+#define SCB_AIRCR (*(volatile uint32_t *)0xE000ED0Cu)
+#define SCB_AIRCR_VECTKEY 0x05FA0000u
+#define SCB_AIRCR_SYSRESETREQ 0x4u
+
 static mc_uart_cmsdk_t s_uart;
+static mc_synth_sensors_t s_synth;
+static mc_sensor_hal_t s_hal;
+static mc_flash_t s_flash;
+/* Survives a reset of the MCU, not a power-off (ram_flash.h, mps2_an386.ld). */
+__attribute__((section(".noinit"))) static mc_ram_flash_store_t s_flash_store;
+static mc_sample_t s_ring[MC_RING_CAPACITY];
+static mc_device_t s_dev;
+static uint8_t s_rx[MAIN_RX_SIZE];
+static size_t s_rx_len;
 
 static void put_str(const char *s)
 {
@@ -108,23 +158,34 @@ static int run_selftest(void)
     return pass;
 }
 
-static void run_echo(void)
-{
-    put_str("echo\r\n");
-    for (;;) {
-        uint8_t byte;
-        if (mc_uart_cmsdk_read_byte(&s_uart, &byte) == MC_OK) {
-            (void)mc_uart_cmsdk_write(&s_uart, &byte, 1u);
-        }
-    }
-}
-
 void mc_startup_on_fault(uint32_t exception)
 {
     if (s_uart.regs != NULL) {
         put_str("FAULT exception=");
         put_dec(exception);
         put_str("\r\n");
+    }
+}
+
+static int uart_tx(void *ctx, const uint8_t *bytes, size_t len)
+{
+    return (int)mc_uart_cmsdk_try_write((mc_uart_cmsdk_t *)ctx, bytes, len);
+}
+
+/* After reset_resp went out (device.h): drain the UART, then reboot the MCU. */
+static void reboot(void *ctx)
+{
+    mc_uart_cmsdk_t *uart = (mc_uart_cmsdk_t *)ctx;
+    uint32_t t0;
+    while (mc_uart_cmsdk_tx_full(uart)) {
+    }
+    t0 = mc_systick_time_us();
+    while (mc_systick_time_us() - t0 < RESET_DRAIN_US) {
+    }
+    __asm__ volatile("dsb" ::: "memory");
+    SCB_AIRCR = SCB_AIRCR_VECTKEY | SCB_AIRCR_SYSRESETREQ;
+    __asm__ volatile("dsb" ::: "memory");
+    for (;;) {
     }
 }
 
@@ -141,6 +202,59 @@ int main(void)
     put_str("magcal-target fw=" MC_TARGET_FW_VERSION " lib=" MC_TARGET_LIB_REV
             " board=" MC_BOARD_NAME " cpu=" MC_BOARD_CPU "\r\n");
     (void)run_selftest();
-    run_echo();
-    return 0;
+    {
+        const int kept = mc_ram_flash_init(&s_flash, &s_flash_store);
+        put_str(kept ? "protocol flash=kept boots=" : "protocol flash=erased boots=");
+        put_dec(s_flash_store.boots);
+        put_str("\r\n");
+    }
+    mc_synth_init(&s_synth);
+    s_hal = mc_synth_hal(&s_synth);
+    {
+        mc_device_config_t cfg = {0};
+        cfg.tx = uart_tx;
+        cfg.tx_ctx = &s_uart;
+        cfg.on_reset = reboot;
+        cfg.reset_ctx = &s_uart;
+        cfg.hal = &s_hal;
+        cfg.ring = s_ring;
+        cfg.ring_capacity = MC_RING_CAPACITY;
+        cfg.flash = &s_flash;
+        cfg.slot_a_page = 0u;
+        cfg.slot_b_page = 1u;
+        cfg.pages_per_slot = 1u;
+        cfg.fw_version[0] = MC_TARGET_FW_MAJOR;
+        cfg.fw_version[1] = MC_TARGET_FW_MINOR;
+        cfg.fw_version[2] = MC_TARGET_FW_PATCH;
+        cfg.fw_build = (uint32_t)(MC_TARGET_FW_BUILD);
+        cfg.device_uid[0] = MC_TARGET_UID0;
+        cfg.device_uid[1] = MC_TARGET_UID1;
+        cfg.device_uid[2] = MC_TARGET_UID2;
+        cfg.sample_rate_mhz = MC_SYNTH_SAMPLE_RATE_MHZ;
+        if (mc_device_init(&s_dev, &cfg) != MC_OK) {
+            put_str("FAULT device\r\n");
+            return 1;
+        }
+    }
+    {
+        static const uint8_t delimiter = 0x00u;
+        (void)mc_uart_cmsdk_write(&s_uart, &delimiter, 1u);
+    }
+    for (;;) {
+        uint8_t byte;
+        (void)mc_device_poll(&s_dev);
+        while (s_rx_len < MAIN_RX_SIZE && mc_uart_cmsdk_read_byte(&s_uart, &byte) == MC_OK) {
+            s_rx[s_rx_len++] = byte;
+        }
+        if (s_rx_len > 0u) {
+            const size_t used = mc_device_rx_bytes(&s_dev, s_rx, s_rx_len);
+            for (size_t i = used; i < s_rx_len; ++i) {
+                s_rx[i - used] = s_rx[i];
+            }
+            s_rx_len -= used;
+        }
+        if (mc_synth_due(&s_synth)) {
+            (void)mc_device_sample(&s_dev);
+        }
+    }
 }

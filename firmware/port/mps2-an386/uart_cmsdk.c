@@ -33,6 +33,27 @@ mc_status_t mc_uart_cmsdk_write(mc_uart_cmsdk_t *uart, const uint8_t *data, size
     return MC_OK;
 }
 
+size_t mc_uart_cmsdk_try_write(mc_uart_cmsdk_t *uart, const uint8_t *data, size_t len)
+{
+    size_t n = 0;
+    if (uart == NULL || uart->regs == NULL || data == NULL) {
+        return 0;
+    }
+    while (n < len && (uart->regs->state & MC_UART_CMSDK_STATE_TXFULL) == 0u) {
+        uart->regs->data = data[n];
+        ++n;
+    }
+    return n;
+}
+
+int mc_uart_cmsdk_tx_full(const mc_uart_cmsdk_t *uart)
+{
+    if (uart == NULL || uart->regs == NULL) {
+        return 0;
+    }
+    return (uart->regs->state & MC_UART_CMSDK_STATE_TXFULL) != 0u;
+}
+
 mc_status_t mc_uart_cmsdk_puts(mc_uart_cmsdk_t *uart, const char *s)
 {
     if (s == NULL) {

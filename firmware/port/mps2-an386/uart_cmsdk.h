@@ -10,6 +10,12 @@
  *
  * No interrupts are used: the caller polls mc_uart_cmsdk_read_byte often enough that the
  * one-byte receive buffer does not overrun (overruns are counted, see rx_overruns).
+ * Transmit either waits (mc_uart_cmsdk_write, for the boot text) or never waits
+ * (mc_uart_cmsdk_try_write, for the protocol: the link reports full instead).
+ *
+ * Under QEMU the transmit buffer is "full" only while the host side (the pty) does not take
+ * bytes, and the receiver holds further input back while RXFULL is set, so nothing received
+ * is lost there; on hardware TXFULL is set for one character time (87 us at 115200 baud).
  */
 #ifndef MAGCAL_PORT_UART_CMSDK_H
 #define MAGCAL_PORT_UART_CMSDK_H
@@ -47,6 +53,13 @@ mc_status_t mc_uart_cmsdk_init(mc_uart_cmsdk_t *uart, uintptr_t base, uint32_t p
 
 /* Send len bytes, waiting while the transmit buffer is full. */
 mc_status_t mc_uart_cmsdk_write(mc_uart_cmsdk_t *uart, const uint8_t *data, size_t len);
+
+/* Send what fits now without waiting: bytes are written while the transmit buffer is not
+ * full, and the count written (0 .. len) is returned. 0 for a NULL pointer. */
+size_t mc_uart_cmsdk_try_write(mc_uart_cmsdk_t *uart, const uint8_t *data, size_t len);
+
+/* 1 while the transmit buffer holds a byte not yet taken by the shifter (TXFULL), else 0. */
+int mc_uart_cmsdk_tx_full(const mc_uart_cmsdk_t *uart);
 
 /* Send a NUL-terminated string. */
 mc_status_t mc_uart_cmsdk_puts(mc_uart_cmsdk_t *uart, const char *s);

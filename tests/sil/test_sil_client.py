@@ -1,13 +1,18 @@
 """The host's client library against the SIL device (build/sil/magcal-sil) end to end:
-open_link("socket://..."), hello/info, a simulated session fed through the feed socket
-(tests/sil/world.py) and streamed back raw (count, order, values), flash_parameters of the
-simulator's true calibration, then the corrected stream within 1 LSB of fixed_point.emulate.
+open_link("socket://..."), hello/info, a simulated session fed through the feed socket as
+physical values (tests/sil/world.py, P lines) and streamed back raw as the counts the device
+made of them (count, order, values exactly as world.device_counts predicts), flash_parameters
+of the simulator's true calibration, then the corrected stream within 1 LSB of
+fixed_point.emulate. And the device's quantisation at the edges: values at half counts,
+past the full scale and at +-1e300 (saturation at the int16 limits), non-finite values
+refused and skipped.
 
 Uses the start_sil fixture of tests/sil/conftest.py (which builds the executable with make).
 """
 
 from __future__ import annotations
 
+import re
 import shutil
 
 import numpy as np
@@ -15,6 +20,7 @@ import pytest
 
 from magcal.device import fixed_point
 from magcal.device.client import (
+    SENSOR_KINDS,
     ClientConfig,
     Corrected,
     DeviceClient,
@@ -27,7 +33,7 @@ from magcal.device.generated import Unit
 from magcal.link import open_link
 from magcal.sim.scenarios import preset, simulate
 from tests.sil.conftest import REPO_ROOT, SIL_BINARY
-from tests.sil.world import FeedClient, make_world
+from tests.sil.world import FeedClient, count_si, device_counts, make_world, physical_line
 
 LINK_OPEN_TIMEOUT_S = 5.0
 SIL_STREAM_TIMEOUT_S = 10.0  # a loaded machine (2 shared cores) may be slow to feed
@@ -113,3 +119,87 @@ def test_client_streams_flashes_and_corrects(start_sil, tmp_path):
     finally:
         client.close()
     assert sil.stop() == 0
+
+
+def _edge_rows(lsb: list[float], rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 9) physical values at the edges of the quantisation, and (M,) the indices of the
+    rows that must saturate (each value at +32767 or -32768)."""
+    lsb9 = np.repeat(np.asarray(lsb), 3)
+    rows = [
+        rng.uniform(-32767.9, 32766.9, (40, 9)) * lsb9,  # anywhere in the register range
+        (rng.integers(-32768, 32767, (20, 9)) + 0.5) * lsb9,  # at half counts: ties
+        (rng.integers(-32767, 32767, (10, 9)) - 0.5) * lsb9,
+        (rng.integers(-32768, 32767, (10, 9)) + 0.4999) * lsb9,  # just either side
+        (rng.integers(-32768, 32767, (10, 9)) + 0.5001) * lsb9,
+        np.zeros((1, 9)),
+        np.full((1, 9), -0.0),
+        np.full((1, 9), 5e-324),
+    ]
+    n_in = sum(len(r) for r in rows)
+    sat = [
+        np.full((1, 9), 1e300),
+        np.full((1, 9), -1e300),
+        np.full((1, 9), 32767.5) * lsb9,
+        np.full((1, 9), -32768.5) * lsb9,
+        np.full((1, 9), 40000.0) * lsb9,
+        # 5 G, 5 g and 20 rad/s: past the nominal full scale and the register limits
+        np.array([[5e-4, -5e-4, 5e-4, 49.03325, -49.03325, 49.03325, 20.0, -20.0, 20.0]]),
+    ]
+    all_rows = np.vstack(rows + sat)
+    return all_rows, np.arange(n_in, len(all_rows))
+
+
+def test_device_quantises_physical_lines(start_sil, tmp_path):
+    sil = start_sil(tmp_path / "flash.bin")
+    client = _client(sil)
+    try:
+        client.hello()
+        info = client.info()
+        scales = [info.sensor(kind).count_scale for kind in SENSOR_KINDS]
+        rows, sat = _edge_rows([count_si(s) for s in scales], np.random.default_rng(7))
+        # The nominal full scale (+-4 G, +-4 g, +-500 dps) is inside the register range or at
+        # its edge: 27368, 32787 -> 32767 and 28571 counts.
+        nominal = np.array([[4e-4, -4e-4, 0.0, 39.2266, -39.2266, 0.0, 500 * np.pi / 180, 0, 0]])
+        rows = np.vstack([rows, nominal])
+        want = np.concatenate(
+            [device_counts(rows[:, 3 * k : 3 * k + 3], scales[k]) for k in range(3)], axis=1
+        )
+        t_us = 1_000 + 10_000 * np.arange(len(rows))
+        lines = [physical_line(t, r[:3], r[3:6], r[6:]) for t, r in zip(t_us, rows, strict=True)]
+        # Two refused lines in between: skipped, the device goes on.
+        refused = [
+            f"P {t_us[5] + 1} nan 0 0 0 0 0 0 0 0\n",
+            f"P {t_us[5] + 2} 0 0 0 -inf 0 0 0 0 0\n",
+        ]
+        lines[6:6] = refused
+
+        client.stream_start(StreamKind.RAW)
+        with FeedClient("127.0.0.1", sil.feed_port) as feed:
+            feed.send_lines(lines)
+            raw = list(client.stream(len(rows), SIL_STREAM_TIMEOUT_S))
+            stats = client.stream_stop()
+        assert (stats.sent, stats.dropped) == (len(rows), 0)
+        assert [s.t_us for s in raw] == t_us.tolist()
+        got = np.array([[*s.mag, *s.acc, *s.gyr] for s in raw])
+        # The device's counts are exactly the mirror's prediction, row by row...
+        assert np.array_equal(got, want)
+        # ...which saturates at the int16 limits as documented, never wrapping.
+        assert np.all(np.isin(got[sat], (32767, -32768)))
+        assert np.array_equal(np.sign(got[sat]), np.sign(rows[sat]))
+        assert got[-1].tolist() == [27368, -27368, 0, 32767, -32768, 0, 28571, 0, 0]
+        # In range, the counts are the nearest ones (half counts away from zero).
+        q = rows[: sat[0]] / np.repeat([count_si(s) for s in scales], 3)
+        assert np.all(np.abs(got[: sat[0]] - q) <= 0.5)
+        ties = np.abs(np.abs(q - np.trunc(q)) - 0.5) == 0
+        assert ties.sum() > 50
+        assert np.array_equal(np.abs(got[: sat[0]][ties]), np.abs(np.trunc(q[ties])) + 1)
+    finally:
+        client.close()
+    assert sil.stop() == 0
+    err = sil.stderr_text()
+    for n, value in ((7, "nan"), (8, "-inf")):
+        assert re.search(
+            rf"feed line {n}: status -2 \(a value out of range, not finite, or a time before "
+            rf"the clock\), skipped: P \d+ .*{re.escape(value)}",
+            err,
+        ), err

@@ -3,26 +3,38 @@
 The SIL executable (build/sil/magcal-sil) reads its sensors from a TCP "feed" socket, one text
 line per event (firmware/port/posix/sensor_feed.h):
 
-    S t_us mx my mz ax ay az gx gy gz     one acquired sample, int16 raw counts
+    P t_us bx by bz ax ay az gx gy gz     one sample in physical units (T, m/s^2, rad/s)
+    S t_us mx my mz ax ay az gx gy gz     one sample in int16 raw counts (tests that script
+                                          exact counts write these themselves)
     E t_us                                a failed read
     T t_us                                the clock moves
 
+The world sends P lines: what the sensors physically see. The device quantises them to raw
+counts with its own count scales, as a sensor's ADC would; the world does not quantise.
+
 :func:`make_world` takes a session and its truth from ``magcal.sim`` (``simulate(preset(...),
-seed)``) and the device's count scales (``DeviceInfo.sensor(kind).count_scale``) and gives the
-raw counts the device's sensors would read:
+seed)``) and gives what the device's sensors see, sample by sample:
 
 - magnetometer: the session's reading (``D R_bn m_n + o`` plus noise, in field units since
   ``m_n`` is a unit vector) times ``field_t / field_scale`` tesla (default 50 uT), i.e. the
-  distorted field in its own axes;
-- accelerometer m/s^2 and gyroscope rad/s in the body frame, as simulated;
-- each divided by the value of one count and rounded to the nearest integer (ties to even),
-  saturated to int16; times in microseconds.
+  field distorted by soft iron, hard iron and misalignment, in the sensor's own axes;
+- accelerometer m/s^2 and gyroscope rad/s in the body frame, as simulated (with noise);
+- times in microseconds.
+
+:func:`device_counts` predicts the counts the device makes of those values. It mirrors the
+port's rule (mc_sensor_quantise in sensor_feed.c) operation for operation in IEEE-754
+doubles, so the prediction is exact, not approximate: the value of a count
+(:func:`count_si`: num / den, times or divided by 10^|exp10|, times the unit's factor as a
+double), one division, round to nearest with halves away from zero, saturation at the int16
+limits (not at the nominal full scale). The values go on the wire as Python's ``repr`` of
+each float, which the device's strtod reads back to the same double.
 
 :class:`FeedClient` connects to the feed socket and sends the lines, optionally paced.
 """
 
 from __future__ import annotations
 
+import math
 import socket
 import time
 from dataclasses import dataclass
@@ -31,13 +43,13 @@ import numpy as np
 
 from magcal.device import fixed_point
 from magcal.device.client import DeviceInfo, Scale
+from magcal.device.generated import Unit
 from magcal.errors import MagcalError
 from magcal.io.session import Session
 from magcal.sim.model import ideal_measurements
 from magcal.sim.scenarios import SimTruth
 
 FIELD_STRENGTH_T = 50e-6  # local field magnitude, tesla (mid-latitude Earth field)
-INT16_MIN, INT16_MAX = -(1 << 15), (1 << 15) - 1
 FEED_CONNECT_TIMEOUT_S = 5.0
 FEED_SEND_TIMEOUT_S = 5.0
 
@@ -46,26 +58,84 @@ class WorldError(MagcalError):
     """The world cannot be fed to the device (bad scales, non-finite values, socket)."""
 
 
-def quantise(values_si: np.ndarray, scale: Scale) -> np.ndarray:
-    """SI values -> int16 counts: round to nearest (ties to even), saturate.
+# The SI factor of each unit as the port has it: one double each (sensor_feed.c,
+# unit_si_factor; its pi is math.pi, so pi / 180 is the same double).
+_UNIT_FACTOR_DOUBLE: dict[Unit, float] = {
+    Unit.TESLA: 1.0,
+    Unit.GAUSS: 1e-4,
+    Unit.METRE_PER_S2: 1.0,
+    Unit.STANDARD_GRAVITY: 9.80665,
+    Unit.RAD_PER_S: 1.0,
+    Unit.DEG_PER_S: math.pi / 180.0,
+}
+SCALE_EXP10_MIN, SCALE_EXP10_MAX = -18, 18
+
+
+def count_si(scale: Scale) -> float:
+    """The value of one count in SI units exactly as the port computes it (a mirror of
+    mc_sensor_count_si): ``num / den``, then times ``10**exp10`` (divided by ``10**-exp10``
+    when negative; powers of ten up to 10^18 are exact doubles), then times the unit's factor,
+    each one double operation. Within a few ulp of :attr:`Scale.si` (the exact value rounded
+    once), but this is the one the device divides by."""
+    factor = _UNIT_FACTOR_DOUBLE.get(scale.unit)
+    if (
+        factor is None
+        or scale.num <= 0
+        or scale.den <= 0
+        or not SCALE_EXP10_MIN <= scale.exp10 <= SCALE_EXP10_MAX
+    ):
+        raise WorldError(f"count_si: {scale} is not a valid count scale; check the device info")
+    v = float(scale.num) / float(scale.den)
+    p10 = float(10 ** abs(scale.exp10))
+    v = v / p10 if scale.exp10 < 0 else v * p10
+    return v * factor
+
+
+def device_counts(values_si: np.ndarray, scale: Scale) -> np.ndarray:
+    """The int16 counts the SIL device makes of physical values (a mirror of the port's
+    mc_sensor_quantise, firmware/port/posix/sensor_feed.h), exactly:
+
+    q = value / count_si(scale); q >= 32767 -> 32767, q <= -32768 -> -32768 (saturation at the
+    int16 register limits); otherwise the nearest integer, halves away from zero (0.5 -> 1,
+    -2.5 -> -3), from the exact fraction ``|q| - trunc(|q|)`` (no ``q + 0.5`` rounding).
 
     values_si : (...,) float, SI units of scale (T, m/s^2, rad/s). Returns int16, same shape.
+    Non-finite values raise WorldError (the device refuses such a line).
     """
     v = np.asarray(values_si, dtype=np.float64)
     if not np.all(np.isfinite(v)):
-        raise WorldError("quantise: non-finite value; check the simulated session")
-    counts = np.rint(v / scale.si)
-    return np.clip(counts, INT16_MIN, INT16_MAX).astype(np.int16)
+        raise WorldError("device_counts: non-finite value; check the simulated session")
+    with np.errstate(over="ignore"):
+        q = v / count_si(scale)  # may overflow to +-inf: saturates below
+    a = np.abs(q)
+    n = np.trunc(np.minimum(a, 32768.0))
+    n = n + (a - n >= 0.5)
+    c = np.where(q < 0.0, -n, n)
+    c = np.where(q >= 32767.0, 32767.0, np.where(q <= -32768.0, -32768.0, c))
+    return c.astype(np.int16)
+
+
+def physical_line(t_us: int, mag_t, acc_si, gyr_si) -> str:
+    """One P line (ending in a newline): magnetometer in tesla, accelerometer in m/s^2,
+    gyroscope in rad/s, each value as Python's repr (exact: strtod reads back the same
+    double). Non-finite values raise WorldError (the device would refuse the line)."""
+    vals = [float(x) for x in (*mag_t, *acc_si, *gyr_si)]
+    if len(vals) != 9:
+        raise WorldError(f"physical_line: 9 values needed, got {len(vals)}")
+    if not all(math.isfinite(x) for x in vals):
+        raise WorldError("physical_line: non-finite value; the device would refuse the line")
+    return f"P {int(t_us)} " + " ".join(repr(x) for x in vals) + "\n"
 
 
 @dataclass(frozen=True)
 class World:
-    """What the device's sensors read, sample by sample.
+    """What the device's sensors see, sample by sample, and the counts it will make of it.
 
     t_us : (N,) int64, microseconds
-    mag, acc, gyr : (N, 3) int16 raw counts
-    mag_t : (N, 3) float, the magnetometer reading in tesla before quantisation
-    acc_si, gyr_si : (N, 3) float, m/s^2 and rad/s before quantisation
+    mag_t : (N, 3) float, the magnetometer's field in tesla, its own axes (what is sent)
+    acc_si, gyr_si : (N, 3) float, m/s^2 and rad/s, body frame (what is sent)
+    mag, acc, gyr : (N, 3) int16, the raw counts the device will make of them
+        (:func:`device_counts`, exact)
     counts_per_unit : magnetometer counts per session field unit (k): the device sees
         ``y_counts = k (D R m + o)``, so the calibration in counts is ``(k D, k o)``
     """
@@ -84,12 +154,11 @@ class World:
         return int(self.t_us.shape[0])
 
     def lines(self, start: int = 0, stop: int | None = None) -> list[str]:
-        """The S lines of samples [start, stop), each ending in a newline."""
-        out = []
-        for k in range(start, len(self) if stop is None else stop):
-            vals = (*self.mag[k], *self.acc[k], *self.gyr[k])
-            out.append(f"S {int(self.t_us[k])} " + " ".join(str(int(v)) for v in vals) + "\n")
-        return out
+        """The P lines of samples [start, stop), each ending in a newline."""
+        return [
+            physical_line(self.t_us[k], self.mag_t[k], self.acc_si[k], self.gyr_si[k])
+            for k in range(start, len(self) if stop is None else stop)
+        ]
 
     def device_params(self, **kw) -> fixed_point.DeviceParams:
         """The true calibration as the device's parameter set (raw counts in, unit-norm field
@@ -109,7 +178,8 @@ def make_world(
     noise: bool = True,
     t0_us: int = 0,
 ) -> World:
-    """The raw counts of a simulated session for a device with ``info``'s count scales.
+    """What the sensors of a device with ``info``'s count scales see during a simulated
+    session, and the counts the device will make of it.
 
     noise : True uses the session's noisy readings; False the noise-free ones (needs the
         truth's trajectory)
@@ -128,21 +198,23 @@ def make_world(
     t_us = t0_us + np.rint(np.asarray(session.t) * 1e6).astype(np.int64)
     if np.any(np.diff(t_us) <= 0) or t_us[0] < 0:
         raise WorldError("make_world: times must increase by at least 1 us and start >= 0")
+    acc_si = np.asarray(acc, dtype=np.float64)
+    gyr_si = np.asarray(gyr, dtype=np.float64)
     return World(
         t_us=t_us,
-        mag=quantise(mag_t, s_mag),
-        acc=quantise(acc, info.sensor("acc").count_scale),
-        gyr=quantise(gyr, info.sensor("gyr").count_scale),
+        mag=device_counts(mag_t, s_mag),
+        acc=device_counts(acc_si, info.sensor("acc").count_scale),
+        gyr=device_counts(gyr_si, info.sensor("gyr").count_scale),
         mag_t=mag_t,
-        acc_si=np.asarray(acc, dtype=np.float64),
-        gyr_si=np.asarray(gyr, dtype=np.float64),
+        acc_si=acc_si,
+        gyr_si=gyr_si,
         counts_per_unit=field_t / field_scale / s_mag.si,
         truth=truth,
     )
 
 
 class FeedClient:
-    """The SIL's feed socket: sends S/E/T lines, optionally pace_s apart."""
+    """The SIL's feed socket: sends P/S/E/T lines, optionally pace_s apart."""
 
     def __init__(self, host: str, port: int, timeout_s: float = FEED_CONNECT_TIMEOUT_S) -> None:
         try:

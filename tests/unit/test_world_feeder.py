@@ -1,9 +1,12 @@
-"""tests/sil/world.py: quantisation to int16 counts, the exact round trip counts -> SI (the
-client's conversion) -> counts, the feed lines, the feed socket, and the true calibration in
-the device's format."""
+"""tests/sil/world.py: the mirror of the SIL port's quantisation (the value of a count, round
+half away from zero, saturation at the int16 limits), the exact round trip counts -> SI (the
+client's conversion) -> counts, the physical feed lines (exact reprs), the feed socket, and
+the true calibration in the device's format. tests/sil/test_sil_client.py checks the mirror
+against the device itself."""
 
 from __future__ import annotations
 
+import math
 import socket
 import threading
 
@@ -15,7 +18,14 @@ from magcal.device.client import DeviceClient, Scale
 from magcal.device.generated import Unit
 from magcal.sim.scenarios import preset, simulate
 from tests.fake_device import FakeDevice, MemoryLink
-from tests.sil.world import FeedClient, WorldError, make_world, quantise
+from tests.sil.world import (
+    FeedClient,
+    WorldError,
+    count_si,
+    device_counts,
+    make_world,
+    physical_line,
+)
 
 SCALES = {
     "LIS3MDL 4 G": Scale(1, 6842, 0, Unit.GAUSS),
@@ -40,30 +50,79 @@ def sim():
     return simulate(preset("mems", duration_s=4.0, stationary_s=0.5), seed=11)
 
 
+def test_count_si_mirrors_the_port():
+    # sensor_feed.c: num / den, times or divided by 10^|exp10|, times the unit's double.
+    assert count_si(Scale(1, 6842, 0, Unit.GAUSS)) == 1.0 / 6842.0 * 1e-4
+    assert count_si(Scale(122, 1, -6, Unit.STANDARD_GRAVITY)) == 122.0 / 1.0 / 1e6 * 9.80665
+    assert count_si(Scale(175, 1, -4, Unit.DEG_PER_S)) == 175.0 / 1.0 / 1e4 * (math.pi / 180)
+    assert count_si(Scale(2000, 1, 18, Unit.TESLA)) == 2e21
+    for s in SCALES.values():  # a few ulp from the exact value the host converts with
+        assert abs(count_si(s) / s.si - 1) < 1e-15
+    for bad in (
+        Scale(0, 1, 0, Unit.TESLA),
+        Scale(1, 0, 0, Unit.TESLA),
+        Scale(1, 1, 19, Unit.TESLA),
+    ):
+        with pytest.raises(WorldError, match="not a valid count scale"):
+            count_si(bad)
+
+
 @pytest.mark.parametrize("name", list(SCALES))
 def test_every_count_round_trips_exactly(name):
     s = SCALES[name]
     si = s.counts_to_si(ALL_COUNTS)
-    assert np.array_equal(quantise(si, s), ALL_COUNTS)
+    assert np.array_equal(device_counts(si, s), ALL_COUNTS)
     # Half an LSB either side still lands on the count (round to nearest).
     lsb = s.si
-    assert np.array_equal(quantise(si[1:-1] + 0.49 * lsb, s), ALL_COUNTS[1:-1])
-    assert np.array_equal(quantise(si[1:-1] - 0.49 * lsb, s), ALL_COUNTS[1:-1])
+    assert np.array_equal(device_counts(si[1:-1] + 0.49 * lsb, s), ALL_COUNTS[1:-1])
+    assert np.array_equal(device_counts(si[1:-1] - 0.49 * lsb, s), ALL_COUNTS[1:-1])
 
 
-def test_quantise_rounds_to_nearest_and_saturates():
-    s = Scale(1, 1000, 0, Unit.TESLA)  # 1 mT per count
-    v = np.array([0.0014, 0.0016, -0.0014, -0.0016, 0.0025, 1e3, -1e3, 32.7674, -32.7684])
-    assert quantise(v, s).tolist() == [1, 2, -1, -2, 2, 32767, -32768, 32767, -32768]
-    assert quantise(v, s).dtype == np.int16
-    with pytest.raises(WorldError, match="quantise: non-finite value"):
-        quantise(np.array([np.nan]), s)
+def test_device_counts_round_half_away_and_saturate():
+    s = Scale(1, 1, 0, Unit.TESLA)  # 1 T per count: the quotient is the value, halves exact
+    cases = [  # (value, count)
+        (0.0, 0),
+        (-0.0, 0),
+        (0.4, 0),
+        (0.49999999999999994, 0),  # the double below 1/2: q + 0.5 would round it up to 1
+        (-0.49999999999999994, 0),
+        (0.5, 1),
+        (-0.5, -1),
+        (1.5, 2),
+        (2.5, 3),
+        (-2.5, -3),
+        (2.4999999999999996, 2),
+        (32766.5, 32767),
+        (32767.0, 32767),
+        (32767.5, 32767),
+        (32768.0, 32767),
+        (1e300, 32767),
+        (-32767.4, -32767),
+        (-32767.5, -32768),
+        (-32768.0, -32768),
+        (-32768.5, -32768),
+        (-1e300, -32768),
+        (5e-324, 0),
+    ]
+    got = device_counts(np.array([v for v, _ in cases]), s)
+    assert got.dtype == np.int16 and got.tolist() == [c for _, c in cases]
+    tiny = Scale(1, 1000, -18, Unit.TESLA)  # 1e-21 T: the quotient overflows to inf
+    assert device_counts(np.array([1e300, -1e300]), tiny).tolist() == [32767, -32768]
+    # The SIL's sensors at and past their nominal full scale (int16 limits, not the range).
+    assert device_counts(np.array([4e-4, 5e-4]), Scale(1, 6842, 0, Unit.GAUSS)).tolist() == [
+        27368,
+        32767,
+    ]
+    for bad in (np.nan, np.inf, -np.inf):
+        with pytest.raises(WorldError, match="device_counts: non-finite value"):
+            device_counts(np.array([0.0, bad]), s)
 
 
 def test_world_counts_match_physics(info, sim):
     session, truth = sim
     w = make_world(session, truth, info)
     assert len(w) == len(session.t) and w.mag.dtype == np.int16
+    assert np.array_equal(w.mag, device_counts(w.mag_t, info.sensor("mag").count_scale))
     assert np.all(np.diff(w.t_us) == 10_000)  # 100 Hz
     # The field is 50 uT in tesla, distorted: |D^-1 (y - o)| = 50 uT (noise-free).
     wi = make_world(session, truth, info, noise=False)
@@ -97,8 +156,17 @@ def test_lines_format(info, sim):
     lines = w.lines(0, 3)
     assert len(lines) == 3 and all(line.endswith("\n") for line in lines)
     f = lines[1].split()
-    assert f[0] == "S" and int(f[1]) == 10_005 and len(f) == 11
-    assert [int(x) for x in f[2:]] == [*w.mag[1], *w.acc[1], *w.gyr[1]]
+    assert f[0] == "P" and int(f[1]) == 10_005 and len(f) == 11
+    # The physical values, exactly (repr reads back as the same double), not counts.
+    assert [float(x) for x in f[2:]] == [*w.mag_t[1], *w.acc_si[1], *w.gyr_si[1]]
+    assert max(len(line) for line in w.lines()) < 512  # magcal-sil's line limit
+    assert physical_line(7, [1e-5, -0.0, 5e-324], [1, 2, 3], [0.1, 1e300, -2.5]) == (
+        "P 7 1e-05 -0.0 5e-324 1.0 2.0 3.0 0.1 1e+300 -2.5\n"
+    )
+    with pytest.raises(WorldError, match="non-finite value"):
+        physical_line(7, [np.nan, 0, 0], [0, 0, 0], [0, 0, 0])
+    with pytest.raises(WorldError, match="9 values needed"):
+        physical_line(7, [0, 0], [0, 0, 0], [0, 0, 0])
 
 
 def test_world_refuses_bad_times(info, sim):

@@ -63,6 +63,8 @@
 #endif
 #endif
 
-/* ---- protocol endpoint (frame.h, dispatch.h) ---- */
+/* ---- protocol endpoint (frame.h, messages.h, device.h) ----
+ * No knobs: frame and payload sizes are protocol constants both sides must agree on, so they
+ * come from protocol/schema.json through the generated messages.h, not from -D flags. */
 
 #endif /* MAGCAL_CONFIG_H */

@@ -25,13 +25,35 @@ def _missing() -> str | None:
     return None
 
 
-@pytest.fixture(scope="module")
-def target():
-    """One QEMU target for a test module: booted, its UART open, shut down afterwards."""
+def require_target() -> None:
+    """Skip (or, with MAGCAL_REQUIRE_TARGET=1, fail) when QEMU or the image is missing."""
     missing = _missing()
     if missing is not None:
         if os.environ.get(REQUIRE_ENV) == "1":
             pytest.fail(f"{REQUIRE_ENV}=1 and {missing}")
         pytest.skip(missing)
+
+
+@pytest.fixture(scope="module")
+def target():
+    """One QEMU target for a test module: booted, its UART open, shut down afterwards."""
+    require_target()
     with QemuTarget() as t:
         yield t
+
+
+@pytest.fixture
+def target_factory():
+    """A function that starts a fresh QemuTarget (not yet read from); every one it started
+    is shut down after the test."""
+    require_target()
+    started: list[QemuTarget] = []
+
+    def start() -> QemuTarget:
+        t = QemuTarget()
+        started.append(t)
+        return t.start()
+
+    yield start
+    for t in started:
+        t.close()

@@ -82,7 +82,9 @@ void mc_synth_init(mc_synth_sensors_t *s)
     s->now_us = 0u;
     s->backsteps = 0u;
     now = mc_synth_now_us(s);
-    s->next_due_us = (now / MC_SYNTH_PERIOD_US + 1u) * MC_SYNTH_PERIOD_US;
+    /* The clock has just started (it is below 2^32 us): a 32-bit division does, and keeps
+     * libgcc's 64-bit division out of the image. */
+    s->next_due_us = ((uint64_t)((uint32_t)now / MC_SYNTH_PERIOD_US) + 1u) * MC_SYNTH_PERIOD_US;
 }
 
 int mc_synth_due(mc_synth_sensors_t *s)

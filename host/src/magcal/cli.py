@@ -272,7 +272,17 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True)
     _add_simulate(sub)
     _add_calibrate(sub)
+    _add_device_commands(sub)
     return parser
+
+
+def _add_device_commands(sub) -> None:
+    """The commands that talk to a device (magcal.commands); imported here, not at the top,
+    so that simulate and calibrate do not load the serial stack."""
+    # One line per command module; each sets its parser's ``run``.
+    from magcal.commands import info
+
+    info.add_parser(sub)
 
 
 def refusal(command: str, exc: BaseException | str) -> str:

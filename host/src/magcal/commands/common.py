@@ -1,0 +1,48 @@
+"""What every device command shares: the link arguments and opening a device session."""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+from magcal.device.client import DeviceClient, DeviceInfo, HelloResult
+from magcal.errors import MagcalError
+from magcal.link import open_link
+
+#: How long opening the link may take (a USB device re-enumerating after a reset), s.
+OPEN_TIMEOUT_S = 5.0
+
+
+def add_link_arguments(p: argparse.ArgumentParser) -> None:
+    """``--port URL`` (required for now; ``--mavlink`` comes with the autopilot issue)."""
+    p.add_argument(
+        "--port",
+        required=True,
+        metavar="URL",
+        help="the device: a serial device or pseudo-terminal path, or socket://host:port "
+        "(anything pyserial's serial_for_url accepts)",
+    )
+
+
+@dataclass(frozen=True)
+class DeviceSession:
+    """An open link with a negotiated protocol version and the device's description."""
+
+    url: str
+    client: DeviceClient
+    hello: HelloResult
+    info: DeviceInfo
+
+
+@contextlib.contextmanager
+def open_device(url: str) -> Iterator[DeviceSession]:
+    """Open ``url``, say hello, read info; close the link on the way out, whatever happens."""
+    if not url:
+        raise MagcalError("no device given: pass --port URL")
+    with open_link(url, OPEN_TIMEOUT_S) as link:
+        client = DeviceClient(link)
+        hello = client.hello()
+        info = client.info()
+        yield DeviceSession(url=url, client=client, hello=hello, info=info)

@@ -1,0 +1,48 @@
+"""``magcal info --port URL``: what the device says about itself."""
+
+from __future__ import annotations
+
+import sys
+
+from magcal.commands.common import add_link_arguments, open_device
+from magcal.device.client import Scale
+
+SI_UNIT = {"mag": "T", "acc": "m/s²", "gyr": "rad/s"}
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("info", help="show the device's firmware, protocol and sensors")
+    add_link_arguments(p)
+    p.set_defaults(run=run)
+
+
+def _scale_text(s: Scale) -> str:
+    exp = f" × 10^{s.exp10}" if s.exp10 else ""
+    return f"{s.num}/{s.den}{exp} {s.unit.name.lower()}"
+
+
+def run(args, out=None) -> int:
+    out = out or sys.stdout
+    with open_device(args.port) as dev:
+        i = dev.info
+        print(f"device     {args.port}, uid {i.uid_hex}", file=out)
+        print(f"firmware   {i.fw_version_str} (build {i.fw_build:08x})", file=out)
+        print(
+            f"protocol   version {dev.hello.version} "
+            f"(device supports {dev.hello.device_min_version}..{dev.hello.device_max_version})",
+            file=out,
+        )
+        print(
+            f"parameters format {i.params_format_version}, {i.params_size} bytes; "
+            f"sample rate {i.sample_rate_hz:g} Hz",
+            file=out,
+        )
+        for s in i.sensors:
+            full = _scale_text(s.full_scale)
+            count = f"{_scale_text(s.count_scale)} = {s.count_scale.si:.6g} {SI_UNIT[s.kind]}"
+            print(
+                f"{s.kind:<10} {s.name} (id 0x{s.sensor_id:02x}): full scale ±{full}, "
+                f"one count = {count}",
+                file=out,
+            )
+    return 0

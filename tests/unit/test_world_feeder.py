@@ -17,8 +17,7 @@ from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, Scale
 from magcal.device.generated import Unit
 from magcal.sim.scenarios import preset, simulate
-from tests.fake_device import FakeDevice, MemoryLink
-from tests.sil.world import (
+from magcal.sim.world import (
     FeedClient,
     WorldError,
     count_si,
@@ -26,6 +25,7 @@ from tests.sil.world import (
     make_world,
     physical_line,
 )
+from tests.fake_device import FakeDevice, MemoryLink
 
 SCALES = {
     "LIS3MDL 4 G": Scale(1, 6842, 0, Unit.GAUSS),

@@ -1,0 +1,368 @@
+"""Recording a calibration session from the device's raw stream.
+
+:func:`collect` starts a raw stream, converts each sample's counts to SI units with the
+device's exact count scales, tracks the coverage of field directions
+(:mod:`magcal.device.coverage`) and stops at a coverage target, a duration, a sample count or
+Ctrl-C. It returns a :class:`CollectResult` holding a :class:`~magcal.io.session.Session`:
+
+- ``t`` seconds of the device clock (``t_us / 1e6``; t_us is a 64-bit microsecond counter that
+  never wraps), ``gyr`` rad/s, ``acc`` m/s², ``mag`` µT (``# mag_unit: uT``). Each value is
+  the exact rational count scale (for µT: times 10^6) rounded once to a float64;
+- metadata (``# key: value``, see ``shared/docs/contracts.md``): source, device_uid,
+  firmware, firmware_build, protocol_version, port, each sensor's name and exact count scale,
+  units, samples, dropped, device_dropped, coverage, stopped (why it stopped).
+
+Dropped samples: the stream's seq is the acquisition counter (+1 per sample modulo 2^32), so
+every sample lost on the way (the device's transmit queue, the link, the host's queue) shows
+as a seq gap. The device's own count (stream_stop's ``dropped``) also includes samples lost
+after the last one received, which no gap shows; the session's ``dropped`` is therefore
+``max(gaps, device_dropped)`` (both are recorded).
+
+Nothing collected is lost: on Ctrl-C the stream is stopped and the result is returned with
+``interrupted=True``; on any other error :class:`CollectError` is raised carrying the partial
+result, which the caller writes.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from datetime import datetime, timezone
+
+import numpy as np
+
+from magcal.device.client import (
+    DeviceClient,
+    DeviceInfo,
+    DeviceTimeoutError,
+    Sample,
+    Scale,
+    SensorInfo,
+    StreamKind,
+)
+from magcal.device.coverage import CoverageState, CoverageTracker
+from magcal.device.generated import Status
+from magcal.errors import MagcalError
+from magcal.io.session import Session, session_from_arrays
+
+log = logging.getLogger(__name__)
+
+#: How often collect reports progress and refreshes the coverage, s.
+PROGRESS_INTERVAL_S = 0.25
+#: No sample for this long ends the collection with an error (the device stopped acquiring).
+STALL_TIMEOUT_S = 5.0
+#: Readings must span this much (µT) along some axis before they give field directions:
+#: about a quarter turn in the weakest Earth field (~25 µT).
+COVERAGE_MIN_EXTENT_UT = 10.0
+#: Samples for which the rate shown is averaged (2 s at 100 Hz).
+RATE_WINDOW_SAMPLES = 200
+SEQ_MODULUS = 1 << 32
+UT_PER_T_EXP10 = 6  # µT = T * 10^6
+
+SI_UNIT_TEXT = {"mag": "T", "acc": "m/s^2", "gyr": "rad/s"}
+
+
+class CollectError(MagcalError):
+    """collect stopped on an error; ``result`` holds what was collected (may be empty)."""
+
+    def __init__(self, message: str, result: CollectResult) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+@dataclass(frozen=True)
+class Progress:
+    """What collect reports while it runs."""
+
+    samples: int
+    elapsed_s: float
+    rate_hz: float  # samples per second over the last RATE_WINDOW_SAMPLES
+    dropped: int  # seq gaps so far
+    coverage: float  # 0..1
+    hint: str
+
+
+@dataclass(frozen=True)
+class CollectResult:
+    """session : the samples in SI units (None when there were none);
+    stopped : "coverage", "duration", "samples", "interrupted" or "error";
+    dropped : max(seq gaps, device_dropped); gaps : samples missing between received seqs;
+    device_dropped : stream_stop's count (-1 when the stream could not be stopped);
+    out_of_order : samples skipped because their time did not increase."""
+
+    session: Session | None
+    samples: int
+    stopped: str
+    dropped: int
+    gaps: int
+    device_dropped: int
+    out_of_order: int
+    coverage: CoverageState
+    elapsed_s: float
+
+    @property
+    def interrupted(self) -> bool:
+        return self.stopped == "interrupted"
+
+
+def scale_text(s: Scale) -> str:
+    """The exact count scale as text: "1/6842e0 gauss" (num/den × 10^exp10 unit)."""
+    return f"{s.num}/{s.den}e{s.exp10} {s.unit.name.lower()}"
+
+
+def _scale_in(s: Scale, exp10_shift: int) -> Scale:
+    """The same scale in units 10^-exp10_shift times the SI unit (exact)."""
+    return Scale(s.num, s.den, s.exp10 + exp10_shift, s.unit)
+
+
+def session_metadata(info: DeviceInfo, url: str, protocol_version: int | None) -> dict[str, str]:
+    """The device's identity and exact scales as session metadata (one line each)."""
+    fw = f"{info.fw_version_str} (build {info.fw_build:08x})"
+    meta = {
+        "source": f"magcal collect, magcal firmware {fw}, device uid {info.uid_hex}, {url}",
+        "device_uid": info.uid_hex,
+        "firmware": info.fw_version_str,
+        "firmware_build": f"{info.fw_build:08x}",
+        "protocol_version": str(protocol_version if protocol_version is not None else "?"),
+        "port": url,
+        "sample_rate_hz": f"{info.sample_rate_hz:g}",
+        "t_unit": "s (device clock t_us / 1e6)",
+        "gyr_unit": "rad/s",
+        "acc_unit": "m/s^2",
+        "mag_unit": "uT",
+    }
+    for s in info.sensors:
+        meta[f"{s.kind}_sensor"] = f"{s.name} (id 0x{s.sensor_id:02x})"
+        meta[f"{s.kind}_count_scale"] = (
+            f"{scale_text(s.count_scale)} = {s.count_scale.si!r} {SI_UNIT_TEXT[s.kind]}"
+        )
+    return meta
+
+
+def counts_to_session_units(sensor: SensorInfo, counts: np.ndarray) -> np.ndarray:
+    """Counts (N, 3) -> session units: µT for the magnetometer, SI for the others, each value
+    the exact rational rounded once."""
+    scale = sensor.count_scale
+    if sensor.kind == "mag":
+        scale = _scale_in(scale, UT_PER_T_EXP10)
+    return scale.counts_to_si(np.asarray(counts, dtype=np.int64).reshape(-1, 3))
+
+
+class _Recorder:
+    """The samples received so far, and the seq bookkeeping."""
+
+    def __init__(self) -> None:
+        self.seq: list[int] = []
+        self.t_us: list[int] = []
+        self.mag: list[tuple[int, int, int]] = []
+        self.acc: list[tuple[int, int, int]] = []
+        self.gyr: list[tuple[int, int, int]] = []
+        self.gaps = 0
+        self.out_of_order = 0
+        self.fed_to_coverage = 0
+
+    def add(self, s: Sample) -> None:
+        if self.seq:
+            gap = (s.seq - self.seq[-1] - 1) % SEQ_MODULUS
+            if gap >= SEQ_MODULUS // 2:  # a repeated or older seq: not a gap
+                gap = 0
+            self.gaps += gap
+            if s.t_us <= self.t_us[-1]:
+                # A session's time must increase; keep the file readable (counted).
+                self.out_of_order += 1
+                return
+        self.seq.append(s.seq)
+        self.t_us.append(s.t_us)
+        self.mag.append(s.mag)
+        self.acc.append(s.acc)
+        self.gyr.append(s.gyr)
+
+    def __len__(self) -> int:
+        return len(self.seq)
+
+
+def collect(
+    client: DeviceClient,
+    info: DeviceInfo,
+    *,
+    duration_s: float | None = None,
+    coverage_target: float | None = None,
+    max_samples: int | None = None,
+    min_samples: int = 0,
+    progress: Callable[[Progress], None] | None = None,
+    clock: Callable[[], float] = time.monotonic,
+) -> CollectResult:
+    """Record the raw stream into a session until a stop condition (see the module docstring).
+
+    duration_s : stop after this long (host clock), s
+    coverage_target : stop once this fraction (0..1) of field directions is covered and at
+        least ``min_samples`` samples were recorded
+    max_samples : stop after this many samples
+    progress : called about every PROGRESS_INTERVAL_S with a :class:`Progress`
+
+    Returns a CollectResult (``interrupted`` after Ctrl-C). Raises CollectError with the
+    partial result on a device or link error, or when no sample arrives for STALL_TIMEOUT_S.
+    """
+    if duration_s is None and coverage_target is None and max_samples is None:
+        raise MagcalError("collect: give a stop condition (duration, coverage or sample count)")
+    rec = _Recorder()
+    tracker = CoverageTracker(min_extent=COVERAGE_MIN_EXTENT_UT)
+    mag_sensor = info.sensor("mag")
+    start = clock()
+    last_sample = start
+    next_report = start
+    stopped = "error"
+    error: BaseException | None = None
+    rate_times: list[float] = []
+    started = True  # stop on the way out even when Ctrl-C comes during stream_start
+    try:
+        client.stream_start(StreamKind.RAW)
+        while True:
+            now = clock()
+            if duration_s is not None and now - start >= duration_s:
+                stopped = "duration"
+                break
+            # Waits only while no sample is queued: wake up for the next report or the end.
+            wait = min(PROGRESS_INTERVAL_S, next_report - now)
+            if duration_s is not None:
+                wait = min(wait, start + duration_s - now)
+            wait = max(0.001, wait)
+            try:
+                msg = client.read_stream(wait)
+            except DeviceTimeoutError:
+                msg = None
+                if clock() - last_sample > STALL_TIMEOUT_S:
+                    raise DeviceTimeoutError(
+                        f"collect on {client.url}: no sample for {STALL_TIMEOUT_S:g} s; check "
+                        "that the device is acquiring (sensors connected, firmware running)",
+                        Status.E_EMPTY,
+                        "collect",
+                    ) from None
+            if isinstance(msg, Sample):
+                last_sample = clock()
+                rec.add(msg)
+                rate_times.append(last_sample)
+                if len(rate_times) > RATE_WINDOW_SAMPLES:
+                    del rate_times[0]
+                if max_samples is not None and len(rec) >= max_samples:
+                    stopped = "samples"
+                    break
+            now = clock()
+            if now >= next_report:
+                next_report = now + PROGRESS_INTERVAL_S
+                state = _feed_coverage(rec, tracker, mag_sensor)
+                if progress is not None:
+                    progress(_progress(rec, state, now - start, rate_times))
+                if (
+                    coverage_target is not None
+                    and state.coverage >= coverage_target
+                    and len(rec) >= min_samples
+                ):
+                    stopped = "coverage"
+                    break
+    except KeyboardInterrupt:
+        stopped = "interrupted"
+    except (MagcalError, OSError) as exc:
+        stopped = "error"
+        error = exc
+    device_dropped = _stop_stream(client, started, rec)
+    state = _feed_coverage(rec, tracker, mag_sensor, force=True)
+    elapsed = clock() - start
+    if progress is not None and len(rec):
+        progress(_progress(rec, state, elapsed, rate_times))
+    result = _result(rec, info, client, stopped, device_dropped, state, elapsed)
+    if error is not None:
+        raise CollectError(
+            f"collect on {client.url}: stopped by an error after {len(rec)} samples: {error}",
+            result,
+        ) from error
+    return result
+
+
+def _stop_stream(client: DeviceClient, started: bool, rec: _Recorder) -> int:
+    """Stop the stream (best effort) and keep the samples already queued; the device's
+    dropped count, or -1 when it could not be asked."""
+    if not started:
+        return -1
+    try:
+        stats = client.stream_stop()
+    except (MagcalError, OSError, KeyboardInterrupt) as exc:
+        log.warning("collect on %s: could not stop the stream (%s)", client.url, exc)
+        return -1
+    while True:  # samples that arrived before the stop's response
+        try:
+            msg = client.read_stream(0.0)
+        except DeviceTimeoutError:
+            break
+        if isinstance(msg, Sample):
+            rec.add(msg)
+    return stats.dropped
+
+
+def _feed_coverage(
+    rec: _Recorder, tracker: CoverageTracker, mag: SensorInfo, force: bool = False
+) -> CoverageState:
+    new = rec.mag[rec.fed_to_coverage :]
+    if new:
+        tracker.add(counts_to_session_units(mag, np.array(new)))
+        rec.fed_to_coverage = len(rec.mag)
+    return tracker.state(force=force)
+
+
+def _progress(rec: _Recorder, state: CoverageState, elapsed: float, times: list[float]):
+    rate = (
+        (len(times) - 1) / (times[-1] - times[0])
+        if len(times) > 1 and times[-1] > times[0]
+        else 0.0
+    )
+    return Progress(len(rec), elapsed, rate, rec.gaps, state.coverage, state.hint)
+
+
+def _result(
+    rec: _Recorder,
+    info: DeviceInfo,
+    client: DeviceClient,
+    stopped: str,
+    device_dropped: int,
+    state: CoverageState,
+    elapsed: float,
+) -> CollectResult:
+    dropped = max(rec.gaps, device_dropped)
+    session = None
+    if len(rec):
+        meta = session_metadata(info, client.url, client.version)
+        meta.update(
+            {
+                "collected_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                "samples": str(len(rec)),
+                "dropped": str(dropped),
+                "seq_gaps": str(rec.gaps),
+                "device_dropped": str(device_dropped) if device_dropped >= 0 else "unknown",
+                "coverage": f"{100 * state.coverage:.1f} % of {len(state.counts)} equal-area "
+                "cells of field directions",
+                "stopped": stopped,
+            }
+        )
+        if rec.out_of_order:
+            meta["out_of_order_skipped"] = str(rec.out_of_order)
+        t = np.array(rec.t_us, dtype=np.int64)
+        session = session_from_arrays(
+            t.astype(np.float64) / 1e6,
+            counts_to_session_units(info.sensor("gyr"), np.array(rec.gyr)),
+            counts_to_session_units(info.sensor("acc"), np.array(rec.acc)),
+            counts_to_session_units(info.sensor("mag"), np.array(rec.mag)),
+            meta,
+        )
+    return CollectResult(
+        session=session,
+        samples=len(rec),
+        stopped=stopped,
+        dropped=dropped,
+        gaps=rec.gaps,
+        device_dropped=device_dropped,
+        out_of_order=rec.out_of_order,
+        coverage=state,
+        elapsed_s=elapsed,
+    )

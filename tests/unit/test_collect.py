@@ -1,0 +1,236 @@
+"""magcal.device.collect against a fake client: units and exact scales, metadata, the stop
+conditions (samples, duration, coverage), dropped samples from seq gaps (with the uint32 wrap)
+and the device's count, Ctrl-C and errors keeping what was collected, and the session file
+reading back."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from magcal.device import collect as col
+from magcal.device.client import (
+    DeviceError,
+    DeviceInfo,
+    DeviceTimeoutError,
+    Sample,
+    Scale,
+    SensorInfo,
+    StreamStats,
+)
+from magcal.device.generated import Status, Unit
+from magcal.errors import MagcalError
+from magcal.io.session import read_session, write_session
+from magcal.sim.scenarios import preset, simulate
+
+MAG = Scale(1, 6842, 0, Unit.GAUSS)  # 1e-4 / 6842 T = 0.0146156 uT per count
+ACC = Scale(122, 1, -6, Unit.STANDARD_GRAVITY)
+GYR = Scale(70, 1, -3, Unit.DEG_PER_S)
+FIELD_UT = 50.0
+
+
+def _info() -> DeviceInfo:
+    fs = Scale(4, 1, 0, Unit.GAUSS)
+    return DeviceInfo(
+        fw_version=(1, 2, 3),
+        fw_build=0xABCDEF01,
+        protocol_version=1,
+        params_format_version=1,
+        params_size=52,
+        device_uid=(1, 2, 3),
+        sample_rate_mhz=100_000,
+        sensors=(
+            SensorInfo("mag", 0x3D, "LIS3MDL", fs, MAG),
+            SensorInfo("acc", 0x6C, "LSM6DSO", fs, ACC),
+            SensorInfo("gyr", 0x6C, "LSM6DSO", fs, GYR),
+        ),
+    )
+
+
+def _counts(x: np.ndarray, scale: Scale, unit_si: float) -> np.ndarray:
+    return np.clip(np.rint(x * unit_si / scale.si), -32768, 32767).astype(int)
+
+
+def _samples(n=None, motion="tumble", seed=3, first_seq=100, duration_s=120.0, rate=2.0):
+    session, _ = simulate(
+        preset("mems", duration_s=duration_s, motion=motion, max_rate_rad_s=rate), seed=seed
+    )
+    k = len(session) if n is None else n
+    mag = _counts(session.mag[:k] * FIELD_UT, MAG, 1e-6)
+    acc = _counts(session.acc[:k], ACC, 1.0)
+    gyr = _counts(session.gyr[:k], GYR, 1.0)
+    return [
+        Sample(
+            (first_seq + i) % (1 << 32),
+            5_000_000 + 10_000 * i,
+            tuple(mag[i]),
+            tuple(acc[i]),
+            tuple(gyr[i]),
+        )
+        for i in range(k)
+    ]
+
+
+class FakeClient:
+    """The part of DeviceClient that collect uses; a fake clock advancing 10 ms a sample."""
+
+    url = "socket://fake:1"
+    version = 1
+
+    def __init__(self, samples, *, interrupt_at=None, error_at=None, dropped=0, stop_error=None):
+        self.samples = list(samples)
+        self.i = 0
+        self.now = 0.0
+        self.interrupt_at = interrupt_at
+        self.error_at = error_at
+        self.dropped = dropped
+        self.stop_error = stop_error
+        self.calls: list[str] = []
+
+    def clock(self) -> float:
+        return self.now
+
+    def stream_start(self, kind=0, decimation=1, count=0):
+        self.calls.append("start")
+
+    def stream_stop(self):
+        self.calls.append("stop")
+        if self.stop_error:
+            raise self.stop_error
+        return StreamStats(self.i, self.dropped)
+
+    def read_stream(self, timeout_s=2.0):
+        if self.interrupt_at is not None and self.i == self.interrupt_at:
+            self.interrupt_at = None
+            raise KeyboardInterrupt
+        if self.error_at is not None and self.i == self.error_at:
+            self.error_at = None
+            raise DeviceError("stream on fake: link lost", Status.E_STATE, "stream")
+        if self.i >= len(self.samples) or "stop" in self.calls:
+            self.now += timeout_s
+            raise DeviceTimeoutError("no sample", Status.E_EMPTY, "stream")
+        self.now += 0.01
+        s = self.samples[self.i]
+        self.i += 1
+        return s
+
+
+def _collect(client, **kw):
+    return col.collect(client, _info(), clock=client.clock, **kw)
+
+
+def test_units_scales_and_metadata(tmp_path):
+    samples = _samples(300)
+    client = FakeClient(samples)
+    r = _collect(client, max_samples=300)
+    assert r.stopped == "samples" and r.samples == 300 and client.calls == ["start", "stop"]
+    s = r.session
+    assert len(s) == 300
+    # t: device seconds; mag: uT from the exact rational; acc m/s^2; gyr rad/s.
+    assert s.t[0] == 5.0 and np.allclose(np.diff(s.t), 0.01)
+    mag_counts = np.array([x.mag for x in samples])
+    assert s.mag[0, 0] == float(mag_counts[0, 0] * 100 / 6842)  # exact, rounded once
+    assert np.allclose(np.linalg.norm(s.acc[:50], axis=1), 9.81, atol=0.2)  # at rest first
+    acc_counts = np.array([x.acc for x in samples])
+    assert np.array_equal(s.acc, ACC.counts_to_si(acc_counts))
+    gyr_counts = np.array([x.gyr for x in samples])
+    assert np.allclose(s.gyr, gyr_counts * 0.07 * math.pi / 180, rtol=1e-15)
+    m = s.meta
+    assert m["mag_unit"] == "uT" and m["device_uid"] == "000000010000000200000003"
+    assert m["firmware"] == "1.2.3" and m["firmware_build"] == "abcdef01"
+    assert m["protocol_version"] == "1" and m["port"] == "socket://fake:1"
+    assert m["mag_count_scale"].startswith("1/6842e0 gauss = ")
+    assert m["acc_count_scale"].startswith("122/1e-6 standard_gravity")
+    assert m["mag_sensor"] == "LIS3MDL (id 0x3d)"
+    assert m["samples"] == "300" and m["dropped"] == "0" and m["stopped"] == "samples"
+    assert "uid 000000010000000200000003" in m["source"] and "1.2.3" in m["source"]
+    # Writes and reads back bit-exact with its metadata.
+    write_session(tmp_path / "s.csv", s)
+    back = read_session(tmp_path / "s.csv")
+    assert np.array_equal(back.mag, s.mag) and back.meta == s.meta
+
+
+def test_duration_stops_on_the_host_clock():
+    client = FakeClient(_samples(1000))
+    r = _collect(client, duration_s=3.0)
+    assert r.stopped == "duration" and 295 <= r.samples <= 301
+
+
+def test_coverage_target_stops_a_tumbling_session_but_not_before_min_samples():
+    progress = []
+    client = FakeClient(_samples())
+    r = _collect(client, coverage_target=0.9, min_samples=500, progress=progress.append)
+    assert r.stopped == "coverage" and r.coverage.coverage >= 0.9
+    assert r.samples >= 500 and r.samples < len(client.samples)
+    assert progress and progress[-1].samples == r.samples
+    assert progress[-1].coverage >= 0.9 and progress[-1].rate_hz == pytest.approx(100, rel=0.05)
+    assert float(r.session.meta["coverage"].split()[0]) >= 90.0
+
+
+def test_yaw_only_does_not_reach_the_target_and_hints_at_z():
+    client = FakeClient(_samples(3000, motion="yaw-only", duration_s=40.0))
+    r = _collect(client, coverage_target=0.9, max_samples=3000)
+    assert r.stopped == "samples" and r.coverage.coverage < 0.4
+    assert "z axis" in r.coverage.hint
+
+
+def test_seq_gaps_across_the_uint32_wrap_and_the_device_count():
+    samples = _samples(200, first_seq=(1 << 32) - 50)
+    kept = samples[:40] + samples[45:60] + samples[70:]  # gaps of 5 (before the wrap) and 10
+    r = _collect(FakeClient(kept), max_samples=len(kept))
+    assert r.gaps == 15 and r.dropped == 15 and r.session.meta["seq_gaps"] == "15"
+    # Drops after the last sample received show only in the device's count.
+    r = _collect(FakeClient(kept, dropped=20), max_samples=len(kept))
+    assert r.gaps == 15 and r.device_dropped == 20 and r.dropped == 20
+    assert r.session.meta["device_dropped"] == "20" and r.session.meta["dropped"] == "20"
+
+
+def test_ctrl_c_stops_the_stream_and_keeps_the_samples():
+    client = FakeClient(_samples(500), interrupt_at=123)
+    r = _collect(client, duration_s=100.0)
+    assert r.interrupted and r.samples == 123 and client.calls == ["start", "stop"]
+    assert len(r.session) == 123 and r.session.meta["stopped"] == "interrupted"
+
+
+def test_an_error_raises_with_the_partial_result():
+    client = FakeClient(_samples(500), error_at=77)
+    with pytest.raises(col.CollectError, match="after 77 samples: stream on fake: link lost"):
+        _collect(client, duration_s=100.0)
+    try:
+        _collect(FakeClient(_samples(500), error_at=77), duration_s=100.0)
+    except col.CollectError as exc:
+        assert exc.result.samples == 77 and exc.result.stopped == "error"
+        assert len(exc.result.session) == 77
+
+
+def test_a_stall_is_an_error_and_a_failed_stop_is_unknown_drops():
+    client = FakeClient(
+        _samples(50), stop_error=DeviceTimeoutError("gone", Status.E_EMPTY, "stream_stop")
+    )
+    with pytest.raises(col.CollectError, match="no sample for 5 s") as info:
+        _collect(client, duration_s=100.0)
+    assert info.value.result.samples == 50
+    assert info.value.result.session.meta["device_dropped"] == "unknown"
+
+
+def test_no_samples_gives_no_session():
+    with pytest.raises(col.CollectError) as info:
+        _collect(FakeClient([]), duration_s=100.0)
+    assert info.value.result.session is None and info.value.result.samples == 0
+
+
+def test_time_not_increasing_is_skipped_and_counted():
+    samples = _samples(100)
+    samples[50] = Sample(
+        samples[50].seq, samples[49].t_us, *[getattr(samples[50], k) for k in ("mag", "acc", "gyr")]
+    )
+    r = _collect(FakeClient(samples), max_samples=99)
+    assert r.out_of_order == 1 and len(r.session) == 99
+    assert r.session.meta["out_of_order_skipped"] == "1"
+
+
+def test_a_stop_condition_is_required():
+    with pytest.raises(MagcalError, match="give a stop condition"):
+        _collect(FakeClient([]))

@@ -58,6 +58,13 @@ class FlashInterruptedError(FlashError):
 
 
 Reconnect = Callable[[], DeviceClient]
+#: Told each step as it starts or ends, in words ("param_set: writing the new set"); for a
+#: command line's progress lines. Must not raise.
+Progress = Callable[[str], None]
+
+
+def _no_progress(_: str) -> None:
+    pass
 
 
 @dataclass(frozen=True)
@@ -188,6 +195,7 @@ def flash_parameters(
     *,
     reconnect: Reconnect | None = None,
     overwrite_backup: bool = False,
+    progress: Progress | None = None,
 ) -> FlashResult:
     """Write a parameter set with SPEC §5's flow, every step checked:
 
@@ -198,6 +206,7 @@ def flash_parameters(
 
     reconnect : makes a new client on a fresh link (used after a reset that dropped the link,
         and after a link failure to find out what the device holds)
+    progress : called with a line of text at each step (nothing when None)
 
     Returns FlashResult(active="new"), also when a link failure was recovered from and the
     device was found to hold the new set. Raises FlashInterruptedError with ``active`` "old"
@@ -208,6 +217,7 @@ def flash_parameters(
     blob = bytes(blob)
     crc = crc32_iso_hdlc(blob)
     path = Path(backup_path)
+    say = progress or _no_progress
     commit_sent = False
     step = "hello"
     old: ParamSet | None = None
@@ -225,9 +235,15 @@ def flash_parameters(
             )
         step = "param_get(active)"
         old = _read_active(client)
+        say(
+            "param_get(active): the current set is "
+            + ("none (the device has no set)" if old is None else f"CRC-32 0x{old.crc32:08x}")
+        )
         _write_backup(path, old, info, client.url, overwrite_backup)
         log.info("flash on %s: previous set saved to %s", client.url, path)
+        say(f"backup: the current set saved to {path}")
         step = "param_set"
+        say(f"param_set: staging the new set ({len(blob)} bytes, CRC-32 0x{crc:08x})")
         client.param_set(format_version, blob)
         step = "param_get(staged)"
         staged = client.param_get(ParamWhich.STAGED)
@@ -236,21 +252,28 @@ def flash_parameters(
                 f"flash on {client.url}: the staged set read back differs from the one sent "
                 "(nothing committed; the device keeps its old set): check the link and retry"
             )
+        say("param_get(staged): read back, equal bit for bit")
         step = "param_commit"
         commit_sent = True
+        say(f"param_commit: storing CRC-32 0x{crc:08x}")
         client.param_commit(crc)
         step = "reset"
+        say("reset: restarting the device")
         client.reset()
         step = "hello after reset"
         client = _hello_after_reset(client, reconnect)
+        say("hello: the device answers again after the reset")
         step = "param_get(active) after reset"
         active = _read_active(client)
     except (LinkError, DeviceTimeoutError) as exc:
-        return _recover(client, exc, step, commit_sent, reconnect, old, blob, format_version, path)
+        return _recover(
+            client, exc, step, commit_sent, reconnect, old, blob, format_version, path, say
+        )
     if _same(active, blob, format_version):
         log.info(
             "flash on %s: new set active (CRC-32 0x%08x), verified bit for bit", client.url, crc
         )
+        say("param_get(active) after reset: the new set, equal bit for bit")
         return FlashResult("new", crc, path, "", client)
     which = (
         "its old set"
@@ -274,12 +297,14 @@ def _recover(
     blob: bytes,
     format_version: int,
     path: Path,
+    say: Progress = _no_progress,
 ) -> FlashResult:
     """After a link failure at ``step``: find which complete set the device holds."""
     url = client.url
     log.warning(
         "flash on %s: link failure at %s (%s); finding out what the device holds", url, step, exc
     )
+    say(f"link failure at {step} ({exc})")
     prefix = f"flash on {url}: link failure at {step} ({exc})"
     if reconnect is None:
         if not commit_sent:
@@ -298,10 +323,12 @@ def _recover(
         ) from exc
     client.close()
     try:
+        say("reconnecting to find out which set the device holds")
         fresh = reconnect()
         fresh.hello()
         if commit_sent:
             # A committed set becomes active at the next reset: restart to find out.
+            say("reset: the commit may have been stored; restarting to find out")
             fresh.reset()
             fresh = _hello_after_reset(fresh, reconnect)
         active = _read_active(fresh)
@@ -348,6 +375,7 @@ def restore(
     new_backup_path: str | os.PathLike | None = None,
     reconnect: Reconnect | None = None,
     force: bool = False,
+    progress: Progress | None = None,
 ) -> FlashResult:
     """Write a backup back with :func:`flash_parameters` (the current set is backed up first,
     to ``new_backup_path``, default ``<backup>.before-restore-<time>.json``). Refuses a backup
@@ -371,5 +399,10 @@ def restore(
         stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
         new_backup_path = p.with_name(f"{p.stem}.before-restore-{stamp}.json")
     return flash_parameters(
-        client, doc["blob"], int(doc["format_version"]), new_backup_path, reconnect=reconnect
+        client,
+        doc["blob"],
+        int(doc["format_version"]),
+        new_backup_path,
+        reconnect=reconnect,
+        progress=progress,
     )

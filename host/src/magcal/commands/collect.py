@@ -1,0 +1,159 @@
+"""``magcal collect --port URL -o SESSION.csv``: record a calibration session from the device.
+
+Stops at a coverage target of field directions (default 90 %), ``--duration`` or
+``--max-samples``, whichever comes first, or Ctrl-C. Progress goes to stderr: one line
+rewritten in place on a terminal, one line a second otherwise. Whatever was collected is
+written, also after Ctrl-C (exit 130) or an error mid-collection (exit 2, the file named).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from magcal.calib import observability
+from magcal.commands.common import add_link_arguments, open_device
+from magcal.device.collect import CollectError, CollectResult, Progress, collect
+from magcal.errors import MagcalError
+from magcal.io.session import check_writable, write_session
+
+DEFAULT_COVERAGE_PCT = 90.0
+#: Progress lines per second when stderr is not a terminal (a log file).
+LOG_LINES_PER_S = 1.0
+
+
+def _coverage_arg(text: str) -> float | None:
+    if text.strip().lower() in ("off", "none"):
+        return None
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a percentage (or 'off')") from None
+    if not 0.0 < v <= 100.0:
+        raise argparse.ArgumentTypeError(f"{text} is outside (0, 100]")
+    return v
+
+
+def _positive(kind):
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"{text} must be positive")
+        return v
+
+    return parse
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("collect", help="record a calibration session from the device")
+    add_link_arguments(p)
+    p.add_argument("-o", "--output", required=True, help="session CSV to write")
+    p.add_argument("--duration", type=_positive(float), metavar="S", help="stop after S seconds")
+    p.add_argument(
+        "--coverage",
+        type=_coverage_arg,
+        default=DEFAULT_COVERAGE_PCT,
+        metavar="PCT",
+        help="stop once PCT %% of the field directions are covered (and the session is long "
+        f"enough to calibrate); default {DEFAULT_COVERAGE_PCT:g}, 'off' to disable",
+    )
+    p.add_argument("--max-samples", type=_positive(int), metavar="N", help="stop after N samples")
+    p.set_defaults(run=run)
+
+
+def progress_printer(stream=None):
+    """Progress lines: rewritten in place on a terminal, LOG_LINES_PER_S otherwise."""
+    stream = stream or sys.stderr
+    tty = stream.isatty()
+    state = {"next": 0.0, "shown": False}
+
+    def show(p: Progress) -> None:
+        line = (
+            f"{p.samples:7d} samples  {p.rate_hz:6.1f}/s  dropped {p.dropped}  "
+            f"coverage {100 * p.coverage:5.1f} %  {p.hint}"
+        )
+        if tty:
+            stream.write("\r" + line + "\x1b[K")  # erase what a longer line left
+            stream.flush()
+            state["shown"] = True
+        elif p.elapsed_s >= state["next"]:
+            state["next"] = p.elapsed_s + 1.0 / LOG_LINES_PER_S
+            stream.write(line + "\n")
+            stream.flush()
+
+    def done() -> None:  # ends the rewritten line; idempotent
+        if tty and state["shown"]:
+            state["shown"] = False
+            stream.write("\n")
+            stream.flush()
+
+    show.done = done  # type: ignore[attr-defined]
+    return show
+
+
+def _write(path: str, result: CollectResult, out) -> None:
+    write_session(path, result.session)
+    print(
+        f"wrote {path} ({result.samples} samples, {result.elapsed_s:.1f} s, dropped "
+        f"{result.dropped}, coverage {100 * result.coverage.coverage:.1f} %)",
+        file=out,
+    )
+
+
+def run(args, out=None) -> int:
+    from magcal.cli import EXIT_INTERRUPTED
+
+    out = out or sys.stdout
+    if args.duration is None and args.coverage is None and args.max_samples is None:
+        raise MagcalError("collect: --coverage off needs --duration or --max-samples")
+    check_writable(args.output, "writing session")  # before collecting, not after
+    min_samples = observability.MIN_SAMPLES
+    progress = progress_printer()
+    with open_device(args.port) as dev:
+        try:
+            result = collect(
+                dev.client,
+                dev.info,
+                duration_s=args.duration,
+                coverage_target=None if args.coverage is None else args.coverage / 100.0,
+                max_samples=args.max_samples,
+                min_samples=min_samples,
+                progress=progress,
+            )
+        except CollectError as exc:
+            progress.done()  # the message goes on its own line
+            if exc.result.session is None:
+                raise MagcalError(f"{exc}; no samples were received, nothing written") from exc
+            write_session(args.output, exc.result.session)
+            raise MagcalError(
+                f"{exc}; the {exc.result.samples} samples collected were written to {args.output}"
+            ) from exc
+        finally:
+            progress.done()
+    if result.session is None:
+        raise MagcalError(
+            f"collect on {args.port}: no samples were received, nothing written; check that "
+            "the device is acquiring"
+        )
+    _write(args.output, result, out)
+    if result.interrupted:
+        print(
+            f"magcal collect: interrupted; the partial session is in {args.output}", file=sys.stderr
+        )
+        return EXIT_INTERRUPTED
+    if result.samples < min_samples:
+        raise MagcalError(
+            f"collect: {args.output} has {result.samples} samples; calibration needs at least "
+            f"{min_samples}: collect longer"
+        )
+    if args.coverage is not None and result.coverage.coverage < args.coverage / 100.0:
+        print(
+            f"magcal collect: warning: coverage {100 * result.coverage.coverage:.1f} % is below "
+            f"the target {args.coverage:g} % ({result.coverage.hint}); the calibration may be "
+            "poorly determined: collect again with more rotation",
+            file=sys.stderr,
+        )
+    return 0

@@ -280,11 +280,12 @@ def _add_device_commands(sub) -> None:
     """The commands that talk to a device (magcal.commands); imported here, not at the top,
     so that simulate and calibrate do not load the serial stack."""
     # One line per command module; each sets its parser's ``run``.
-    from magcal.commands import collect, flash, info
+    from magcal.commands import collect, flash, info, verify
 
     info.add_parser(sub)
     flash.add_parser(sub)
     collect.add_parser(sub)
+    verify.add_parser(sub)
 
 
 def refusal(command: str, exc: BaseException | str) -> str:

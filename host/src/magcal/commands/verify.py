@@ -1,0 +1,121 @@
+"""``magcal verify --port URL``: stream the device's corrected output and measure it.
+
+Reports the spread of the corrected field's norm and, from a raw stream (or ``--session``), the
+heading consistency (see :mod:`magcal.device.verify`). Exits 2 with a message when the device
+has no active parameter set (E_NO_PARAMS), 1 when the device's output disagrees with the set
+it reports or the norm spread exceeds ``--max-spread``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from magcal.commands.common import add_link_arguments, open_device
+from magcal.device.verify import HeadingConsistency, verify
+from magcal.io.session import read_session
+
+#: Exit status when the check ran and the output is not good enough.
+EXIT_FAILED = 1
+DEFAULT_MAX_SPREAD_PCT = 2.0
+
+
+def _positive(kind):
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"{text} must be positive")
+        return v
+
+    return parse
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("verify", help="measure the device's corrected output (norm, heading)")
+    add_link_arguments(p)
+    how_long = p.add_mutually_exclusive_group()
+    how_long.add_argument("--duration", type=_positive(float), metavar="S", help="stream S s")
+    how_long.add_argument(
+        "--samples", type=_positive(int), metavar="N", help="stream N samples (default 500)"
+    )
+    p.add_argument(
+        "--session",
+        metavar="SESSION.csv",
+        help="also measure the heading consistency of the active set on this recorded session "
+        "(magcal collect's file)",
+    )
+    p.add_argument(
+        "--no-heading",
+        action="store_true",
+        help="skip the raw stream that measures the heading consistency",
+    )
+    p.add_argument(
+        "--max-spread",
+        type=_positive(float),
+        default=DEFAULT_MAX_SPREAD_PCT,
+        metavar="PCT",
+        help=f"fail when the norm's std/mean exceeds PCT %% (default {DEFAULT_MAX_SPREAD_PCT:g})",
+    )
+    p.set_defaults(run=run)
+
+
+def _heading_lines(h: HeadingConsistency, where: str) -> list[str]:
+    return [
+        f"heading    {where}: RMS {h.rms_deg:.2f}°, max {h.max_deg:.2f}° (tilt-compensated vs "
+        f"gyro-propagated over {h.windows} windows of {h.window_s:g} s, {h.n} samples)",
+        f"dip        {h.dip_mean_deg:.2f}° ± {h.dip_std_deg:.2f}°",
+    ]
+
+
+def run(args, out=None) -> int:
+    out = out or sys.stdout
+    session = read_session(args.session) if args.session else None
+    with open_device(args.port) as dev:
+        r = verify(
+            dev.client,
+            dev.info,
+            n_samples=args.samples,
+            duration_s=args.duration,
+            heading=not args.no_heading,
+            session=session,
+        )
+    n = r.norm
+    lines = [
+        f"device     {args.port}, uid {dev.info.uid_hex}, active set CRC-32 0x{r.crc32:08x}",
+        f"norm       mean {n.mean:.5f}, std {n.std:.5f} ({100 * n.rel_std:.3f} %), "
+        f"min {n.min:.5f}, max {n.max:.5f}, (max-min)/mean {100 * n.rel_range:.3f} % "
+        f"over {n.n} corrected samples",
+        f"device     {n.n - r.mismatches} of {n.n} corrected samples equal the host's "
+        f"emulation of the active set (within 1 LSB); dropped {r.dropped}",
+    ]
+    if r.heading is not None:
+        lines += _heading_lines(r.heading, "raw stream")
+    else:
+        lines.append(f"heading    {r.heading_note}")
+    if args.session:
+        if r.session_heading is not None:
+            lines += _heading_lines(r.session_heading, args.session)
+        else:
+            lines.append(f"heading    {args.session}: not measurable (no sample with |acc| ≈ g)")
+    for line in lines:
+        print(line, file=out)
+    status = 0
+    if r.mismatches:
+        print(
+            f"magcal verify: {r.mismatches} corrected samples differ from the active set's "
+            "correction: the device does not use the set it reports; reset it and verify again",
+            file=sys.stderr,
+        )
+        status = EXIT_FAILED
+    if 100 * n.rel_std > args.max_spread:
+        print(
+            f"magcal verify: the norm's spread {100 * n.rel_std:.2f} % exceeds "
+            f"{args.max_spread:g} %: calibrate again (rotate through more orientations, away "
+            "from magnetic objects) and flash the result",
+            file=sys.stderr,
+        )
+        status = EXIT_FAILED
+    return status

@@ -433,9 +433,15 @@ static size_t do_param_commit(mc_device_t *dev, const mc_msg_param_commit_t *rq,
         st = MC_E_STATE;
     } else if (rq->crc32 != dev->staged_crc) {
         st = MC_E_CRC;
-    } else if (mc_storage_commit(&dev->storage, dev->staged_blob, sizeof dev->staged_blob,
-                                 dev->staged_format) != MC_OK) {
-        st = MC_E_FLASH; /* the previous stored set is untouched (storage.h) */
+    } else {
+        /* storage.h's outcomes say what flash holds: OK = the staged set is stored (also
+         * after an error past the commit point that the rescan settled), E_FLASH = the
+         * previous set certainly still wins, E_OUTCOME_UNKNOWN = either (passed on). */
+        st = mc_storage_commit(&dev->storage, dev->staged_blob, sizeof dev->staged_blob,
+                               dev->staged_format);
+        if (st != MC_OK && st != MC_E_OUTCOME_UNKNOWN) {
+            st = MC_E_FLASH;
+        }
     }
     r.status = (int8_t)st;
     (void)mc_msg_param_commit_resp_pack(&r, out, cap, &len);

@@ -278,8 +278,13 @@ mc_status_t mc_storage_commit(mc_storage_t *st, const uint8_t *payload, size_t l
         return MC_E_ARG;
     }
     slot_info_t info[2];
+    const mc_storage_slot_t known = st->active;
+    const uint32_t known_sequence = st->active_sequence;
     mc_status_t s = scan(st, info);
     if (s != MC_OK) {
+        /* Nothing was written: st keeps what the last init, load or commit found. */
+        st->active = known;
+        st->active_sequence = known_sequence;
         return s;
     }
     const mc_storage_slot_t previous = st->active;
@@ -325,26 +330,38 @@ mc_status_t mc_storage_commit(mc_storage_t *st, const uint8_t *payload, size_t l
     if (s == MC_OK && mc_crc32_iso_hdlc_final(state) != crc) {
         s = MC_E_FLASH;
     }
-    /* The commit point: until this word is fully programmed the previous best wins. */
-    if (s == MC_OK) {
-        s = program_verified(st, base + body + 4u, MC_STORAGE_COMMIT_MARKER);
-    }
-    slot_info_t check;
-    if (s == MC_OK) {
-        s = scan_slot(st, target, &check);
-    }
-    if (s == MC_OK && !(check.valid && check.sequence == sequence && check.length == length)) {
-        s = MC_E_FLASH;
-    }
     if (s != MC_OK) {
-        /* Still the previous best as scanned: the commit touched only the other slot. */
+        /* Before the commit point: the previous best was never touched and still wins. */
         st->active = previous;
         st->active_sequence = previous_sequence;
         return s;
     }
-    st->active = (mc_storage_slot_t)target;
-    st->active_sequence = sequence;
-    return MC_OK;
+    /* The commit point: until this word is fully programmed the previous best wins; once its
+     * program has been issued, flash alone decides, so every error from here on is settled
+     * by scanning both slots as boot would. */
+    s = program_verified(st, base + body + 4u, MC_STORAGE_COMMIT_MARKER);
+    slot_info_t check;
+    if (s == MC_OK) {
+        s = scan_slot(st, target, &check);
+    }
+    if (s == MC_OK && check.valid && check.sequence == sequence && check.length == length
+        && check.format_version == format_version) {
+        st->active = (mc_storage_slot_t)target;
+        st->active_sequence = sequence;
+        return MC_OK;
+    }
+    if (scan(st, info) != MC_OK) {
+        return MC_E_OUTCOME_UNKNOWN; /* st says "none": nothing we could check */
+    }
+    const slot_info_t *won = st->active == MC_STORAGE_SLOT_NONE ? NULL : &info[st->active];
+    if ((int)st->active == target && won->sequence == sequence && won->length == length
+        && won->format_version == format_version) {
+        return MC_OK; /* the new record is complete and wins: committed */
+    }
+    if (st->active == previous && st->active_sequence == previous_sequence) {
+        return MC_E_FLASH; /* the previous best still wins: a definite failure */
+    }
+    return MC_E_OUTCOME_UNKNOWN; /* neither record as expected (flash changing under us) */
 }
 
 mc_status_t mc_storage_active(const mc_storage_t *st, mc_storage_slot_t *slot,

@@ -629,6 +629,91 @@ static void test_param_flows(void)
     CHECK_EQ_INT(stream_start(2u, MC_DEVICE_STREAM_CORRECTED, 1u, 0u), MC_OK);
 }
 
+/* flash_sim's ops with reads that fail (MC_E_FLASH) from read number fail_from to fail_to
+ * (exclusive, -1: on and on), counted by this wrapper; swapped into R.flash after boot. */
+static long wrapped_reads, fail_from = -1, fail_to = -1;
+
+static mc_status_t failing_read(void *ctx, uint32_t addr, uint8_t *buf, size_t len)
+{
+    const long n = wrapped_reads++;
+    if (fail_from >= 0 && n >= fail_from && (fail_to < 0 || n < fail_to)) {
+        return MC_E_FLASH;
+    }
+    return flash_sim_read(ctx, addr, buf, len);
+}
+
+static const mc_flash_ops_t failing_ops = {flash_sim_erase_page, flash_sim_program_word,
+                                           failing_read};
+
+/* Commits blob with its last read failing (once, or on and on) and returns the answer. The
+ * read count comes from a clean commit of the same blob over the same flash contents. */
+static int commit_with_late_read_failure(uint16_t seq, uint32_t crc, int persistent)
+{
+    static uint8_t snapshot[FLASH_SIM_MAX_BYTES];
+    memcpy(snapshot, R.fsim.mem, sizeof snapshot);
+    wrapped_reads = 0;
+    fail_from = -1;
+    CHECK_EQ_INT(param_commit(seq, crc), MC_OK);
+    const long reads = wrapped_reads;
+    memcpy(R.fsim.mem, snapshot, sizeof snapshot);
+    wrapped_reads = 0;
+    fail_from = reads - 1; /* the final scan of the new slot: after the commit point */
+    fail_to = persistent ? -1 : reads;
+    const int st = param_commit((uint16_t)(seq + 1u), crc);
+    fail_from = -1;
+    return st;
+}
+
+/*
+ * param_commit answers what flash holds: a read failing after the commit point (the marker
+ * is complete) is settled by the storage's rescan as committed (OK), and when the flash
+ * cannot be read back at all the answer is E_OUTCOME_UNKNOWN, never a definite E_FLASH;
+ * E_FLASH only when the old set certainly still wins.
+ */
+static void test_commit_outcome(void)
+{
+    uint8_t blob[MC_PARAMS_ENCODED_SIZE], blob2[MC_PARAMS_ENCODED_SIZE];
+    mc_params_t p = good_params();
+    uint16_t seq = 900u;
+    rig_boot(0);
+    R.flash.ops = &failing_ops; /* the device's storage holds &R.flash */
+    encode(&p, blob);
+    const uint32_t crc = mc_crc32_iso_hdlc(blob, sizeof blob);
+    CHECK_EQ_INT(param_set(seq++, MC_PARAMS_FORMAT_VERSION, blob, sizeof blob).status, MC_OK);
+    CHECK_EQ_INT(param_commit(seq++, crc), MC_OK); /* set 1 stored */
+
+    /* Set 2 with one failing read in the commit's final scan: committed, and said so. */
+    p.offset[0] = 7 * 32768;
+    encode(&p, blob2);
+    const uint32_t crc2 = mc_crc32_iso_hdlc(blob2, sizeof blob2);
+    CHECK_EQ_INT(param_set(seq++, MC_PARAMS_FORMAT_VERSION, blob2, sizeof blob2).status, MC_OK);
+    CHECK_EQ_INT(commit_with_late_read_failure(seq, crc2, 0), MC_OK);
+    seq = (uint16_t)(seq + 2u);
+    CHECK_EQ_INT(reset_req(seq++, MC_RESET_MAGIC), MC_OK);
+    mc_msg_param_get_resp_t g = param_get(seq++, MC_DEVICE_SET_ACTIVE);
+    CHECK_EQ_INT(g.status, MC_OK);
+    CHECK_EQ_INT(g.crc32, crc2);
+
+    /* Set 1 again, the flash unreadable from the final scan on: the outcome is unknown. */
+    CHECK_EQ_INT(param_set(seq++, MC_PARAMS_FORMAT_VERSION, blob, sizeof blob).status, MC_OK);
+    CHECK_EQ_INT(commit_with_late_read_failure(seq, crc, 1), MC_E_OUTCOME_UNKNOWN);
+    seq = (uint16_t)(seq + 2u);
+    CHECK_EQ_INT(reset_req(seq++, MC_RESET_MAGIC), MC_OK);
+    g = param_get(seq++, MC_DEVICE_SET_ACTIVE);
+    CHECK_EQ_INT(g.status, MC_OK);
+    CHECK_EQ_INT(g.crc32, crc); /* here the new one had won */
+
+    /* A failure before the commit point is definite, the old set still active. */
+    CHECK_EQ_INT(param_set(seq++, MC_PARAMS_FORMAT_VERSION, blob2, sizeof blob2).status, MC_OK);
+    R.fsim.fail_erase = 1;
+    CHECK_EQ_INT(param_commit(seq++, crc2), MC_E_FLASH);
+    R.fsim.fail_erase = 0;
+    CHECK_EQ_INT(reset_req(seq++, MC_RESET_MAGIC), MC_OK);
+    CHECK_EQ_INT(param_get(seq++, MC_DEVICE_SET_ACTIVE).crc32, crc);
+    CHECK_EQ_INT(R.fsim.violations, 0);
+    R.flash.ops = &flash_sim_ops;
+}
+
 static void test_streams(void)
 {
     mc_raw_sample_t want;
@@ -815,6 +900,7 @@ int main(void)
     test_nacks_and_bad_frames();
     test_retry_cache();
     test_param_flows();
+    test_commit_outcome();
     test_streams();
     test_corrected_stream();
     test_full_link();

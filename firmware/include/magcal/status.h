@@ -24,7 +24,8 @@ typedef enum {
     MC_E_STATE = -15,           /* not allowed in the current state (for example commit with nothing staged) */
     MC_E_SENSOR = -16,          /* a sensor read through the HAL failed */
     MC_E_NO_SPACE = -17,        /* the output buffer is too small */
-    MC_E_SEQUENCE = -18         /* stale or repeated sequence number */
+    MC_E_SEQUENCE = -18,        /* stale or repeated sequence number */
+    MC_E_OUTCOME_UNKNOWN = -19  /* the flash failed after a commit's commit point and could not be read back: the old or the new set is stored (reset, then param_get(which=0) tells which) */
 } mc_status_t;
 
 #endif /* MAGCAL_STATUS_H */

@@ -121,22 +121,38 @@ mc_status_t mc_storage_load(mc_storage_t *st, uint8_t *payload, size_t cap, size
 
 /*
  * Atomically replaces the stored payload with payload[0 .. len) tagged format_version, by
- * the protocol above. On MC_OK the new record is the best, with sequence previous best + 1
- * (1 if there was none). On any error the previous best is untouched and still the best.
+ * the protocol above. The previous best record is never erased or programmed.
  * Cost: pages_per_slot page erases and MC_STORAGE_RECORD_SIZE(len) / 4 word programs, all
  * read back; slots alternate, so each slot page is erased once per two commits.
- * Returns:
- *   MC_OK;
- *   MC_E_ARG: st or payload NULL, st not initialised, len 0 or len > MC_STORAGE_PAYLOAD_MAX;
- *   MC_E_RANGE: the best sequence is already 0xFFFFFFFF (see above);
- *   MC_E_FLASH: an erase, program or read failed, or flash did not read back as written.
+ *
+ * Outcome. Before the commit marker's program is issued an error leaves the previous best
+ * certainly the best. From that program on, flash alone decides which record a boot loads
+ * (the marker may be complete even though its program or read-back reported an error), so
+ * on any error after that point commit scans both slots again, sets st from what it finds
+ * and returns what flash says rather than the error. So every return but
+ * MC_E_OUTCOME_UNKNOWN tells which record a boot would load now:
+ *   MC_OK: the new record is the best, with sequence previous best + 1 (1 if there was
+ *     none), also when an error occurred after the commit point but the rescan found the
+ *     new record complete;
+ *   MC_E_ARG: st or payload NULL, st not initialised, len 0 or len > MC_STORAGE_PAYLOAD_MAX
+ *     (nothing read or written, st unchanged);
+ *   MC_E_RANGE: the best sequence is already 0xFFFFFFFF (see above); nothing written;
+ *   MC_E_FLASH: an erase, program or read failed, or flash did not read back as written,
+ *     and the previous best (or none) is certainly still the best; st says which. A read
+ *     failing in the first scan, before anything is written, also gives MC_E_FLASH and
+ *     leaves st as the last init, load or commit set it;
+ *   MC_E_OUTCOME_UNKNOWN: an error after the commit point and the rescan failed too (or
+ *     found neither record as expected): a boot finds the old or the new record, which one
+ *     is unknown. st then says "none" (MC_E_NO_PARAMS from mc_storage_active) until a later
+ *     init, load or commit scans successfully; mc_storage_load tells which record won.
  */
 mc_status_t mc_storage_commit(mc_storage_t *st, const uint8_t *payload, size_t len,
                               uint16_t format_version);
 
 /*
- * The best slot and its sequence as of the last init, load or successful commit (no flash
- * access; the host's `flash` command reports it). Returns MC_OK, MC_E_NO_PARAMS when no
+ * The best slot and its sequence as of the last init, load or commit (no flash access; the
+ * host's `flash` command reports it): commit updates it on every return after its first
+ * scan, to what flash holds (see mc_storage_commit's outcomes). Returns MC_OK, MC_E_NO_PARAMS when no
  * valid record was found (*slot = MC_STORAGE_SLOT_NONE, *sequence = 0), or MC_E_ARG.
  */
 mc_status_t mc_storage_active(const mc_storage_t *st, mc_storage_slot_t *slot,

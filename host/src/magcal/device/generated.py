@@ -47,6 +47,7 @@ class Status(enum.IntEnum):
     E_SENSOR = -16  # a sensor read through the HAL failed
     E_NO_SPACE = -17  # the output buffer is too small
     E_SEQUENCE = -18  # stale or repeated sequence number
+    E_OUTCOME_UNKNOWN = -19  # the flash failed after a commit's commit point and could not be read back: the old or the new set is stored (reset, then param_get(which=0) tells which)
 
 
 class Unit(enum.IntEnum):
@@ -708,7 +709,11 @@ MESSAGES: tuple[Message, ...] = (
         ),
         doc=(
             "E_STATE when nothing is staged, E_CRC when crc32 does not match the staged blob, "
-            "E_FLASH when storing failed."
+            "E_FLASH when storing failed and the previous stored set is certainly still the one a "
+            "reset loads, E_OUTCOME_UNKNOWN when the flash failed after the commit point and could "
+            "not be read back (the previous or the staged set is stored: reset and "
+            "param_get(which=0) tell which). OK means the staged set is stored, also when a flash "
+            "error after the commit point was settled by reading both slots back."
         ),
     ),
     Message(

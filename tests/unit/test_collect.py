@@ -234,3 +234,35 @@ def test_time_not_increasing_is_skipped_and_counted():
 def test_a_stop_condition_is_required():
     with pytest.raises(MagcalError, match="give a stop condition"):
         _collect(FakeClient([]))
+
+
+# ----------------------------------------------------------------------------- verify
+# (magcal.device.verify's measures, on the same simulated data: kept here with collect's
+# fake client.)
+
+
+def test_verify_measures_tell_a_right_calibration_from_a_wrong_one():
+    from magcal.device.verify import heading_consistency, norm_spread
+
+    session, truth = simulate(preset("mems", duration_s=20.0), seed=3)
+    d, o = truth.sensor.D, truth.sensor.o
+    right = np.linalg.solve(d, (session.mag - o).T).T
+    wrong = np.linalg.solve(d, (session.mag - o - np.array([0.1, 0, 0])).T).T
+    assert norm_spread(right).rel_std < 0.01 < norm_spread(wrong).rel_std
+    good = heading_consistency(session.t, session.acc, session.gyr, right)
+    bad = heading_consistency(session.t, session.acc, session.gyr, wrong)
+    assert good.rms_deg < 2.0 and bad.rms_deg > 2.0 and bad.dip_std_deg > 5 * good.dip_std_deg
+    assert abs(good.dip_mean_deg - truth.scenario.dip_deg) < 0.5
+    # The rest at the start gives the gyroscope bias.
+    assert np.allclose(good.gyro_bias, truth.sensor.gyro_bias, atol=0.003)
+
+
+def test_verify_refuses_a_device_without_parameters():
+    from magcal.device.verify import VerifyError, verify
+
+    class NoParams(FakeClient):
+        def param_get(self, which=0):
+            raise DeviceError("param_get(active): E_NO_PARAMS", Status.E_NO_PARAMS, "param_get")
+
+    with pytest.raises(VerifyError, match=r"no active parameter set \(E_NO_PARAMS\).*magcal flash"):
+        verify(NoParams([]), _info())

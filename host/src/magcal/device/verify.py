@@ -28,7 +28,9 @@ the propagated one, and the heading error is the rotation between them about the
 Reported: the RMS and maximum over all samples, in degrees. What else enters, honestly: a
 gyroscope bias b adds up to ``|b| * window_s`` (1 °/s over a 1 s window: up to 1°; a session
 with a stationary start gives the bias, which is then removed); translational acceleration
-tilts the TRIAD's vertical. So it is a check with a floor of about a degree, not an accuracy
+tilts the TRIAD's vertical; and the field's horizontal part is only cos(dip) of it, so its
+noise (and the accelerometer's, through the tilt) is amplified by about 1/cos(dip), 3 at a
+dip of 72°. So it is a check with a floor of about a degree, not an accuracy
 figure; a wrong calibration (an offset of 10 % of the field) gives several degrees. Also the
 **dip** (the angle between the field and the horizontal plane) must be the same in every
 orientation: its standard deviation is reported too.
@@ -62,9 +64,12 @@ DEFAULT_SAMPLES = 500
 #: Each message must arrive within this long (a device at 100 Hz sends one every 10 ms).
 VERIFY_STREAM_TIMEOUT_S = 5.0
 HEADING_WINDOW_S = 1.0
-#: Rest at the start of a stream/session used to estimate the gyroscope bias: |omega| below
-#: this (rad/s) and |acc| within ACC_REST_TOL of its median for at least REST_MIN_SAMPLES.
+#: Rest at the start of a stream or session gives the gyroscope bias (rest_gyro_bias): the
+#: first samples' median rate must be below REST_RATE_RAD_S, and the rest lasts at least
+#: REST_MIN_SAMPLES.
 REST_RATE_RAD_S = 0.05
+REST_RATE_DEV_RAD_S = 0.03  # a MEMS gyroscope's noise is ~0.005 rad/s per axis at 100 Hz
+REST_MARGIN_SAMPLES = 10
 ACC_REST_TOL = 0.2
 REST_MIN_SAMPLES = 20
 #: Samples with |acc| outside g +- this (m/s^2) have no reliable vertical: skipped.
@@ -161,16 +166,22 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
 
 
 def rest_gyro_bias(gyr: np.ndarray, acc: np.ndarray) -> np.ndarray:
-    """(3,) rad/s: the mean gyroscope reading over the rest at the start (zeros if none)."""
+    """(3,) rad/s: the mean gyroscope reading over the rest at the start (zeros if none).
+
+    The rest ends at the first sample whose rate differs from the first samples' median by
+    more than REST_RATE_DEV_RAD_S or whose |acc| by more than ACC_REST_TOL; the last
+    REST_MARGIN_SAMPLES before it are left out (a motion starts gently)."""
     if len(gyr) < REST_MIN_SAMPLES:
         return np.zeros(3)
-    rate = np.linalg.norm(gyr, axis=1)
+    g0 = np.median(gyr[:REST_MIN_SAMPLES], axis=0)
     a = np.linalg.norm(acc, axis=1)
-    rate0, a0 = np.median(rate[:REST_MIN_SAMPLES]), np.median(a[:REST_MIN_SAMPLES])
-    if rate0 > REST_RATE_RAD_S:  # moving from the start: no rest to learn the bias from
+    a0 = np.median(a[:REST_MIN_SAMPLES])
+    if np.linalg.norm(g0) > REST_RATE_RAD_S:  # moving from the start: no rest
         return np.zeros(3)
-    moving = (rate > rate0 + REST_RATE_RAD_S) | (np.abs(a - a0) > ACC_REST_TOL)
-    k = int(np.argmax(moving)) if moving.any() else len(gyr)
+    moving = (np.linalg.norm(gyr - g0, axis=1) > REST_RATE_DEV_RAD_S) | (
+        np.abs(a - a0) > ACC_REST_TOL
+    )
+    k = (int(np.argmax(moving)) if moving.any() else len(gyr)) - REST_MARGIN_SAMPLES
     return gyr[:k].mean(axis=0) if k >= REST_MIN_SAMPLES else np.zeros(3)
 
 

@@ -434,14 +434,13 @@ static size_t do_param_commit(mc_device_t *dev, const mc_msg_param_commit_t *rq,
     } else if (rq->crc32 != dev->staged_crc) {
         st = MC_E_CRC;
     } else {
-        /* storage.h's outcomes say what flash holds: OK = the staged set is stored (also
+        /* storage.h's outcomes, passed on as they are: OK = the staged set is stored (also
          * after an error past the commit point that the rescan settled), E_FLASH = the
-         * previous set certainly still wins, E_OUTCOME_UNKNOWN = either (passed on). */
+         * previous set certainly still wins, E_OUTCOME_UNKNOWN = either, E_RANGE = the
+         * sequence numbers are exhausted (nothing written). E_ARG cannot occur: the storage
+         * was set up by init and the staged blob has its fixed non-zero size. */
         st = mc_storage_commit(&dev->storage, dev->staged_blob, sizeof dev->staged_blob,
                                dev->staged_format);
-        if (st != MC_OK && st != MC_E_OUTCOME_UNKNOWN) {
-            st = MC_E_FLASH;
-        }
     }
     r.status = (int8_t)st;
     (void)mc_msg_param_commit_resp_pack(&r, out, cap, &len);

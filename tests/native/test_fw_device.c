@@ -714,6 +714,35 @@ static void test_commit_outcome(void)
     R.flash.ops = &flash_sim_ops;
 }
 
+/* A stored sequence of 0xFFFFFFFF: param_commit says E_RANGE (not E_FLASH), nothing written. */
+static void test_commit_sequence_exhausted(void)
+{
+    uint8_t blob[MC_PARAMS_ENCODED_SIZE];
+    const mc_params_t p = good_params();
+    uint16_t seq = 950u;
+    rig_boot(0);
+    encode(&p, blob);
+    const uint32_t crc = mc_crc32_iso_hdlc(blob, sizeof blob);
+    CHECK_EQ_INT(param_set(seq++, MC_PARAMS_FORMAT_VERSION, blob, sizeof blob).status, MC_OK);
+    CHECK_EQ_INT(param_commit(seq++, crc), MC_OK); /* slot A, page 0, sequence 1 */
+    /* Rewrite its sequence field to 0xFFFFFFFF and its CRC to match (storage.h's layout). */
+    const uint32_t body = MC_STORAGE_HEADER_SIZE + ((MC_PARAMS_ENCODED_SIZE + 3u) & ~3u);
+    memset(R.fsim.mem + 8, 0xFF, 4);
+    const uint32_t rec_crc = mc_crc32_iso_hdlc(R.fsim.mem, body);
+    for (unsigned i = 0; i < 4u; ++i) {
+        R.fsim.mem[body + i] = (uint8_t)(rec_crc >> (8u * i));
+    }
+    static uint8_t snapshot[FLASH_SIM_MAX_BYTES];
+    memcpy(snapshot, R.fsim.mem, sizeof snapshot);
+    const long programs = R.fsim.programs, erases = R.fsim.erases;
+    CHECK_EQ_INT(param_commit(seq++, crc), MC_E_RANGE);
+    CHECK_EQ_INT(R.fsim.programs, programs);
+    CHECK_EQ_INT(R.fsim.erases, erases);
+    CHECK(memcmp(snapshot, R.fsim.mem, sizeof snapshot) == 0);
+    rig_boot(1); /* the record is still valid and loads */
+    CHECK_EQ_INT(R.dev.load_status, MC_OK);
+}
+
 static void test_streams(void)
 {
     mc_raw_sample_t want;
@@ -901,6 +930,7 @@ int main(void)
     test_retry_cache();
     test_param_flows();
     test_commit_outcome();
+    test_commit_sequence_exhausted();
     test_streams();
     test_corrected_stream();
     test_full_link();

@@ -57,7 +57,8 @@
  *   commit never stores a set older than the last one sent). A commit stores it and keeps it
  *   staged; a reset clears it. param_commit's answer says what flash holds (mc_storage_commit's
  *   outcomes): OK stored; E_FLASH only when the previous set certainly still wins;
- *   E_OUTCOME_UNKNOWN when a flash error after the commit point could not be settled.
+ *   E_OUTCOME_UNKNOWN when a flash error after the commit point could not be settled;
+ *   E_RANGE when the stored sequence number is exhausted (nothing written).
  *
  * Reset (reset with MC_RESET_MAGIC): the device sends reset_resp(OK); once tx has taken all
  * of it, the device resets its own state as a reboot would: no stream, no staged set, an

@@ -266,8 +266,9 @@ mc_status_t mc_msg_param_commit_unpack(const uint8_t *payload, size_t len,
  * does not match the staged blob, E_FLASH when storing failed and the previous stored set is
  * certainly still the one a reset loads, E_OUTCOME_UNKNOWN when the flash failed after the
  * commit point and could not be read back (the previous or the staged set is stored: reset and
- * param_get(which=0) tell which). OK means the staged set is stored, also when a flash error
- * after the commit point was settled by reading both slots back.
+ * param_get(which=0) tell which), E_RANGE when the stored set's sequence number is already
+ * 0xFFFFFFFF and no commit can follow it (nothing written). OK means the staged set is stored,
+ * also when a flash error after the commit point was settled by reading both slots back.
  */
 #define MC_MSG_PARAM_COMMIT_RESP_SIZE 1u
 typedef struct {

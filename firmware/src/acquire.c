@@ -41,8 +41,12 @@ mc_status_t mc_sensor_info_check(const mc_sensor_info_t *info, mc_sensor_kind_t 
 mc_status_t mc_acquire_init(mc_acquire_t *acq, const mc_sensor_hal_t *hal, mc_sample_t *storage,
                             uint32_t capacity, uint32_t first_seq)
 {
-    if (acq == NULL || hal == NULL || hal->ops == NULL || hal->ops->read == NULL
-        || hal->ops->now_us == NULL || hal->ops->describe == NULL) {
+    if (acq == NULL) {
+        return MC_E_ARG;
+    }
+    acq->ready = 0u;
+    if (hal == NULL || hal->ops == NULL || hal->ops->read == NULL || hal->ops->now_us == NULL
+        || hal->ops->describe == NULL) {
         return MC_E_ARG;
     }
     const mc_status_t st = mc_ring_init(&acq->ring, storage, capacity);
@@ -53,13 +57,22 @@ mc_status_t mc_acquire_init(mc_acquire_t *acq, const mc_sensor_hal_t *hal, mc_sa
     acq->next_seq = first_seq;
     acq->produced = 0u;
     acq->sensor_errors = 0u;
+    acq->ready = MC_ACQUIRE_READY; /* last: everything above is in place */
     return MC_OK;
+}
+
+static int ready(const mc_acquire_t *acq)
+{
+    return acq->ready == MC_ACQUIRE_READY;
 }
 
 mc_status_t mc_acquire_poll(mc_acquire_t *acq)
 {
     if (acq == NULL) {
         return MC_E_ARG;
+    }
+    if (!ready(acq)) {
+        return MC_E_STATE;
     }
     mc_raw_sample_t raw;
     if (acq->hal.ops->read(acq->hal.ctx, &raw) != MC_OK) {
@@ -82,8 +95,11 @@ mc_status_t mc_acquire_poll(mc_acquire_t *acq)
 
 mc_status_t mc_acquire_pop(mc_acquire_t *acq, mc_sample_t *out)
 {
-    if (acq == NULL) {
+    if (acq == NULL || out == NULL) {
         return MC_E_ARG;
+    }
+    if (!ready(acq)) {
+        return MC_E_STATE;
     }
     return mc_ring_pop(&acq->ring, out);
 }
@@ -92,6 +108,9 @@ mc_status_t mc_acquire_stats(const mc_acquire_t *acq, mc_acquire_stats_t *out)
 {
     if (acq == NULL || out == NULL) {
         return MC_E_ARG;
+    }
+    if (!ready(acq)) {
+        return MC_E_STATE;
     }
     out->produced = acq->produced;
     out->dropped = mc_ring_overflow(&acq->ring);
@@ -105,6 +124,9 @@ mc_status_t mc_acquire_describe(const mc_acquire_t *acq, mc_sensor_info_t out[MC
 {
     if (acq == NULL || out == NULL) {
         return MC_E_ARG;
+    }
+    if (!ready(acq)) {
+        return MC_E_STATE;
     }
     if (acq->hal.ops->describe(acq->hal.ctx, out) != MC_OK) {
         return MC_E_SENSOR;

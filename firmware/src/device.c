@@ -589,6 +589,9 @@ mc_status_t mc_device_sample(mc_device_t *dev)
     if (dev == NULL) {
         return MC_E_ARG;
     }
+    if (!ready(dev)) {
+        return MC_E_STATE; /* init has not (successfully) run: nothing to read through */
+    }
     return mc_acquire_poll(&dev->acq);
 }
 

@@ -224,6 +224,23 @@ static void test_acquire_arguments(void)
     CHECK_EQ_INT(sim.calls, 0); /* no argument error reached the HAL */
     CHECK_EQ_INT(mc_acquire_stats(&acq, &st), MC_OK);
     CHECK_EQ_INT(st.produced + st.dropped + st.sensor_errors + st.queued + st.next_seq, 0);
+
+    /* Not initialised (zeroed, as a static instance is before init, or after a refused init
+     * of a formerly good one): MC_E_STATE, and the HAL's unset pointers are never called. */
+    mc_acquire_t zero;
+    memset(&zero, 0, sizeof zero);
+    CHECK_EQ_INT(mc_acquire_poll(&zero), MC_E_STATE);
+    CHECK_EQ_INT(mc_acquire_pop(&zero, &out), MC_E_STATE);
+    CHECK_EQ_INT(mc_acquire_stats(&zero, &st), MC_E_STATE);
+    CHECK_EQ_INT(mc_acquire_describe(&zero, info), MC_E_STATE);
+    CHECK_EQ_INT(mc_acquire_init(&acq, &hal, storage, 3u, 0u), MC_E_ARG);
+    CHECK_EQ_INT(mc_acquire_poll(&acq), MC_E_STATE);
+    CHECK_EQ_INT(mc_acquire_describe(&acq, info), MC_E_STATE);
+    CHECK_EQ_INT(mc_acquire_init(&acq, NULL, storage, 4u, 0u), MC_E_ARG);
+    CHECK_EQ_INT(mc_acquire_poll(&acq), MC_E_STATE);
+    CHECK_EQ_INT(sim.calls, 0);
+    CHECK_EQ_INT(mc_acquire_init(&acq, &hal, storage, 4u, 0u), MC_OK);
+    CHECK_EQ_INT(mc_acquire_poll(&acq), MC_OK);
 }
 
 /* Overflow: the newest are dropped and counted, each takes a number, and the gap the consumer

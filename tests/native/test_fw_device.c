@@ -344,6 +344,15 @@ static void test_init_args(void)
     CHECK_EQ_INT(mc_device_init(&R.dev, &cfg), MC_E_RANGE);
     CHECK_EQ_INT(mc_device_rx_bytes(NULL, wire, 1u), 0);
     CHECK_EQ_INT(mc_device_sample(NULL), MC_E_ARG);
+    /* The producer on a device init never set up (zeroed, or cleared by a refused init):
+     * MC_E_STATE, no call through the acquisition's unset HAL pointers. */
+    memset(&R.dev, 0, sizeof R.dev);
+    CHECK_EQ_INT(mc_device_sample(&R.dev), MC_E_STATE);
+    cfg = rig_config(&R);
+    cfg.ring_capacity = 3u;
+    CHECK_EQ_INT(mc_device_init(&R.dev, &cfg), MC_E_ARG);
+    CHECK_EQ_INT(mc_device_sample(&R.dev), MC_E_STATE);
+    CHECK_EQ_INT(R.ssim.calls, 0);
     CHECK_EQ_INT(mc_device_link_reset(NULL), MC_E_ARG);
     CHECK_EQ_INT(mc_device_stats(NULL, NULL), MC_E_ARG);
     CHECK(!mc_device_tx_pending(NULL));

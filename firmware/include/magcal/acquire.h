@@ -49,7 +49,18 @@ typedef struct {
     volatile uint32_t next_seq;      /* number of the next sample (producer writes) */
     volatile uint32_t produced;      /* producer writes */
     volatile uint32_t sensor_errors; /* producer writes */
+    volatile uint32_t ready;         /* MC_ACQUIRE_READY once init succeeded, else not */
 } mc_acquire_t;
+
+#define MC_ACQUIRE_READY 0x4D434151u
+
+/* Initialisation and the interrupt. Every function but init refuses an instance that init
+ * has not set up with MC_E_STATE (never calling the HAL through an unset pointer): init
+ * writes MC_ACQUIRE_READY last, after the HAL and the ring, and clears it first. A zeroed
+ * (static) instance is therefore always detected; an instance in uninitialised stack or heap
+ * memory is detected unless its garbage happens to equal the magic, so do not rely on that.
+ * Enable the data-ready interrupt that calls mc_acquire_poll only after init returned MC_OK,
+ * and disable it before calling init again on the same instance. */
 
 typedef struct {
     uint32_t produced;      /* successful reads, each numbered */
@@ -62,7 +73,7 @@ typedef struct {
 /* Start acquisition over the caller's storage[capacity] (a power of two, see mc_ring_init),
  * copying *hal; the first sample gets number first_seq and every counter starts at 0. Returns
  * MC_OK, or MC_E_ARG when a pointer is NULL, hal->ops or one of its operations is NULL, or the
- * capacity is invalid. */
+ * capacity is invalid (acq, if not NULL, is then not ready: the others say MC_E_STATE). */
 mc_status_t mc_acquire_init(mc_acquire_t *acq, const mc_sensor_hal_t *hal, mc_sample_t *storage,
                             uint32_t capacity, uint32_t first_seq);
 
@@ -71,19 +82,23 @@ mc_status_t mc_acquire_init(mc_acquire_t *acq, const mc_sensor_hal_t *hal, mc_sa
  *   MC_E_OVERFLOW   read and numbered, dropped because the ring is full (counted in dropped);
  *   MC_E_SENSOR     the HAL's read failed (any non-MC_OK status from it): counted in
  *                   sensor_errors, no number taken, nothing queued;
- *   MC_E_ARG        acq is NULL. */
+ *   MC_E_ARG        acq is NULL;
+ *   MC_E_STATE      acq is not initialised (the HAL is not called). */
 mc_status_t mc_acquire_poll(mc_acquire_t *acq);
 
-/* Consumer: the oldest queued sample into *out. Returns MC_OK, MC_E_EMPTY or MC_E_ARG. */
+/* Consumer: the oldest queued sample into *out. Returns MC_OK, MC_E_EMPTY, MC_E_ARG, or
+ * MC_E_STATE when acq is not initialised. */
 mc_status_t mc_acquire_pop(mc_acquire_t *acq, mc_sample_t *out);
 
 /* The counters now. Each is read once; while the producer runs they may come from different
- * instants (each value itself is whole). Returns MC_OK or MC_E_ARG. */
+ * instants (each value itself is whole). Returns MC_OK, MC_E_ARG, or MC_E_STATE when acq is
+ * not initialised. */
 mc_status_t mc_acquire_stats(const mc_acquire_t *acq, mc_acquire_stats_t *out);
 
 /* The HAL's description of the three sensors, checked with mc_sensor_info_check. Returns
  * MC_OK; MC_E_SENSOR when the HAL's describe fails; MC_E_RANGE when a description is invalid;
- * MC_E_ARG for a NULL argument. *out is unspecified unless MC_OK. */
+ * MC_E_ARG for a NULL argument; MC_E_STATE when acq is not initialised (the HAL is not
+ * called). *out is unspecified unless MC_OK. */
 mc_status_t mc_acquire_describe(const mc_acquire_t *acq, mc_sensor_info_t out[MC_SENSOR_COUNT]);
 
 #endif /* MAGCAL_ACQUIRE_H */

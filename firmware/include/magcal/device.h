@@ -187,7 +187,10 @@ mc_status_t mc_device_init(mc_device_t *dev, const mc_device_config_t *cfg);
 size_t mc_device_rx_bytes(mc_device_t *dev, const uint8_t *data, size_t len);
 
 /* Producer (the data-ready interrupt, or the SIL's feed): one acquisition read
- * (mc_acquire_poll's returns). */
+ * (mc_acquire_poll's returns). MC_E_ARG for a NULL dev; MC_E_STATE, without touching the HAL,
+ * for a dev that mc_device_init has not set up (or that a failed init left cleared). Enable
+ * the interrupt only after mc_device_init returned MC_OK (init clears dev, so an interrupt
+ * during init could see a half-built instance), and disable it before calling init again. */
 mc_status_t mc_device_sample(mc_device_t *dev);
 
 /*

@@ -77,34 +77,105 @@ static void load_active(mc_device_t *dev)
 
 /* ---------------------------------------------------------------- stream */
 
-/* Acquisition's drop count now (0 if it cannot be read). */
-static uint32_t ring_dropped_now(const mc_device_t *dev)
-{
-    mc_acquire_stats_t s;
-    return mc_acquire_stats(&dev->acq, &s) == MC_OK ? s.dropped : 0u;
-}
-
 /* The running stream ends (count reached, stop, replaced): its counts stay for stream_stop. */
 static void stream_end(mc_device_t *dev)
 {
-    if (dev->stream_on) {
-        dev->stream_ring_dropped = ring_dropped_now(dev) - dev->stream_ring_dropped0;
-        dev->stream_on = 0u;
-    }
+    dev->stream_on = 0u;
 }
 
 static void stream_clear(mc_device_t *dev)
 {
     dev->stream_on = 0u;
     dev->stream_kind = 0u;
+    dev->stream_seen = 0u;
     dev->stream_seq = 0u;
     dev->stream_decimation = 1u;
-    dev->stream_phase = 0u;
+    dev->stream_next_due = 0u;
+    dev->stream_last_seq = 0u;
+    dev->stream_start_next = 0u;
+    dev->stream_overflow0 = 0u;
     dev->stream_count = 0u;
     dev->stream_sent = 0u;
     dev->stream_link_dropped = 0u;
-    dev->stream_ring_dropped0 = 0u;
     dev->stream_ring_dropped = 0u;
+}
+
+/*
+ * How many due seqs (next_due + k * d, k >= 0) lie in [a, a + len), in uint32 arithmetic
+ * modulo 2^32 (so across the seq wrap). next_due is either at most d - 1 ahead of a or
+ * behind it (a - next_due < 2^31): the stream keeps it just past the last sample it saw.
+ */
+static uint32_t count_due(uint32_t next_due, uint32_t d, uint32_t a, uint32_t len)
+{
+    uint32_t first_off; /* offset of the first due seq >= a */
+    if (a - next_due < 0x80000000u) {
+        const uint32_t r = (a - next_due) % d;
+        first_off = r == 0u ? 0u : d - r;
+    } else {
+        first_off = next_due - a;
+    }
+    return first_off < len ? (len - 1u - first_off) / d + 1u : 0u;
+}
+
+/* Seqs in [a, a + len) from stream_start_next on: the part of a gap the stream answers for. */
+static void clamp_to_stream(const mc_device_t *dev, uint32_t *a, uint32_t *len)
+{
+    const uint32_t before = dev->stream_start_next - *a; /* seqs of the range before the start */
+    if (before != 0u && before < 0x80000000u) {
+        *len = before >= *len ? 0u : *len - before;
+        *a = dev->stream_start_next;
+    }
+}
+
+/*
+ * Whether sample seq is due (device.h: first + k * decimation), adding the due samples in the
+ * gap since the last sample seen (lost in the ring) to stream_ring_dropped. Samples arrive in
+ * seq order.
+ */
+static int stream_due(mc_device_t *dev, uint32_t seq)
+{
+    const uint32_t d = dev->stream_decimation;
+    if (!dev->stream_seen) {
+        dev->stream_seen = 1u;
+        dev->stream_next_due = seq;
+    } else {
+        uint32_t a = dev->stream_last_seq + 1u, len = seq - a;
+        clamp_to_stream(dev, &a, &len);
+        dev->stream_ring_dropped =
+            dev->stream_ring_dropped + count_due(dev->stream_next_due, d, a, len);
+    }
+    dev->stream_last_seq = seq;
+    const uint32_t behind = dev->stream_next_due - seq;
+    if (behind != 0u && behind < d) {
+        return 0; /* between two due samples */
+    }
+    const uint32_t r = (seq - dev->stream_next_due) % d;
+    dev->stream_next_due = seq + (r == 0u ? d : d - r);
+    return r == 0u;
+}
+
+/* At a stop: the due samples lost in the ring after the last one seen. No pop happened since,
+ * so the ring filled in seq order and then dropped every newer sample: the unseen seqs are
+ * the queued ones followed by the dropped ones, up to the acquisition's next seq. */
+static void stream_count_tail(mc_device_t *dev)
+{
+    mc_acquire_stats_t s;
+    if (!dev->stream_on || mc_acquire_stats(&dev->acq, &s) != MC_OK) {
+        return;
+    }
+    uint32_t a, len, next_due;
+    if (dev->stream_seen) {
+        const uint32_t unseen = s.next_seq - (dev->stream_last_seq + 1u);
+        len = unseen > s.queued ? unseen - s.queued : 0u;
+        next_due = dev->stream_next_due;
+    } else { /* nothing seen: every drop since the start is of this stream's samples */
+        len = s.dropped - dev->stream_overflow0;
+        next_due = s.next_seq - len - s.queued; /* where the first sample seen would be */
+    }
+    a = s.next_seq - len;
+    clamp_to_stream(dev, &a, &len);
+    dev->stream_ring_dropped =
+        dev->stream_ring_dropped + count_due(next_due, dev->stream_decimation, a, len);
 }
 
 static void stream_drop(mc_device_t *dev)
@@ -124,11 +195,7 @@ static void stream_sample(mc_device_t *dev, const mc_sample_t *s)
     if (!dev->stream_on) {
         return;
     }
-    due = dev->stream_phase == 0u;
-    dev->stream_phase = (uint16_t)(dev->stream_phase + 1u);
-    if (dev->stream_phase >= dev->stream_decimation) {
-        dev->stream_phase = 0u;
-    }
+    due = stream_due(dev, s->seq);
     if (!due) {
         return;
     }
@@ -345,7 +412,13 @@ static size_t do_stream_start(mc_device_t *dev, const mc_frame_t *req,
         dev->stream_seq = req->seq;
         dev->stream_decimation = rq->decimation;
         dev->stream_count = rq->count;
-        dev->stream_ring_dropped0 = ring_dropped_now(dev);
+        {
+            mc_acquire_stats_t as;
+            if (mc_acquire_stats(&dev->acq, &as) == MC_OK) {
+                dev->stream_start_next = as.next_seq; /* losses before it are not ours */
+                dev->stream_overflow0 = as.dropped;
+            }
+        }
     }
     r.status = (int8_t)st;
     (void)mc_msg_stream_start_resp_pack(&r, out, cap, &len);
@@ -356,6 +429,7 @@ static size_t do_stream_stop(mc_device_t *dev, uint8_t *out, size_t cap)
 {
     mc_msg_stream_stop_resp_t r;
     size_t len = 0u;
+    stream_count_tail(dev);
     stream_end(dev);
     r.status = (int8_t)MC_OK;
     r.sent = dev->stream_sent;

@@ -809,6 +809,71 @@ static void test_streams(void)
     s = stream_stop(309u);
     CHECK_EQ_INT(s.sent, MC_RING_CAPACITY);
     CHECK_EQ_INT(s.dropped, 6);
+    R.reads += MC_RING_CAPACITY + 6u;
+
+    /* With decimation, dropped counts MESSAGES: due samples (seq first + 3k) that were lost,
+     * not every sample the ring lost; and it equals what the host's seq gaps show. */
+    const uint32_t dec = 3u, lost = 10u, after = 9u;
+    CHECK_EQ_INT(stream_start(310u, MC_DEVICE_STREAM_RAW, (uint16_t)dec, 0u), MC_OK);
+    const uint32_t d0 = R.reads;
+    for (uint32_t i = 0; i < MC_RING_CAPACITY + lost; ++i) {
+        (void)mc_device_sample(&R.dev);
+    }
+    R.reads += MC_RING_CAPACITY + lost;
+    CHECK_EQ_INT(mc_device_poll(&R.dev), MC_OK);
+    samples(after);
+    uint32_t want_sent = 0u, want_dropped = 0u;
+    for (uint32_t k = 0; k < MC_RING_CAPACITY + lost + after; ++k) {
+        if (k % dec == 0u) {
+            const int in_ring_loss = k >= MC_RING_CAPACITY && k < MC_RING_CAPACITY + lost;
+            want_sent += in_ring_loss ? 0u : 1u;
+            want_dropped += in_ring_loss ? 1u : 0u;
+        }
+    }
+    const size_t n = take_frames();
+    CHECK_EQ_INT(n, want_sent);
+    uint32_t gap_messages = 0u, prev = d0;
+    for (size_t k = 0; k < n; ++k) {
+        CHECK_EQ_INT(mc_msg_sample_unpack(got[k].payload, got[k].len, &m), MC_OK);
+        CHECK_EQ_INT((m.seq - d0) % dec, 0);
+        if (k > 0u) {
+            gap_messages += (m.seq - prev) / dec - 1u;
+        }
+        prev = m.seq;
+    }
+    CHECK_EQ_INT(gap_messages, want_dropped);
+    CHECK(want_dropped > 0u && want_dropped < lost);
+    /* Then the main loop stalls until the stop: a ring full of unseen samples (neither sent
+     * nor dropped) and `lost` more lost after them, of which the due ones are dropped. */
+    const uint32_t k0 = MC_RING_CAPACITY + lost + after;
+    for (uint32_t i = 0; i < MC_RING_CAPACITY + lost; ++i) {
+        (void)mc_device_sample(&R.dev);
+        const uint32_t k = k0 + i;
+        want_dropped += i >= MC_RING_CAPACITY && k % dec == 0u ? 1u : 0u;
+    }
+    R.reads += MC_RING_CAPACITY + lost;
+    s = stream_stop(311u);
+    CHECK_EQ_INT(s.sent, want_sent);
+    CHECK_EQ_INT(s.dropped, want_dropped);
+    CHECK(want_dropped > gap_messages);
+    CHECK_EQ_INT(mc_device_poll(&R.dev), MC_OK); /* the queued ones: no stream, discarded */
+    CHECK_EQ_INT(take_frames(), 0);
+
+    /* A stream that saw nothing: every sample lost after its start is its own. */
+    CHECK_EQ_INT(stream_start(312u, MC_DEVICE_STREAM_RAW, (uint16_t)dec, 0u), MC_OK);
+    for (uint32_t i = 0; i < MC_RING_CAPACITY + lost; ++i) {
+        (void)mc_device_sample(&R.dev);
+    }
+    R.reads += MC_RING_CAPACITY + lost;
+    want_dropped = 0u;
+    for (uint32_t i = MC_RING_CAPACITY; i < MC_RING_CAPACITY + lost; ++i) {
+        want_dropped += i % dec == 0u ? 1u : 0u;
+    }
+    s = stream_stop(313u);
+    CHECK_EQ_INT(s.sent, 0);
+    CHECK_EQ_INT(s.dropped, want_dropped);
+    CHECK_EQ_INT(mc_device_poll(&R.dev), MC_OK);
+    CHECK_EQ_INT(take_frames(), 0);
 }
 
 static void test_corrected_stream(void)

@@ -36,6 +36,17 @@
  *       pending, or that tx refuses entirely (returns 0), is not sent and adds 1 to the
  *       stream's dropped count (stream_stop_resp.dropped); its seq gap shows it to the host.
  *       A stream message that tx takes in part counts as sent (its rest is pending).
+ *   Decimation and dropped. With decimation d the stream is due to send the samples whose
+ *   acquisition seq is first + k*d (k = 0, 1, ...), first being the seq of the first sample
+ *   the stream sees (so a host sees seq steps of d). stream_stop_resp.dropped counts, in
+ *   messages, the due samples that were not sent: those the link refused (above) and those
+ *   lost in the acquisition ring before the stream saw them (a seq gap between two samples
+ *   it saw, or lost after the last one it saw and before the stop; a lost sample that was not
+ *   due is no lost message, and one numbered before the stream started is not counted). So
+ *   the seq gaps a host sees, each (gap / d - 1) messages, add up to dropped, except for
+ *   messages dropped after the last one it received. Samples still queued when the stream
+ *   stops are neither sent nor dropped. (The tail at a stop is read from the acquisition's
+ *   counters while the producer may run: off by one at most if a sample lands meanwhile.)
  *   So a port with a byte FIFO (a UART) passes what fits, and a port with a frame queue may
  *   take all or nothing; either way a full link costs stream messages only.
  *
@@ -141,10 +152,14 @@ typedef struct {
     uint8_t reset_due;   /* a reset_resp is pending: reset once it is out */
     /* stream */
     uint8_t stream_on, stream_kind;
-    uint16_t stream_seq, stream_decimation, stream_phase;
+    uint8_t stream_seen;   /* the stream has seen a sample: next_due and last_seq are set */
+    uint16_t stream_seq, stream_decimation;
+    uint32_t stream_next_due;  /* acquisition seq of the next sample the stream must send */
+    uint32_t stream_last_seq;  /* acquisition seq of the last sample the stream saw */
+    uint32_t stream_start_next; /* acquisition's next seq when the stream started */
+    uint32_t stream_overflow0;  /* acquisition's drop count when the stream started */
     uint32_t stream_count, stream_sent, stream_link_dropped;
-    uint32_t stream_ring_dropped0; /* acquisition drop count when the stream started */
-    uint32_t stream_ring_dropped;  /* ring drops while the stream ran, frozen at its end */
+    uint32_t stream_ring_dropped; /* due samples lost in the ring, in messages */
     /* parameter sets */
     uint8_t active_ok, staged_ok;
     uint16_t active_format, staged_format;

@@ -138,7 +138,11 @@ mc_status_t mc_msg_info_resp_unpack(const uint8_t *payload, size_t len, mc_msg_i
 #define MC_MSG_STREAM_START_SIZE 7u
 typedef struct {
     uint8_t kind; /* 0 = raw samples (sample), 1 = corrected samples (corrected) */
-    uint16_t decimation; /* send every n-th acquired sample, n >= 1 */
+    /*
+     * send every n-th acquired sample, n >= 1: the acquisition seqs first + k * n, first being the
+     * first sample the stream sees
+     */
+    uint16_t decimation;
     uint32_t count; /* number of messages to send, 0 = until stream_stop */
 } mc_msg_stream_start_t;
 mc_status_t mc_msg_stream_start_pack(const mc_msg_stream_start_t *msg, uint8_t *out, size_t cap,
@@ -179,7 +183,13 @@ mc_status_t mc_msg_stream_stop_unpack(const uint8_t *payload, size_t len,
 typedef struct {
     int8_t status; /* status of the request: 0 = OK, negative = error (status table) */
     uint32_t sent; /* messages sent */
-    uint32_t dropped; /* samples dropped because the link or a buffer was full */
+    /*
+     * messages due (decimation applied to acquisition seqs: first seen + k * decimation) but not
+     * sent: refused by a full link, or lost in the device's sample buffer before the stream saw
+     * them; the host's seq gaps, each gap / decimation - 1 messages, add up to it except for drops
+     * after the last message received
+     */
+    uint32_t dropped;
 } mc_msg_stream_stop_resp_t;
 mc_status_t mc_msg_stream_stop_resp_pack(const mc_msg_stream_stop_resp_t *msg, uint8_t *out,
                                          size_t cap, size_t *out_len);

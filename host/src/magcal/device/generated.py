@@ -439,7 +439,10 @@ MESSAGES: tuple[Message, ...] = (
                 count=1,
                 unit="",
                 scale="1",
-                doc="send every n-th acquired sample, n >= 1",
+                doc=(
+                    "send every n-th acquired sample, n >= 1: the acquisition seqs first + k * n, "
+                    "first being the first sample the stream sees"
+                ),
             ),
             Field(
                 name="count",
@@ -522,7 +525,13 @@ MESSAGES: tuple[Message, ...] = (
                 count=1,
                 unit="",
                 scale="1",
-                doc="samples dropped because the link or a buffer was full",
+                doc=(
+                    "messages due (decimation applied to acquisition seqs: first seen + k * "
+                    "decimation) but not sent: refused by a full link, or lost in the device's "
+                    "sample buffer before the stream saw them; the host's seq gaps, each gap / "
+                    "decimation - 1 messages, add up to it except for drops after the last message "
+                    "received"
+                ),
             ),
         ),
         doc="Counts of the stream just stopped (0 when none ran).",

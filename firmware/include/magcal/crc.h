@@ -19,11 +19,20 @@
 #define MC_CRC16_CCITT_FALSE_INIT 0xFFFFu
 #define MC_CRC32_ISO_HDLC_INIT 0xFFFFFFFFu
 
-/* CRC-16/CCITT-FALSE of len bytes at data (data may be NULL when len is 0). */
+/*
+ * NULL data. data may be NULL only when len is 0 (the CRC of nothing). NULL with len > 0 is a
+ * caller error that these functions cannot report (they return a CRC, not a status): they
+ * read nothing and return the unchanged state, i.e. the CRC of nothing (the *_INIT value for
+ * an _update, the empty-input CRC for the one-shot forms: 0xFFFF and 0x00000000). So a CRC
+ * computed over NULL never matches one over real bytes of that length except by chance; the
+ * library's callers never pass NULL with len > 0 (they check their own arguments first).
+ */
+
+/* CRC-16/CCITT-FALSE of len bytes at data (see NULL data above). */
 uint16_t mc_crc16_ccitt_false(const uint8_t *data, size_t len);
 uint16_t mc_crc16_ccitt_false_update(uint16_t crc, const uint8_t *data, size_t len);
 
-/* CRC-32/ISO-HDLC of len bytes at data (data may be NULL when len is 0). */
+/* CRC-32/ISO-HDLC of len bytes at data (see NULL data above). */
 uint32_t mc_crc32_iso_hdlc(const uint8_t *data, size_t len);
 uint32_t mc_crc32_iso_hdlc_update(uint32_t state, const uint8_t *data, size_t len);
 uint32_t mc_crc32_iso_hdlc_final(uint32_t state);

@@ -65,7 +65,7 @@ static void load_active(mc_device_t *dev)
     if (st == MC_OK) {
         st = mc_correction_init(&dev->correction, &p);
     }
-    dev->load_status = st;
+    dev->load_status = (int8_t)st;
     if (st != MC_OK) {
         memset(dev->active_blob, 0, sizeof dev->active_blob);
         return;

@@ -137,7 +137,7 @@ static mc_status_t scan_slot(const mc_storage_t *st, int slot, slot_info_t *info
  * report no parameters than a slot we could not check. */
 static mc_status_t scan(mc_storage_t *st, slot_info_t info[2])
 {
-    st->active = MC_STORAGE_SLOT_NONE;
+    st->active = (int8_t)MC_STORAGE_SLOT_NONE;
     st->active_sequence = 0;
     for (int i = 0; i < 2; ++i) {
         const mc_status_t s = scan_slot(st, i, &info[i]);
@@ -147,10 +147,10 @@ static mc_status_t scan(mc_storage_t *st, slot_info_t info[2])
     }
     /* Higher sequence wins; on a tie (never written by commit) A wins, deterministically. */
     if (info[0].valid && (!info[1].valid || info[0].sequence >= info[1].sequence)) {
-        st->active = MC_STORAGE_SLOT_A;
+        st->active = (int8_t)MC_STORAGE_SLOT_A;
         st->active_sequence = info[0].sequence;
     } else if (info[1].valid) {
-        st->active = MC_STORAGE_SLOT_B;
+        st->active = (int8_t)MC_STORAGE_SLOT_B;
         st->active_sequence = info[1].sequence;
     }
     return MC_OK;
@@ -163,7 +163,7 @@ mc_status_t mc_storage_init(mc_storage_t *st, const mc_flash_t *flash, uint32_t 
         return MC_E_ARG;
     }
     memset(st, 0, sizeof *st);
-    st->active = MC_STORAGE_SLOT_NONE;
+    st->active = (int8_t)MC_STORAGE_SLOT_NONE;
     if (flash == NULL || flash->ops == NULL || flash->ops->erase_page == NULL
         || flash->ops->program_word == NULL || flash->ops->read == NULL || flash->page_size == 0
         || flash->page_size % MC_FLASH_WORD_SIZE != 0 || flash->page_count == 0
@@ -206,7 +206,7 @@ mc_status_t mc_storage_load(mc_storage_t *st, uint8_t *payload, size_t cap, size
     if (s != MC_OK) {
         return s;
     }
-    if (st->active == MC_STORAGE_SLOT_NONE) {
+    if (st->active == (int8_t)MC_STORAGE_SLOT_NONE) {
         return MC_E_NO_PARAMS;
     }
     const slot_info_t *best = &info[st->active];
@@ -278,7 +278,7 @@ mc_status_t mc_storage_commit(mc_storage_t *st, const uint8_t *payload, size_t l
         return MC_E_ARG;
     }
     slot_info_t info[2];
-    const mc_storage_slot_t known = st->active;
+    const int8_t known = st->active;
     const uint32_t known_sequence = st->active_sequence;
     mc_status_t s = scan(st, info);
     if (s != MC_OK) {
@@ -287,16 +287,16 @@ mc_status_t mc_storage_commit(mc_storage_t *st, const uint8_t *payload, size_t l
         st->active_sequence = known_sequence;
         return s;
     }
-    const mc_storage_slot_t previous = st->active;
+    const int8_t previous = st->active;
     const uint32_t previous_sequence = st->active_sequence;
-    if (previous != MC_STORAGE_SLOT_NONE && previous_sequence == UINT32_MAX) {
+    if (previous != (int8_t)MC_STORAGE_SLOT_NONE && previous_sequence == UINT32_MAX) {
         return MC_E_RANGE;
     }
     /* The target is never the best slot: that is what keeps the old record intact. */
-    const int target = previous == MC_STORAGE_SLOT_A ? 1 : 0;
+    const int target = previous == (int8_t)MC_STORAGE_SLOT_A ? 1 : 0;
     const uint32_t base = st->slot_addr[target];
     const uint32_t length = (uint32_t)len;
-    const uint32_t sequence = previous == MC_STORAGE_SLOT_NONE ? 1u : previous_sequence + 1u;
+    const uint32_t sequence = previous == (int8_t)MC_STORAGE_SLOT_NONE ? 1u : previous_sequence + 1u;
 
     uint8_t hdr[MC_STORAGE_HEADER_SIZE];
     put_le32(hdr + OFF_MAGIC, MC_STORAGE_MAGIC);
@@ -346,15 +346,15 @@ mc_status_t mc_storage_commit(mc_storage_t *st, const uint8_t *payload, size_t l
     }
     if (s == MC_OK && check.valid && check.sequence == sequence && check.length == length
         && check.format_version == format_version) {
-        st->active = (mc_storage_slot_t)target;
+        st->active = (int8_t)target;
         st->active_sequence = sequence;
         return MC_OK;
     }
     if (scan(st, info) != MC_OK) {
         return MC_E_OUTCOME_UNKNOWN; /* st says "none": nothing we could check */
     }
-    const slot_info_t *won = st->active == MC_STORAGE_SLOT_NONE ? NULL : &info[st->active];
-    if ((int)st->active == target && won->sequence == sequence && won->length == length
+    const slot_info_t *won = st->active == (int8_t)MC_STORAGE_SLOT_NONE ? NULL : &info[st->active];
+    if (st->active == target && won->sequence == sequence && won->length == length
         && won->format_version == format_version) {
         return MC_OK; /* the new record is complete and wins: committed */
     }
@@ -370,7 +370,7 @@ mc_status_t mc_storage_active(const mc_storage_t *st, mc_storage_slot_t *slot,
     if (st == NULL || slot == NULL || sequence == NULL) {
         return MC_E_ARG;
     }
-    *slot = st->active;
+    *slot = (mc_storage_slot_t)st->active;
     *sequence = st->active_sequence;
-    return st->active == MC_STORAGE_SLOT_NONE ? MC_E_NO_PARAMS : MC_OK;
+    return st->active == (int8_t)MC_STORAGE_SLOT_NONE ? MC_E_NO_PARAMS : MC_OK;
 }

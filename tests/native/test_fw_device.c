@@ -359,6 +359,8 @@ static void test_init_args(void)
     rig_boot(0);
     CHECK_EQ_INT(mc_device_rx_bytes(&R.dev, NULL, 3u), 0);
     CHECK_EQ_INT(R.dev.load_status, MC_E_NO_PARAMS);
+    /* No enum-typed field in mc_device_t: its layout must not depend on -fshort-enums. */
+    CHECK_EQ_INT(sizeof R.dev.load_status, sizeof(int8_t));
 }
 
 static void test_hello_and_info(void)

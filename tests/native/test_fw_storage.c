@@ -658,9 +658,19 @@ static void test_arguments(void)
     sim.dead = 0;
 }
 
+/* No enum-typed field in the public struct: its layout must not depend on -fshort-enums
+ * (arm-none-eabi-gcc's default) versus the application's choice. */
+static void test_struct_layout_independent_of_enum_size(void)
+{
+    mc_storage_t st;
+    CHECK_EQ_INT(sizeof st.active, sizeof(int8_t));
+    CHECK_EQ_INT((int8_t)MC_STORAGE_SLOT_NONE, -1);
+}
+
 int main(void)
 {
     make_payloads();
+    test_struct_layout_independent_of_enum_size();
     test_arguments();
     test_layout();
     test_sequence_and_validity();

@@ -166,7 +166,9 @@ typedef struct {
     uint32_t active_crc, staged_crc;
     uint8_t active_blob[MC_PARAMS_ENCODED_SIZE];
     uint8_t staged_blob[MC_PARAMS_ENCODED_SIZE];
-    mc_status_t load_status; /* mc_storage_load's verdict at the last init or reset */
+    int8_t load_status; /* mc_storage_load's verdict at the last init or reset: an
+                         * mc_status_t value, stored as int8_t (as on the wire) so the layout
+                         * does not depend on the enum's size, see firmware/README.md */
     mc_correction_t correction; /* of the active set, ready when active_ok */
     mc_storage_t storage;
     mc_acquire_t acq;

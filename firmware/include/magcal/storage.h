@@ -82,7 +82,9 @@ typedef struct mc_storage {
     uint32_t slot_page[2];  /* first page of each slot */
     uint32_t pages_per_slot;
     uint32_t slot_size;     /* bytes */
-    mc_storage_slot_t active;  /* best slot at the last scan */
+    int8_t active;             /* best slot at the last scan (an mc_storage_slot_t value;
+                                * stored as int8_t so the layout does not depend on the
+                                * enum's size, see firmware/README.md) */
     uint32_t active_sequence;  /* its sequence, 0 when active is NONE */
 } mc_storage_t;
 

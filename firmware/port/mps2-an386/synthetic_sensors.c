@@ -3,6 +3,7 @@
 
 #include <stddef.h>
 
+#include "magcal/fixed.h"
 #include "systick_time.h"
 
 /* round(32767 * sin(2 pi i / 256)), i = 0..64 (a quarter turn), made with
@@ -37,12 +38,12 @@ static int32_t sin_q15(uint32_t i)
     return -(int32_t)sin_q15(i - 128u);
 }
 
-/* floor((a * x + 2^14) / 2^15); |a * x| < 2^27, so no overflow. Arithmetic right shift of a
- * negative int32 is implementation-defined in C; GCC defines it as floor, which is what the
- * header documents. */
+/* floor((a * x + 2^14) / 2^15), the round-half-up of a * x / 2^15 that the header documents,
+ * by fixed.h's rounding shift (well defined for negative products, unlike >> on a negative
+ * int32). |a| <= 1368 and |x| <= 32767, so |a * x| < 2^26 and the result fits int16_t. */
 static int16_t q15_mul(int32_t a, int32_t x)
 {
-    return (int16_t)((a * x + 16384) >> 15);
+    return (int16_t)mc_fx_rshift_round_i64((int64_t)a * x, 15u);
 }
 
 void mc_synth_counts(uint32_t k, mc_raw_sample_t *out)

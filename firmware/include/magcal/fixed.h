@@ -42,7 +42,15 @@ static inline int8_t mc_fx_i8_from_u8(uint8_t u)
     return u <= 127u ? (int8_t)u : (int8_t)((int)u - 256);
 }
 
-/* x clipped to [INT32_MIN, INT32_MAX]. */
+/*
+ * x clipped to [INT32_MIN, INT32_MAX].
+ *
+ * Scaling and overflow: the same scale in and out (no shift, no rounding): a value that fits
+ * int32_t is returned unchanged, one beyond a limit becomes that limit (saturation, never a
+ * wrap). Defined for every int64_t, INT64_MIN and INT64_MAX included; only comparisons and an
+ * in-range conversion. Tested at both int64 extremes and one past each int32 limit
+ * (test_fw_correction.c).
+ */
 static inline int32_t mc_fx_sat_i32(int64_t x)
 {
     if (x > INT32_MAX) {
@@ -54,7 +62,13 @@ static inline int32_t mc_fx_sat_i32(int64_t x)
     return (int32_t)x;
 }
 
-/* x clipped to [INT16_MIN, INT16_MAX]. */
+/*
+ * x clipped to [INT16_MIN, INT16_MAX].
+ *
+ * Scaling and overflow: as mc_fx_sat_i32, for int16_t: unchanged in range, the nearest limit
+ * beyond it, defined for every int64_t. Tested past both limits and at INT16_MIN
+ * (test_fw_correction.c).
+ */
 static inline int16_t mc_fx_sat_i16(int64_t x)
 {
     if (x > INT16_MAX) {

@@ -82,9 +82,25 @@ typedef struct {
     int32_t offset[3];   /* o, raw counts in Q16.15 (|.| <= 2^30) */
 } mc_params_t;
 
-/* Checks p as described above (MC_OK, or the first refusal's code). MC_E_ARG when p is
+/*
+ * Checks p as described above (MC_OK, or the first refusal's code). MC_E_ARG when p is
  * NULL. Integer arithmetic only (a few hundred operations, no division, no floating point);
- * call it once per parameter write. */
+ * call it once per parameter write.
+ *
+ * Scaling and overflow: it returns a verdict, not a scaled value, and its verdict is exact for
+ * every mc_params_t, because no intermediate can wrap or saturate. The checks run in the
+ * order above, so the conditioning test only ever sees mantissas with |a[k]| <= 2^30 (the
+ * range check refuses larger ones, INT32_MIN included, before anything is negated or
+ * multiplied). Then: products of two entries are <= 2^60 and each 2x2 cofactor (a difference
+ * of two) <= 2^61, exact in int64_t; a row sum of |a| (||A||_inf) is < 2^32 and a column sum
+ * of three |cofactors| (||adj A||_inf) < 2^63, exact in uint64_t; det A is summed from terms
+ * <= 2^91 as 128-bit magnitudes built from 32-bit limbs (positive and negative terms apart,
+ * each sum < 2^93); ||A|| ||adj A|| < 2^95 and MC_PARAMS_COND_MAX |det A| < 2^113 (the bound
+ * is at most 10^6 < 2^20, config.h) are exact 128-bit products. Exponents are compared as
+ * int, and 14 + E_m - E_d is formed from int8_t values, far from int's limits. The native
+ * test (test_fw_params.c) drives the mantissas and offsets to the int32 limits, the exponents
+ * past their bounds, and random matrices with entries up to 2^30 against a float reference.
+ */
 mc_status_t mc_params_validate(const mc_params_t *p);
 
 /* Writes the MC_PARAMS_ENCODED_SIZE bytes of p's encoding to buf[0..len) and sets *written.

@@ -4,8 +4,11 @@
  * commit leaves the file as torn as real flash would be at word granularity.
  *
  * The file is exactly page_size * page_count bytes, byte for byte the flash region. A
- * missing file is created filled with 0xFF (erased); creation writes a temporary file next to
- * it and renames it, so a crash while creating never leaves a short file behind. An existing
+ * missing file is created filled with 0xFF (erased); creation writes and fsyncs a temporary
+ * file next to it, hard-links it to the real name with link() and removes the temporary name,
+ * so a crash while creating never leaves a short file under the real name. link() rather than
+ * rename(): it fails instead of replacing when the name already exists, so if another process
+ * created the file meanwhile, theirs is kept (EEXIST is not an error). An existing
  * file of another size is refused (MC_E_RANGE) rather than resized: a different geometry
  * would silently move the slots.
  *

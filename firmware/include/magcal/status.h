@@ -25,7 +25,7 @@ typedef enum {
     MC_E_SENSOR = -16,          /* a sensor read through the HAL failed */
     MC_E_NO_SPACE = -17,        /* the output buffer is too small */
     MC_E_SEQUENCE = -18,        /* stale or repeated sequence number */
-    MC_E_OUTCOME_UNKNOWN = -19  /* the flash failed after a commit's commit point and could not be read back: the old or the new set is stored (reset, then param_get(which=0) tells which) */
+    MC_E_OUTCOME_UNKNOWN = -19  /* a commit's flash failed past its commit point: old or new set stored */
 } mc_status_t;
 
 #endif /* MAGCAL_STATUS_H */

@@ -47,7 +47,7 @@ class Status(enum.IntEnum):
     E_SENSOR = -16  # a sensor read through the HAL failed
     E_NO_SPACE = -17  # the output buffer is too small
     E_SEQUENCE = -18  # stale or repeated sequence number
-    E_OUTCOME_UNKNOWN = -19  # the flash failed after a commit's commit point and could not be read back: the old or the new set is stored (reset, then param_get(which=0) tells which)
+    E_OUTCOME_UNKNOWN = -19  # a commit's flash failed past its commit point: old or new set stored
 
 
 class Unit(enum.IntEnum):

@@ -34,11 +34,11 @@ $(STAMP): host/pyproject.toml host/setup.py $(wildcard host/csrc/*.c host/csrc/*
 	$(PY) -m pip install --quiet -e 'host[dev]'
 	touch $@
 
-demo: setup
-	@mkdir -p $(OUT)/demo
-	host/magcal simulate --preset mems --duration 60 --seed 1 -o $(OUT)/demo/session.csv
-	host/magcal calibrate $(OUT)/demo/session.csv --method ml -o $(OUT)/demo/result.json \
-		--plot $(OUT)/demo/plots --truth $(OUT)/demo/session.truth.json
+# The end-to-end demo (magcal.sim.demo): the SIL device with a random distortion, tumbled by the
+# world simulator while collect, calibrate, flash and verify run; before/after against the truth.
+# DEMO_ARGS, e.g. "--seed 3 --speedup 1", are passed on.
+demo: setup sil
+	$(PY) -m magcal.sim.demo --no-build --out $(OUT)/demo $(DEMO_ARGS)
 
 lint: setup
 	$(VENV)/bin/ruff check host tests tools bench

@@ -20,26 +20,34 @@ After flashing:
 
 from __future__ import annotations
 
+import math
 import shutil
+import socket
+import threading
+import time
 
 import numpy as np
 import pytest
 
+from magcal.device.client import DeviceClient
 from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.io.result import read_result
 from magcal.io.session import read_session
 from magcal.sim.demo import DemoConfig, format_report, run_demo
+from magcal.sim.world import FeedClient, WorldError, WorldFeeder, make_world, tumbling_session
+from tests.fake_device import FakeDevice, MemoryLink
 
 SEED = 11
 HEADING_BOUND_DEG = 0.5
 
-pytestmark = pytest.mark.skipif(
+needs_sil = pytest.mark.skipif(
     not SIL_BINARY.exists()
     and not ((REPO_ROOT / "mk" / "sil.mk").exists() and shutil.which("make")),
     reason="the SIL executable build/sil/magcal-sil is missing and cannot be built",
 )
 
 
+@needs_sil
 def test_demo_end_to_end(sil_binary, tmp_path):
     cfg = DemoConfig(
         out_dir=tmp_path / "demo",
@@ -88,3 +96,59 @@ def test_demo_end_to_end(sil_binary, tmp_path):
     assert np.max(diff) <= 1, f"{int(np.sum(diff > 1))} samples beyond 1 LSB"
     assert np.max(np.abs(got - host_lsb)) < 1.5
     assert report.max_lsb_diff_rounded == np.max(diff)
+
+
+def _sink() -> tuple[socket.socket, list[bytes], threading.Thread]:
+    """A loopback TCP server that keeps every byte it receives."""
+    srv = socket.create_server(("127.0.0.1", 0))
+    got: list[bytes] = []
+
+    def serve() -> None:
+        conn, _ = srv.accept()
+        with conn:
+            while chunk := conn.recv(65536):
+                got.append(chunk)
+
+    th = threading.Thread(target=serve, daemon=True)
+    th.start()
+    return srv, got, th
+
+
+def test_world_feeder_paces_pauses_switches_and_runs_out():
+    session, truth = tumbling_session(2.0, 4, stationary_s=0.0)
+    client = DeviceClient(MemoryLink(FakeDevice()), first_seq=1)
+    client.hello()
+    info = client.info()
+    world = make_world(session, truth, info)
+    ideal = make_world(session, truth, info, noise=False)
+    srv, got, th = _sink()
+    with srv, FeedClient("127.0.0.1", srv.getsockname()[1]) as feed:
+        feeder = WorldFeeder(world, feed, speedup=10.0)
+        try:
+            time.sleep(0.1)
+            assert feeder.fed == 0  # starts paused
+            feeder.resume()
+            feeder.wait_fed(50, timeout_s=5.0)  # 0.5 device s at 10x: about 0.05 s
+            feeder.pause()
+            k = feeder.fed
+            assert 50 <= k < len(world)
+            time.sleep(0.1)
+            assert feeder.fed == k  # paused: nothing more
+            feeder.switch(ideal)
+            feeder.speedup = math.inf
+            feeder.resume()
+            assert feeder.exhausted.wait(5.0)
+            assert feeder.fed == len(world)
+            with pytest.raises(WorldError, match="all .* samples were fed"):
+                feeder.resume()
+        finally:
+            feeder.close()
+    th.join(5.0)
+    text = b"".join(got).decode()
+    assert text == "".join(world.lines(0, k)) + "".join(ideal.lines(k, len(world)))
+    # The truth in counts is what the device reads: k (D R m + o).
+    D_c, o_c = world.calibration_counts()
+    assert np.allclose(world.truth_counts().sensor.D, D_c)
+    assert np.array_equal(world.indices(world.t_us[[3, 7]]), [3, 7])
+    with pytest.raises(WorldError):
+        world.indices([world.t_us[0] + 1])

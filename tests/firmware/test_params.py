@@ -239,19 +239,81 @@ def test_unit_per_count_converts_to_counts():
     np.testing.assert_allclose(p.offset_counts(), o / 0.15, atol=2.0**-15)
 
 
-def test_default_output_exponent_is_the_smallest_that_never_saturates():
+CORNERS = np.array(
+    [[x, y, z] for x in (-32768, 32767) for y in (-32768, 32767) for z in (-32768, 32767)]
+)
+
+
+def corner_error_lsb(p: fp.DeviceParams, d: np.ndarray, o: np.ndarray) -> float:
+    """max over the int16 corners of |D_q (y - o_q) - D (y - o)| in p's output LSBs,
+    evaluated as dD (y - o_q) + D (o - o_q) in float64 (a small quantity, accurate)."""
+    yq = CORNERS - p.offset_counts()
+    e = yq @ (p.d_inv_matrix() - d).T + (o - p.offset_counts()) @ d.T
+    return float(np.max(np.abs(np.ldexp(e, 31 - p.out_exp))))
+
+
+def test_default_output_exponent_is_the_smallest_that_never_saturates_and_keeps_1_lsb():
+    """E_m is the smallest with (a) no saturation and (b) the parameters' quantisation at
+    most half an LSB (less 2^-16) over every int16 input; the bound is exact (attained at a
+    corner); one exponent less breaks (a) or (b)."""
     rng = np.random.default_rng(4)
-    corners = np.array(
-        [[x, y, z] for x in (-32768, 32767) for y in (-32768, 32767) for z in (-32768, 32767)]
-    )
-    for _ in range(200):
+    budget = float(fp.PARAM_ERROR_BUDGET_LSB)
+    why = {"saturation": 0, "quantisation": 0}
+    for _ in range(300):
         d_inv = (np.eye(3) + 0.3 * rng.uniform(-1, 1, (3, 3))) / 10 ** rng.uniform(-2, 3)
-        p = fp.from_calibration(d_inv, rng.uniform(-3000, 3000, 3))
-        out = fp.emulate(p, corners).astype(np.int64)
+        o = rng.uniform(-3000, 3000, 3)
+        p = fp.from_calibration(d_inv, o)
+        out = fp.emulate(p, CORNERS).astype(np.int64)
         assert np.all((out > fp.INT32_MIN) & (out < fp.INT32_MAX))
+        bound = fp.param_error_lsb(p, d_inv, o)
+        assert bound <= budget
+        assert corner_error_lsb(p, d_inv, o) == pytest.approx(bound, rel=1e-9, abs=1e-12)
         smaller = fp.DeviceParams(p.d_inv_exp, p.out_exp - 1, p.d_inv, p.offset)
-        out = fp.emulate(smaller, corners).astype(np.int64)
-        assert np.any((out == fp.INT32_MIN) | (out == fp.INT32_MAX))
+        out = fp.emulate(smaller, CORNERS).astype(np.int64)
+        if np.any((out == fp.INT32_MIN) | (out == fp.INT32_MAX)):
+            why["saturation"] += 1
+        else:
+            assert fp.param_error_lsb(smaller, d_inv, o) > budget
+            why["quantisation"] += 1
+        # Without the unquantised values only (a) counts: the previous rule, never coarser.
+        sat_only = fp.default_out_exp(p.d_inv_exp, p.d_inv, p.offset)
+        assert sat_only <= p.out_exp <= sat_only + 3
+    print(why)
+    assert why["quantisation"] > 100  # (b) is what sets E_m for most calibrations here
+
+
+def test_output_exponent_rule_edge_cases():
+    # Exactly representable parameters: no quantisation error, the saturation-only exponent.
+    o = np.array([150.0, -820.0, 33.5])
+    p = fp.from_calibration(np.eye(3), o)
+    assert fp.param_error_lsb(p, np.eye(3), o) == 0.0
+    assert p.out_exp == fp.default_out_exp(p.d_inv_exp, p.d_inv, p.offset) == 16
+    # correction.h's examples: I/500 (E_d -8, E_m 7) and 1.1 I (E_d 1, E_m 16), zero offset.
+    p = fp.from_calibration(np.eye(3) / 500, np.zeros(3))
+    assert (p.d_inv_exp, p.out_exp) == (-8, 7)
+    p = fp.from_calibration(1.1 * np.eye(3), np.zeros(3))
+    assert (p.d_inv_exp, p.out_exp) == (1, 16)
+    # An offset the format cannot hold exactly costs a step here.
+    o = np.array([123.4, -2000.7, 300.1])
+    p = fp.from_calibration(np.eye(3) / 500, o)
+    assert (p.d_inv_exp, p.out_exp) == (-8, 8)
+    assert fp.default_out_exp(p.d_inv_exp, p.d_inv, p.offset) == 7
+    # unit_per_count: the same calibration in uT, its bound taken in the session's unit.
+    upc = 0.15
+    q = fp.from_calibration(np.eye(3) / 500 / upc, o * upc, unit_per_count=upc)
+    assert q.out_exp == 8
+    assert 0 < fp.param_error_lsb(q, np.eye(3) / 500 / upc, o * upc, unit_per_count=upc) <= 0.5
+    # An explicit out_exp is used as given, even when it gives up the guarantee.
+    d_inv = np.array([[1.0, 0.1, -0.2], [0.05, 0.9, 0.3], [0.2, -0.1, 1.1]]) / 3400
+    o = np.array([-4321.123, 2345.678, 987.654])
+    p = fp.from_calibration(d_inv, o)
+    finer = fp.from_calibration(d_inv, o, out_exp=p.out_exp - 2)
+    assert finer.out_exp == p.out_exp - 2 and finer.d_inv == p.d_inv
+    assert fp.param_error_lsb(finer, d_inv, o) > 0.5
+    assert fp.param_error_lsb(p, d_inv, o) <= 0.5
+    with pytest.raises(fp.FixedPointError, match="both") as err:
+        fp.default_out_exp(p.d_inv_exp, p.d_inv, p.offset, d_inv_exact=d_inv.ravel())
+    assert err.value.status == Status.E_ARG
 
 
 def test_representability_errors_name_the_problem():

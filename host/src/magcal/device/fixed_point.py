@@ -12,6 +12,9 @@ Formats (format version 1), for the correction ``m = D_inv (y - o)`` on int16 ra
 - ``offset``: 3 int32, raw counts in Q16.15 (``|offset| <= 2**30``, i.e. ±32768 counts).
 - output: int32 ``m[i] = out[i] * 2**(E_m - 31)``, ``E_m = out_exp``, rounded to nearest (ties
   toward +inf) from the exact value, saturated to the int32 range.
+  The default ``E_m`` (:func:`default_out_exp`) is the smallest for which no int16 input
+  saturates and the parameters' quantisation moves no output by more than half an LSB, so
+  that the output is within 1 LSB of the float64 correction with the unquantised D_inv and o.
 - the device computes ``acc = sum_j d[i, j] (y_j 2**15 - offset_j)`` exactly in int64 and
   shifts right by ``s = 14 + E_m - E_d`` (0 <= s <= 62) with rounding.
 
@@ -27,6 +30,7 @@ from __future__ import annotations
 import math
 import struct
 from dataclasses import dataclass
+from fractions import Fraction
 
 import numpy as np
 
@@ -203,25 +207,135 @@ def _exponent_for(max_abs: float) -> int:
     return e - 1 if mant == 0.5 else e
 
 
-def default_out_exp(d_inv_exp: int, d_inv: tuple[int, ...], offset: tuple[int, ...]) -> int:
-    """The smallest output exponent E_m for which no int16 input saturates any output
-    (exact, from the integer worst case), or EXP_MAX when none does (D_inv entries beyond
-    about 2**16)."""
-    lo = max(EXP_MIN, d_inv_exp - _FIXED_SHIFT_BASE)
-    hi = min(EXP_MAX, d_inv_exp - _FIXED_SHIFT_BASE + SHIFT_MAX)
+def _acc_extremes(d_inv: tuple[int, ...], offset: tuple[int, ...]) -> tuple[int, int]:
+    """The smallest and largest accumulator of any output row over every int16 input, exact
+    (each input axis is free, so a row's extremes are sums of per-term extremes)."""
     diff_min = [INT16_MIN * 32768 - o for o in offset]
     diff_max = [INT16_MAX * 32768 - o for o in offset]
     acc_max = acc_min = 0
     for i in range(3):
-        # Each input axis is free, so the extremes of a row are sums of per-term extremes.
         terms = [(d_inv[3 * i + j] * diff_min[j], d_inv[3 * i + j] * diff_max[j]) for j in range(3)]
         acc_max = max(acc_max, sum(max(t) for t in terms))
         acc_min = min(acc_min, sum(min(t) for t in terms))
+    return acc_min, acc_max
+
+
+def quantisation_error_bound(
+    d_inv_exp: int,
+    d_inv: tuple[int, ...],
+    offset: tuple[int, ...],
+    d_inv_exact,
+    offset_exact,
+) -> Fraction:
+    """The largest |D_q (y - o_q) - D (y - o)| over every output row and every int16 input y,
+    exactly, in the output's unit: what quantising the parameters costs.
+
+    d_inv_exp, d_inv, offset : the stored set (D_q, o_q)
+    d_inv_exact : 9 numbers (row-major) or a (3, 3) array, the unquantised D_inv in raw counts
+    offset_exact : 3 numbers, the unquantised o in raw counts
+    (floats, ints or Fractions; every float is taken at its exact value).
+
+    Per row i the error is affine in y: with dD = D_q - D,
+        e_i(y) = sum_j dD_ij (y_j - o_q,j) + sum_j D_ij (o_j - o_q,j),
+    so its largest magnitude over the box y in [-32768, 32767]^3 is reached at a corner
+    (sum of the per-axis extremes of the first part, plus the constant) and is exact here.
+    """
+    d_ex = [Fraction(v) for v in np.asarray(d_inv_exact, dtype=object).ravel()]
+    o_ex = [Fraction(v) for v in np.asarray(offset_exact, dtype=object).ravel()]
+    if len(d_ex) != 9 or len(o_ex) != 3:
+        raise FixedPointError("the unquantised D_inv needs 9 entries and o 3", Status.E_ARG)
+    d_q = [Fraction(m) * Fraction(2) ** (d_inv_exp - D_INV_FRAC_BITS) for m in d_inv]
+    o_q = [Fraction(m, 1 << OFFSET_FRAC_BITS) for m in offset]
+    worst = Fraction(0)
+    for i in range(3):
+        row = range(3 * i, 3 * i + 3)
+        const = sum(d_ex[k] * (o_ex[k - 3 * i] - o_q[k - 3 * i]) for k in row)
+        hi = lo = const
+        for k in row:
+            j = k - 3 * i
+            a, b = (
+                (d_q[k] - d_ex[k]) * (INT16_MIN - o_q[j]),
+                (d_q[k] - d_ex[k]) * (INT16_MAX - o_q[j]),
+            )
+            hi += max(a, b)
+            lo += min(a, b)
+        worst = max(worst, abs(hi), abs(lo))
+    return worst
+
+
+#: The share of an output LSB that the default output exponent allows the parameters'
+#: quantisation error: half an LSB less 2**-16 LSB, the room left for evaluating the host's
+#: float64 correction (its rounding errors are below 2**-18 LSB for a set that cannot saturate).
+PARAM_ERROR_BUDGET_LSB = Fraction(1, 2) - Fraction(1, 1 << 16)
+
+
+def default_out_exp(
+    d_inv_exp: int,
+    d_inv: tuple[int, ...],
+    offset: tuple[int, ...],
+    *,
+    d_inv_exact=None,
+    offset_exact=None,
+) -> int:
+    """The default output exponent E_m: the smallest E_m (within the device's limits) such that
+
+    (a) no int16 input saturates any output (exact, from the integer worst case of the
+        accumulator), and
+    (b) quantising the parameters moves no output by more than half an LSB (less 2**-16 LSB)
+        for any int16 input: ``quantisation_error_bound(...) <= PARAM_ERROR_BUDGET_LSB *
+        2**(E_m - 31)``, computed exactly from the actual quantisation errors of the D_inv
+        mantissas and the offset against the unquantised ``d_inv_exact`` and ``offset_exact``
+        (raw counts; see :func:`quantisation_error_bound`). Without them, (b) is void: the
+        stored set is taken as the calibration itself.
+
+    Why: the device returns ``round(D_q (y - o_q))`` exactly rounded once, so when not
+    saturated ``|out - D_q (y - o_q)| <= 1/2`` LSB; with (b) ``|D_q (y - o_q) - D (y - o)| <=
+    1/2 - 2**-16`` LSB; hence ``|out - D (y - o)| <= 1 - 2**-16`` LSB for every int16 input,
+    and a float64 evaluation of ``D (y - o)`` (error below 2**-18 LSB: three products of at
+    most about 2**32 LSB in all) still sees at most 1 LSB. Both conditions only get easier as
+    E_m grows, so the smallest one is the finest output that keeps the guarantee; (b) usually
+    costs 0 to 2 exponent steps over (a) alone (the offset's 2**-15-count step is most of it).
+
+    When no allowed E_m satisfies both, the largest allowed one is returned (no guarantee).
+    """
+    lo = max(EXP_MIN, d_inv_exp - _FIXED_SHIFT_BASE)
+    hi = min(EXP_MAX, d_inv_exp - _FIXED_SHIFT_BASE + SHIFT_MAX)
+    acc_min, acc_max = _acc_extremes(d_inv, offset)
+    if d_inv_exact is None and offset_exact is None:
+        err = Fraction(0)
+    else:
+        if d_inv_exact is None or offset_exact is None:
+            raise FixedPointError(
+                "give both d_inv_exact and offset_exact, or neither", Status.E_ARG
+            )
+        err = quantisation_error_bound(d_inv_exp, d_inv, offset, d_inv_exact, offset_exact)
     for e_m in range(lo, hi + 1):
         s = _FIXED_SHIFT_BASE + e_m - d_inv_exp
-        if _round_shift_int(acc_max, s) <= INT32_MAX and _round_shift_int(acc_min, s) >= INT32_MIN:
+        if _round_shift_int(acc_max, s) > INT32_MAX or _round_shift_int(acc_min, s) < INT32_MIN:
+            continue
+        if err <= PARAM_ERROR_BUDGET_LSB * Fraction(2) ** (e_m - 31):
             return e_m
     return hi
+
+
+def param_error_lsb(
+    params: DeviceParams, d_inv: np.ndarray, o: np.ndarray, *, unit_per_count: float = 1.0
+) -> float:
+    """The largest |D_q (y - o_q) - D (y - o)| over every int16 input, in ``params``' output
+    LSBs, for the calibration ``(d_inv, o, unit_per_count)`` as :func:`from_calibration`
+    takes it (exact, rounded to float at the end). At most 1/2 - 2**-16 for a set built with
+    the default output exponent."""
+    d_ex, o_ex = _exact_counts(d_inv, o, unit_per_count)
+    err = quantisation_error_bound(params.d_inv_exp, params.d_inv, params.offset, d_ex, o_ex)
+    return float(err * Fraction(2) ** (31 - params.out_exp))
+
+
+def _exact_counts(d_inv, o, unit_per_count: float) -> tuple[list[Fraction], list[Fraction]]:
+    """D_inv * u and o / u as exact rationals of the given floats (raw counts)."""
+    u = Fraction(float(unit_per_count))
+    d = [Fraction(float(v)) * u for v in np.asarray(d_inv, dtype=np.float64).ravel()]
+    off = [Fraction(float(v)) / u for v in np.asarray(o, dtype=np.float64).ravel()]
+    return d, off
 
 
 def from_calibration(
@@ -239,7 +353,12 @@ def from_calibration(
     unit_per_count : float, size of one raw count in the session's unit (1 when the session
         was recorded in raw counts): the device corrects counts, so D_inv is scaled by it and o
         divided by it
-    out_exp : int, output exponent E_m; default: the smallest no int16 input can saturate
+    out_exp : int, output exponent E_m; default (:func:`default_out_exp`): the smallest for
+        which no int16 input saturates and the device's output is within 1 LSB of the float
+        correction ``d_inv (y u - o)`` with these unquantised values, for every int16 input y
+        (u = unit_per_count). An explicit out_exp is used as given (any the device accepts): a
+        finer one than the default carries no such guarantee (the parameters' quantisation
+        may then exceed half an LSB, or outputs saturate)
     cond_max : the device's MC_PARAMS_COND_MAX
 
     Returns DeviceParams, validated. Raises FixedPointError naming the problem when the
@@ -285,7 +404,8 @@ def from_calibration(
             )
     offset = tuple(int(v) for v in offset_q)
     if out_exp is None:
-        out_exp = default_out_exp(e_d, mant, offset)
+        d_ex, o_ex = _exact_counts(d_inv, o, unit_per_count)
+        out_exp = default_out_exp(e_d, mant, offset, d_inv_exact=d_ex, offset_exact=o_ex)
     params = DeviceParams(d_inv_exp=e_d, out_exp=int(out_exp), d_inv=mant, offset=offset)
     validate(params, cond_max=cond_max)
     return params

@@ -8,12 +8,20 @@
  *   raw[i]   int16 raw counts y.
  *   out[i]   int32 m[i] = out[i] * 2^(E_m - 31), E_m = params.out_exp: a signed value in
  *            [-2^E_m, 2^E_m) with 31 - E_m fractional bits. The exponent is per parameter set
- *            so that both kinds of calibration keep 31 significant bits: a counts-scale D^-1
- *            (unit-norm output; for a field of 500 counts, D^-1 = I/500 has E_d = -8 and the
- *            default E_m = 7 holds any int16 input with a step of 2^-24 of the field) and a
- *            unit-scale one (output in counts; D^-1 = 1.1 I has E_d = 1, E_m = 16, a step of
- *            2^-15 count). The host chooses E_m (by default the smallest that no int16 input
- *            can saturate; host/src/magcal/device/fixed_point.py).
+ *            so that both kinds of calibration keep their resolution: a counts-scale D^-1
+ *            (unit-norm output; for a field of 500 counts, D^-1 = I/500 with a zero offset has
+ *            E_d = -8 and the default E_m = 7 holds any int16 input with a step of 2^-24 of
+ *            the field) and a unit-scale one (output in counts; D^-1 = 1.1 I with a zero
+ *            offset has E_d = 1, E_m = 16, a step of 2^-15 count). The host chooses E_m
+ *            (host/src/magcal/device/fixed_point.py, default_out_exp); by default the smallest
+ *            for which (a) no int16 input can saturate and (b) quantising D^-1 and o moves no
+ *            output by more than half an LSB for any int16 input (an exact worst case over
+ *            the corners of the input range, from the actual quantisation errors). With the
+ *            1/2 LSB of the rounding below, the output is then within 1 LSB of the float
+ *            correction with the unquantised D^-1 and o. (b) usually costs 1 to 3 exponent
+ *            steps over (a) alone (with the offset (123.4, -2000.7, 300.1) counts the I/500
+ *            example above gets E_m = 8, a step of 2^-23 of the field); a set whose E_m is
+ *            smaller than the default has no such guarantee.
  *
  * Arithmetic, per axis i:
  *   diff[j] = y[j] 2^15 - offset[j]                 int32, exact (Q16.15, |.| <= 2^31)
@@ -22,7 +30,9 @@
  * acc is the exact value of D^-1 (y - o) for the stored (quantised) parameters, so out[i] is
  * that exact value rounded once to the output format: round to nearest, ties toward +infinity,
  * then saturated. Hence, when not saturated, |out[i] - exact| <= 1/2 LSB; the tests assert
- * <= 1 LSB against a float64 reference and bit equality against an exact emulation.
+ * <= 1 LSB against a float64 reference and bit equality against an exact emulation, and, for
+ * sets with the default E_m, <= 1 LSB against the float correction with the unquantised
+ * calibration.
  */
 #ifndef MAGCAL_CORRECTION_H
 #define MAGCAL_CORRECTION_H

@@ -20,7 +20,11 @@
  *                a step of 3.05e-5 count. The bound makes y - o fit an int32 in Q.15.
  *   out_exp      E_m, the exponent of the correction's output (correction.h):
  *                    m[i] = out[i] * 2^(E_m - 31),
- *                an int32 covering [-2^E_m, 2^E_m) with 31 - E_m fractional bits.
+ *                an int32 covering [-2^E_m, 2^E_m) with 31 - E_m fractional bits. The host
+ *                picks, by default, the smallest E_m for which no int16 input saturates and
+ *                the quantisation of d_inv and offset moves no output by more than half an
+ *                LSB (correction.h), so that the output is within 1 LSB of the float
+ *                correction with the unquantised calibration.
  *   version      MC_PARAMS_FORMAT_VERSION.
  *
  * Both exponents lie in [MC_PARAMS_EXP_MIN, MC_PARAMS_EXP_MAX], and the correction's shift

@@ -186,7 +186,7 @@ def convert(result: CalibrationResult, upc: float, path: str) -> fixed_point.Dev
             where = f" (the largest is D_inv[{i}][{j}] = {d_inv[i, j]:.6g} per result unit)"
         raise MagcalError(
             f"flash: the calibration in {path} cannot be represented in the device's "
-            f"parameter format: {exc}{where}; nothing was written and no backup was made"
+            f"parameter format: {exc}{where}; nothing was written"
         ) from exc
 
 
@@ -306,11 +306,9 @@ def _probe_active(url: str, old: bytes | None, new: bytes) -> str:
 
 
 def _holds(state: str, backup: Path | None, written: bool) -> str:
-    where = (
-        f" — backup at {backup}"
-        if written and backup is not None
-        else " — no backup was made (nothing was written)"
-    )
+    if not written or backup is None:
+        return f"device holds the {state} set, untouched (no backup was made)"
+    where = f" — backup at {backup}"
     if state == UNKNOWN:
         return (
             f"device holds an unknown set (either the OLD or the NEW one){where}: check it "
@@ -372,8 +370,9 @@ def run(args) -> int:
         return _run(args)
     except FlashCommandError:
         raise
-    except (LinkError, DeviceError) as exc:
-        # Before the flow's first write: hello, info or the format checks failed.
+    except MagcalError as exc:
+        # Refused or failed before the flow's first write (result, unit, link, hello, info,
+        # format, conversion, backup path): the device was not written to.
         raise FlashCommandError(f"{exc}; {_holds(OLD, None, False)}") from exc
 
 

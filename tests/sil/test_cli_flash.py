@@ -35,9 +35,9 @@ from magcal.device.client import DeviceClient, DeviceError, ParamWhich
 from magcal.device.flash import read_backup
 from magcal.device.framing import Deframer, Frame, crc32_iso_hdlc
 from magcal.device.generated import MessageId, Status
+from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.io.result import CalibrationResult, write_result
 from magcal.link import open_link
-from tests.sil.conftest import REPO_ROOT, SIL_BINARY
 
 LINK_OPEN_TIMEOUT_S = 5.0
 PROXY_JOIN_TIMEOUT_S = 5.0

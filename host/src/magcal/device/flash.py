@@ -304,7 +304,6 @@ def _recover(
     log.warning(
         "flash on %s: link failure at %s (%s); finding out what the device holds", url, step, exc
     )
-    say(f"link failure at {step} ({exc})")
     prefix = f"flash on {url}: link failure at {step} ({exc})"
     if reconnect is None:
         if not commit_sent:
@@ -323,7 +322,7 @@ def _recover(
         ) from exc
     client.close()
     try:
-        say("reconnecting to find out which set the device holds")
+        say(f"link failure at {step}: reconnecting to find out which set the device holds")
         fresh = reconnect()
         fresh.hello()
         if commit_sent:

@@ -79,6 +79,7 @@ accuracy: setup
 bench: setup
 	$(PY) bench/run_bench.py --out bench/results.json
 	$(PY) bench/firmware_figures.py --out bench/firmware.json
+	$(PY) bench/link_figures.py --out bench/link.json
 
 clean:
 	rm -rf $(OUT) build host/build host/src/*.egg-info $(STAMP)

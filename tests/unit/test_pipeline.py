@@ -1,5 +1,7 @@
 """Algorithm 1 end to end on simulated sessions: recovery, scale invariance, refusals."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -158,3 +160,13 @@ def test_ml_starts_with_the_motion_accelerations_in_the_accelerometer_noise():
     assert np.all((0.12 < start) & (start < 0.25))
     assert cal.ml.report.stopping_rule == "gradient"
     assert accuracy.heading_rms_deg(truth, cal.result.D, cal.result.o) < 0.1
+
+
+def test_result_carries_the_sessions_magnetometer_unit():
+    session, _ = simulate(preset("mems", duration_s=20), seed=5)
+    with_unit = dataclasses.replace(session, meta={**session.meta, "mag_unit": "uT"})
+    assert calibrate(with_unit, "init").result.extra["mag_unit"] == "uT"
+    without = dataclasses.replace(
+        session, meta={k: v for k, v in session.meta.items() if k != "mag_unit"}
+    )
+    assert "mag_unit" not in calibrate(without, "init").result.extra

@@ -155,6 +155,10 @@ def calibrate(
         "after": quality.norm_stats(calibrated),
     }
     extra["seconds"] = seconds
+    # D and o are in the session's magnetometer unit; saying which lets `magcal flash` turn
+    # them into device counts without being told again.
+    if session.meta.get("mag_unit"):
+        extra["mag_unit"] = session.meta["mag_unit"]
 
     result = CalibrationResult(
         method=method,

@@ -527,3 +527,12 @@ def test_link_read_timeout_and_closed():
         link.read(0.01)
     with pytest.raises(LinkClosedError, match="the link is closed"):
         link.write(b"x")
+
+
+def test_every_device_status_has_advice():
+    # A status added to protocol/schema.json must come with advice for the user.
+    from magcal.device import client as client_module
+    from magcal.device.generated import Status
+
+    missing = [s.name for s in Status if s != Status.OK and s not in client_module._ADVICE]
+    assert missing == []

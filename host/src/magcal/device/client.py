@@ -101,10 +101,20 @@ _ADVICE = {
     Status.E_NO_PARAMS: "the device has no parameter set: flash one (magcal flash)",
     Status.E_CRC: "the CRC did not match: retry the whole operation",
     Status.E_FLASH: "the device could not store the set: retry; replace the board if it persists",
+    Status.E_OUTCOME_UNKNOWN: (
+        "the device's flash failed after the commit point, so either the old or the new set is "
+        "stored: reset the device and read the active set to find out"
+    ),
     Status.E_STATE: "the device was not in the state for this request: start the flow again",
     Status.E_SEQUENCE: "a sequence clash: send hello to start a new session",
     Status.E_UNKNOWN_MESSAGE: "the firmware does not know this request: update the firmware",
     Status.E_LENGTH: "the firmware expects another payload size: check versions",
+    # Internal to the firmware; a device that answers with them has a firmware bug.
+    Status.E_OVERFLOW: "a buffer on the device was full: slow down and retry",
+    Status.E_EMPTY: "the device had nothing to send: retry",
+    Status.E_FRAME: "the device could not decode the request: check the link and retry",
+    Status.E_SENSOR: "a sensor read failed on the device: check the sensor's wiring and power",
+    Status.E_NO_SPACE: "the device's buffer is too small for this request: update the firmware",
 }
 
 

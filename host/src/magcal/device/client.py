@@ -109,7 +109,7 @@ _ADVICE = {
     Status.E_SEQUENCE: "a sequence clash: send hello to start a new session",
     Status.E_UNKNOWN_MESSAGE: "the firmware does not know this request: update the firmware",
     Status.E_LENGTH: "the firmware expects another payload size: check versions",
-    # Internal to the firmware; a device that answers with them has a firmware bug.
+    # Mostly internal to the firmware (SPEC §6); advice in case a response carries them.
     Status.E_OVERFLOW: "a buffer on the device was full: slow down and retry",
     Status.E_EMPTY: "the device had nothing to send: retry",
     Status.E_FRAME: "the device could not decode the request: check the link and retry",

@@ -119,8 +119,9 @@ static mc_status_t file_read(void *ctx, uint32_t addr, uint8_t *buf, size_t len)
 
 static const mc_flash_ops_t file_ops = {file_erase_page, file_program_word, file_read};
 
-/* Creates path as an erased image: written under a temporary name, then renamed, so the
- * real name only ever holds a complete image. */
+/* Creates path as an erased image: written under a temporary name, then link()ed into place
+ * (which, unlike rename, fails if the name exists), so the real name only ever holds a
+ * complete image. */
 static mc_status_t create_erased(const char *path, uint64_t size)
 {
     char tmp[4096];

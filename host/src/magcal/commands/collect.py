@@ -12,7 +12,7 @@ import argparse
 import sys
 
 from magcal.calib import observability
-from magcal.commands.common import add_link_arguments, open_device
+from magcal.commands.common import add_link_arguments, open_device, positive
 from magcal.device.collect import CollectError, CollectResult, Progress, collect
 from magcal.errors import MagcalError
 from magcal.io.session import check_writable, write_session
@@ -34,24 +34,11 @@ def _coverage_arg(text: str) -> float | None:
     return v
 
 
-def _positive(kind):
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if v <= 0:
-            raise argparse.ArgumentTypeError(f"{text} must be positive")
-        return v
-
-    return parse
-
-
 def add_parser(sub) -> None:
     p = sub.add_parser("collect", help="record a calibration session from the device")
     add_link_arguments(p)
     p.add_argument("-o", "--output", required=True, help="session CSV to write")
-    p.add_argument("--duration", type=_positive(float), metavar="S", help="stop after S seconds")
+    p.add_argument("--duration", type=positive(float), metavar="S", help="stop after S seconds")
     p.add_argument(
         "--coverage",
         type=_coverage_arg,
@@ -60,7 +47,7 @@ def add_parser(sub) -> None:
         help="stop once PCT %% of the field directions are covered (and the session is long "
         f"enough to calibrate); default {DEFAULT_COVERAGE_PCT:g}, 'off' to disable",
     )
-    p.add_argument("--max-samples", type=_positive(int), metavar="N", help="stop after N samples")
+    p.add_argument("--max-samples", type=positive(int), metavar="N", help="stop after N samples")
     p.set_defaults(run=run)
 
 

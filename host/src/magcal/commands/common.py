@@ -26,6 +26,21 @@ def add_link_arguments(p: argparse.ArgumentParser) -> None:
     )
 
 
+def positive(kind):
+    """An argparse type: ``kind(text)`` (int or float) that must be > 0."""
+
+    def parse(text: str):
+        try:
+            v = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if v <= 0:
+            raise argparse.ArgumentTypeError(f"{text} must be positive")
+        return v
+
+    return parse
+
+
 @dataclass(frozen=True)
 class DeviceSession:
     """An open link with a negotiated protocol version and the device's description."""

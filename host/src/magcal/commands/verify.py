@@ -8,10 +8,9 @@ it reports or the norm spread exceeds ``--max-spread``.
 
 from __future__ import annotations
 
-import argparse
 import sys
 
-from magcal.commands.common import add_link_arguments, open_device
+from magcal.commands.common import add_link_arguments, open_device, positive
 from magcal.device.verify import HeadingConsistency, verify
 from magcal.io.session import read_session
 
@@ -20,26 +19,13 @@ EXIT_FAILED = 1
 DEFAULT_MAX_SPREAD_PCT = 2.0
 
 
-def _positive(kind):
-    def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if v <= 0:
-            raise argparse.ArgumentTypeError(f"{text} must be positive")
-        return v
-
-    return parse
-
-
 def add_parser(sub) -> None:
     p = sub.add_parser("verify", help="measure the device's corrected output (norm, heading)")
     add_link_arguments(p)
     how_long = p.add_mutually_exclusive_group()
-    how_long.add_argument("--duration", type=_positive(float), metavar="S", help="stream S s")
+    how_long.add_argument("--duration", type=positive(float), metavar="S", help="stream S s")
     how_long.add_argument(
-        "--samples", type=_positive(int), metavar="N", help="stream N samples (default 500)"
+        "--samples", type=positive(int), metavar="N", help="stream N samples (default 500)"
     )
     p.add_argument(
         "--session",
@@ -54,7 +40,7 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--max-spread",
-        type=_positive(float),
+        type=positive(float),
         default=DEFAULT_MAX_SPREAD_PCT,
         metavar="PCT",
         help=f"fail when the norm's std/mean exceeds PCT %% (default {DEFAULT_MAX_SPREAD_PCT:g})",

@@ -9,6 +9,7 @@ from __future__ import annotations
 import math
 import socket
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -20,6 +21,7 @@ from magcal.sim.scenarios import preset, simulate
 from magcal.sim.world import (
     FeedClient,
     WorldError,
+    WorldFeeder,
     count_si,
     device_counts,
     make_world,
@@ -204,3 +206,66 @@ def test_feed_client_connect_error():
     s.close()
     with pytest.raises(WorldError, match=f"feed: cannot connect to 127.0.0.1:{port}"):
         FeedClient("127.0.0.1", port, timeout_s=0.5)
+
+
+class _SlowSecondSet(threading.Event):
+    """An Event whose ``armed``-th set() from the feeder thread is delayed: the thread is
+    preempted between deciding it is idle and saying so."""
+
+    armed = 0
+
+    def set(self) -> None:
+        if threading.current_thread().name == "world-feeder" and self.armed:
+            self.armed -= 1
+            if self.armed == 0:
+                time.sleep(0.1)
+        super().set()
+
+
+class _SlowFeed:
+    """A feed socket whose every send takes 0.2 s; ``sending`` while one is in progress."""
+
+    sending = False
+
+    def send_lines(self, lines) -> None:
+        self.sending = True
+        time.sleep(0.2)
+        self.sending = False
+
+
+class _LongWorld:
+    t_us = np.arange(0, 100_000_000, 10_000)
+
+    def __len__(self) -> int:
+        return len(self.t_us)
+
+    def lines(self, a: int, b: int) -> list[str]:
+        return ["x"] * (b - a)
+
+
+def _wait_until(cond, timeout_s: float = 5.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not cond():
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"condition not met within {timeout_s} s")
+        time.sleep(0.001)
+
+
+def test_feeder_pause_after_a_quick_resume_waits_for_the_send():
+    # A resume() right after pause() returned must not let a set() of the idle flag from
+    # before it land after it: the next pause() would then return mid-send.
+    feed = _SlowFeed()
+    with WorldFeeder(_LongWorld(), feed, speedup=1.0) as feeder:
+        idle = _SlowSecondSet()
+        idle.set()
+        feeder._idle = idle
+        feeder.resume()
+        _wait_until(lambda: feed.sending)
+        idle.armed = 2  # the thread's second set() after this point is delayed
+        feeder.pause()
+        assert not feed.sending
+        feeder.resume()  # while a stale set() may be pending
+        time.sleep(0.15)
+        _wait_until(lambda: feed.sending)
+        feeder.pause()
+        assert not feed.sending, "pause() returned while a send was in progress"

@@ -404,8 +404,11 @@ class WorldFeeder:
             raise WorldError(
                 f"world feeder: all {len(self._world)} samples were fed; make a longer world"
             )
-        self._idle.clear()
-        self._running.set()
+        # Under the lock: the thread's "not running, so idle" is one step (see _run), so a
+        # set() of _idle from before this resume cannot land after it.
+        with self._lock:
+            self._idle.clear()
+            self._running.set()
 
     def pause(self, timeout_s: float = FEEDER_WAIT_TIMEOUT_S) -> None:
         """Stop sending (after the line being sent); returns when the thread is idle."""
@@ -449,8 +452,14 @@ class WorldFeeder:
     def _run(self) -> None:
         try:
             while not self._stop.is_set():
-                if not self._running.is_set():
-                    self._idle.set()
+                # The check and the set() together, under resume()'s lock: idle is set only
+                # while no resume() has come since the check (the only place it is set while
+                # the thread runs).
+                with self._lock:
+                    running = self._running.is_set()
+                    if not running:
+                        self._idle.set()
+                if not running:
                     self._running.wait()
                     continue
                 self._feed_until_paused()
@@ -484,4 +493,3 @@ class WorldFeeder:
                     self._next = due
             else:
                 time.sleep(FEEDER_TICK_S)
-        self._idle.set()

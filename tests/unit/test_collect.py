@@ -79,8 +79,14 @@ class FakeClient:
     url = "socket://fake:1"
     version = 1
 
-    def __init__(self, samples, *, interrupt_at=None, error_at=None, dropped=0, stop_error=None):
+    def __init__(
+        self, samples, *, interrupt_at=None, error_at=None, dropped=0, stop_error=None, late=0
+    ):
+        """late : samples that arrive while stream_stop waits for its response (queued, read
+        after it returns or raises)."""
         self.samples = list(samples)
+        self.late = late
+        self.queued: list[Sample] = []
         self.i = 0
         self.now = 0.0
         self.interrupt_at = interrupt_at
@@ -97,6 +103,8 @@ class FakeClient:
 
     def stream_stop(self):
         self.calls.append("stop")
+        self.queued = self.samples[self.i : self.i + self.late]
+        self.i += len(self.queued)
         if self.stop_error:
             raise self.stop_error
         return StreamStats(self.i, self.dropped)
@@ -108,6 +116,8 @@ class FakeClient:
         if self.error_at is not None and self.i == self.error_at:
             self.error_at = None
             raise DeviceError("stream on fake: link lost", Status.E_STATE, "stream")
+        if self.queued:
+            return self.queued.pop(0)
         if self.i >= len(self.samples) or "stop" in self.calls:
             self.now += timeout_s
             raise DeviceTimeoutError("no sample", Status.E_EMPTY, "stream")
@@ -213,6 +223,34 @@ def test_a_stall_is_an_error_and_a_failed_stop_is_unknown_drops():
         _collect(client, duration_s=100.0)
     assert info.value.result.samples == 50
     assert info.value.result.session.meta["device_dropped"] == "unknown"
+
+
+def test_samples_arriving_during_the_stop_do_not_overshoot_max_samples():
+    client = FakeClient(_samples(300), late=5)
+    r = _collect(client, max_samples=100)
+    assert r.stopped == "samples" and r.samples == 100 and len(r.session) == 100
+    assert r.session.meta["samples"] == "100" and client.calls == ["start", "stop"]
+    assert not client.queued  # the rest were read (not left for the client's next user)
+
+
+def test_samples_arriving_during_the_stop_are_kept():
+    client = FakeClient(_samples(300), late=5)
+    r = _collect(client, duration_s=1.0)
+    assert r.stopped == "duration" and r.samples == client.i
+    assert r.session.t[-1] == client.samples[client.i - 1].t_us / 1e6
+
+
+def test_a_failed_stop_still_keeps_the_queued_samples(caplog):
+    client = FakeClient(
+        _samples(300),
+        late=5,
+        stop_error=DeviceTimeoutError("no response", Status.E_EMPTY, "stream_stop"),
+    )
+    r = _collect(client, duration_s=1.0)
+    assert r.stopped == "duration" and r.device_dropped == -1
+    assert r.samples == client.i and len(r.session) == client.i  # the 5 late ones too
+    assert r.session.meta["device_dropped"] == "unknown"
+    assert "could not stop the stream (no response)" in caplog.text
 
 
 def test_no_samples_gives_no_session():

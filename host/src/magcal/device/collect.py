@@ -216,7 +216,6 @@ def collect(
     stopped = "error"
     error: BaseException | None = None
     rate_times: list[float] = []
-    started = True  # stop on the way out even when Ctrl-C comes during stream_start
     try:
         client.stream_start(StreamKind.RAW)
         while True:
@@ -267,7 +266,8 @@ def collect(
     except (MagcalError, OSError) as exc:
         stopped = "error"
         error = exc
-    device_dropped = _stop_stream(client, started, rec)
+    # Stopped on the way out whatever happened, also after a Ctrl-C during stream_start.
+    device_dropped = _stop_stream(client, rec, max_samples)
     state = _feed_coverage(rec, tracker, mag_sensor, force=True)
     elapsed = clock() - start
     if progress is not None and len(rec):
@@ -281,24 +281,30 @@ def collect(
     return result
 
 
-def _stop_stream(client: DeviceClient, started: bool, rec: _Recorder) -> int:
-    """Stop the stream (best effort) and keep the samples already queued; the device's
-    dropped count, or -1 when it could not be asked."""
-    if not started:
-        return -1
+def _stop_stream(client: DeviceClient, rec: _Recorder, max_samples: int | None) -> int:
+    """Stop the stream (best effort) and keep the samples already queued, up to max_samples
+    in all; the device's dropped count, or -1 when it could not be asked."""
     try:
-        stats = client.stream_stop()
+        return client.stream_stop().dropped
     except (MagcalError, OSError, KeyboardInterrupt) as exc:
         log.warning("collect on %s: could not stop the stream (%s)", client.url, exc)
         return -1
-    while True:  # samples that arrived before the stop's response
+    finally:
+        # Also when the stop failed: the samples queued are the session's too.
+        _drain_queued(client, rec, max_samples)
+
+
+def _drain_queued(client: DeviceClient, rec: _Recorder, max_samples: int | None) -> None:
+    """Add the samples the client has queued (those that arrived before the stop's response)
+    without waiting, until the session has max_samples; the rest are read and discarded, so
+    no message of this stream is left for the client's next user."""
+    while True:
         try:
             msg = client.read_stream(0.0)
         except DeviceTimeoutError:
-            break
-        if isinstance(msg, Sample):
+            return
+        if isinstance(msg, Sample) and (max_samples is None or len(rec) < max_samples):
             rec.add(msg)
-    return stats.dropped
 
 
 def _feed_coverage(

@@ -14,9 +14,13 @@ Example::
 
 from __future__ import annotations
 
+import contextlib
+import errno
 import json
 import logging
 import os
+import secrets
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -40,6 +44,8 @@ from magcal.link.base import LinkClosedError, LinkError
 log = logging.getLogger(__name__)
 
 BACKUP_FORMAT = "magcal-param-backup/1"
+#: What os.link raises on a file system without hard links.
+_NO_HARD_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOSYS}
 
 
 class FlashError(MagcalError):
@@ -98,12 +104,10 @@ def _read_active(client: DeviceClient) -> ParamSet | None:
 def _write_backup(
     path: Path, old: ParamSet | None, info: DeviceInfo, url: str, overwrite: bool
 ) -> None:
-    """Save the device's current set (atomically: temporary file, fsync, rename)."""
-    if path.exists() and not overwrite:
-        raise FlashError(
-            f"flash: backup file {path} exists; nothing was written to the device: give "
-            "another backup path (an earlier backup is worth keeping) or allow overwriting"
-        )
+    """Save the device's current set atomically: a temporary file in the same directory,
+    fsync, then a hard link to ``path``, which fails when ``path`` exists (an existing file is
+    never replaced, even one created meanwhile), or a rename when ``overwrite``. The temporary
+    file is removed whatever happens."""
     doc = {
         "format": BACKUP_FORMAT,
         "format_version": None if old is None else old.format_version,
@@ -115,19 +119,54 @@ def _write_backup(
         "port": url,
         "time": datetime.now(timezone.utc).isoformat(timespec="seconds"),
     }
-    tmp = path.with_name(path.name + ".tmp")
+    tmp: Path | None = None
     try:
-        with open(tmp, "w", encoding="utf-8") as fh:
+        # A name nobody else uses ("x": never an existing file); the umask sets its mode.
+        name = path.with_name(f".{path.name}.{os.getpid()}-{secrets.token_hex(4)}.tmp")
+        fh = open(name, "x", encoding="utf-8")
+        tmp = name
+        with fh:
             json.dump(doc, fh, indent=2)
             fh.write("\n")
             fh.flush()
             os.fsync(fh.fileno())
-        os.replace(tmp, path)
+        if overwrite:
+            os.replace(tmp, path)
+            tmp = None
+        else:
+            _link_new(tmp, path)
+    except FileExistsError as exc:
+        raise FlashError(
+            f"flash: backup file {path} exists; nothing was written to the device: give "
+            "another backup path (an earlier backup is worth keeping) or allow overwriting"
+        ) from exc
     except OSError as exc:
         raise FlashError(
             f"flash: cannot save the backup to {path} ({exc.strerror or exc}); nothing was "
             "written to the device: choose a writable backup path"
         ) from exc
+    finally:
+        if tmp is not None:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+
+
+def _link_new(tmp: Path, path: Path) -> None:
+    """Make ``path`` a copy of the complete file ``tmp``; FileExistsError when ``path`` exists."""
+    try:
+        os.link(tmp, path)
+    except OSError as exc:
+        if exc.errno not in _NO_HARD_LINKS:
+            raise
+        # A file system without hard links (FAT): copy into a file only this call creates.
+        with open(tmp, "rb") as src, open(path, "xb") as dst:
+            try:
+                shutil.copyfileobj(src, dst)
+                dst.flush()
+                os.fsync(dst.fileno())
+            except BaseException:
+                os.unlink(path)  # ours, and incomplete
+                raise
 
 
 def read_backup(path: str | os.PathLike) -> dict[str, Any]:

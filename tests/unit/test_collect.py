@@ -12,14 +12,18 @@ import pytest
 
 from magcal.device import collect as col
 from magcal.device.client import (
+    Corrected,
     DeviceError,
     DeviceInfo,
     DeviceTimeoutError,
+    ParamSet,
+    ParamWhich,
     Sample,
     Scale,
     SensorInfo,
     StreamStats,
 )
+from magcal.device.framing import crc32_iso_hdlc
 from magcal.device.generated import Status, Unit
 from magcal.errors import MagcalError
 from magcal.io.session import read_session, write_session
@@ -304,3 +308,79 @@ def test_verify_refuses_a_device_without_parameters():
 
     with pytest.raises(VerifyError, match=r"no active parameter set \(E_NO_PARAMS\).*magcal flash"):
         verify(NoParams([]), _info())
+
+
+class VerifyClient:
+    """The part of DeviceClient that verify uses: an identity parameter set and a corrected
+    stream of the given seqs (the device's output for each raw sample)."""
+
+    url = "socket://fake:1"
+
+    def __init__(self, seqs, *, read_error=None, stop_error=None):
+        from magcal.device import fixed_point
+
+        self.params = fixed_point.from_calibration(np.eye(3), np.zeros(3))
+        self.blob = fixed_point.encode(self.params)
+        raw = np.array([x.mag for x in _samples(len(seqs))], dtype=np.int64)
+        out = fixed_point.emulate(self.params, raw)
+        self.msgs = [
+            Corrected(q, 5_000_000 + 10_000 * i, tuple(raw[i]), self.params.out_exp, tuple(out[i]))
+            for i, q in enumerate(seqs)
+        ]
+        self.read_error = read_error
+        self.stop_error = stop_error
+        self.calls: list[str] = []
+
+    def param_get(self, which=0):
+        return ParamSet(ParamWhich.ACTIVE, 1, crc32_iso_hdlc(self.blob), self.blob)
+
+    def stream_start(self, kind=0, decimation=1, count=0):
+        self.calls.append("start")
+
+    def stream_stop(self):
+        self.calls.append("stop")
+        if self.stop_error:
+            raise self.stop_error
+        return StreamStats(len(self.msgs), 0)
+
+    def read_stream(self, timeout_s=2.0):
+        if not self.msgs:
+            raise self.read_error or DeviceTimeoutError("no sample", Status.E_EMPTY, "stream")
+        return self.msgs.pop(0)
+
+
+def test_verify_counts_a_repeated_seq_as_no_gap():
+    from magcal.device.verify import verify
+
+    # A duplicate (no gap, not 2^32 - 1), the uint32 wrap (no gap), then 2 missing.
+    seqs = [(1 << 32) - 2, (1 << 32) - 1, (1 << 32) - 1, 0, 3, 4]
+    r = verify(VerifyClient(seqs), _info(), n_samples=len(seqs), heading=False)
+    assert r.dropped == 2 and r.mismatches == 0 and r.norm.n == len(seqs)
+
+
+def test_seq_gap():
+    assert [col.seq_gap(5, q) for q in (6, 8, 5, 4, 3)] == [0, 2, 0, 0, 0]
+    assert col.seq_gap((1 << 32) - 1, 0) == 0 and col.seq_gap((1 << 32) - 2, 1) == 2
+
+
+def test_verify_a_failed_stop_is_raised_when_nothing_else_is():
+    from magcal.device.verify import verify
+
+    stop_error = DeviceTimeoutError("stream_stop: no response", Status.E_EMPTY, "stream_stop")
+    client = VerifyClient(range(5), stop_error=stop_error)
+    with pytest.raises(DeviceTimeoutError, match="stream_stop: no response"):
+        verify(client, _info(), n_samples=5, heading=False)
+
+
+def test_verify_a_failed_stop_after_a_read_error_is_logged_and_the_read_error_raised(caplog):
+    from magcal.device.verify import verify
+
+    read_error = DeviceTimeoutError("stream on fake: no sample", Status.E_EMPTY, "stream")
+    stop_error = DeviceError("stream_stop: link lost", Status.E_STATE, "stream_stop")
+    client = VerifyClient(range(3), read_error=read_error, stop_error=stop_error)
+    with pytest.raises(DeviceTimeoutError, match="no sample"):
+        verify(client, _info(), n_samples=5, heading=False)
+    assert client.calls == ["start", "stop"]
+    assert "could not stop the stream after DeviceTimeoutError (stream_stop: link lost)" in (
+        caplog.text
+    )

@@ -150,6 +150,14 @@ def counts_to_session_units(sensor: SensorInfo, counts: np.ndarray) -> np.ndarra
     return scale.counts_to_si(np.asarray(counts, dtype=np.int64).reshape(-1, 3))
 
 
+def seq_gap(prev: int, seq: int) -> int:
+    """Stream messages missing between two received seqs (the acquisition counter: +1 per
+    sample modulo 2^32, so the uint32 wrap is no gap); 0 for a repeated or older seq (a
+    duplicate on the link), which is no gap either."""
+    gap = (seq - prev - 1) % SEQ_MODULUS
+    return 0 if gap >= SEQ_MODULUS // 2 else gap
+
+
 class _Recorder:
     """The samples received so far, and the seq bookkeeping."""
 
@@ -165,10 +173,7 @@ class _Recorder:
 
     def add(self, s: Sample) -> None:
         if self.seq:
-            gap = (s.seq - self.seq[-1] - 1) % SEQ_MODULUS
-            if gap >= SEQ_MODULUS // 2:  # a repeated or older seq: not a gap
-                gap = 0
-            self.gaps += gap
+            self.gaps += seq_gap(self.seq[-1], s.seq)
             if s.t_us <= self.t_us[-1]:
                 # A session's time must increase; keep the file readable (counted).
                 self.out_of_order += 1

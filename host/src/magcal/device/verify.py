@@ -38,6 +38,7 @@ orientation: its standard deviation is reported too.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from collections.abc import Callable
@@ -56,9 +57,12 @@ from magcal.device.client import (
     Scale,
     StreamKind,
 )
+from magcal.device.collect import seq_gap
 from magcal.device.generated import Status
 from magcal.errors import MagcalError
 from magcal.io.session import Session
+
+log = logging.getLogger(__name__)
 
 DEFAULT_SAMPLES = 500
 #: Each message must arrive within this long (a device at 100 Hz sends one every 10 ms).
@@ -273,13 +277,21 @@ def _stream(
         while (n is None or len(msgs) < n) and (duration_s is None or clock() - start < duration_s):
             msg = client.read_stream(VERIFY_STREAM_TIMEOUT_S)
             if msgs:
-                gaps += (msg.seq - msgs[-1].seq - 1) % (1 << 32)
+                gaps += seq_gap(msgs[-1].seq, msg.seq)
             msgs.append(msg)
-    finally:
+    except BaseException as exc:
+        # The error that stopped the reading is the one to report; a failed stop is logged.
         try:
             client.stream_stop()
-        except MagcalError:
-            pass  # the error that stopped us is the one to report
+        except (MagcalError, OSError) as stop_exc:
+            log.warning(
+                "verify on %s: could not stop the stream after %s (%s)",
+                client.url,
+                type(exc).__name__,
+                stop_exc,
+            )
+        raise
+    client.stream_stop()
     want = Corrected if kind == StreamKind.CORRECTED else Sample
     return [x for x in msgs if isinstance(x, want)], gaps
 

@@ -13,7 +13,9 @@ import pytest
 
 from magcal.device import fixed_point
 from magcal.device.client import ClientConfig, DeviceClient
-from magcal.device.flash import FlashError, flash_parameters, read_backup
+from magcal.device.flash import FlashError, FlashInterruptedError, flash_parameters, read_backup
+from magcal.device.generated import Status
+from magcal.link import LinkClosedError, LinkTimeoutError
 from tests.fake_device import FakeDevice, MemoryLink
 
 FAST = ClientConfig(request_timeout_s=0.02, request_retries=3, reset_recovery_timeout_s=0.5)
@@ -29,6 +31,41 @@ NEW = blob_for(1.0 / 450, (3.0, 4.0, -7.5))
 
 def client_for(dev: FakeDevice) -> DeviceClient:
     return DeviceClient(MemoryLink(dev), FAST, first_seq=100)
+
+
+class DeadLink:
+    """A link that opens but never answers; ``opened`` lists every one made."""
+
+    url = "dead://"
+
+    def __init__(self, opened: list[DeadLink]) -> None:
+        self.closed = False
+        opened.append(self)
+
+    def write(self, data, timeout_s=None):
+        if self.closed:
+            raise LinkClosedError(f"write {self.url}: closed", self.url)
+
+    def read(self, timeout_s, max_bytes=4096):
+        if self.closed:
+            raise LinkClosedError(f"read {self.url}: closed", self.url)
+        raise LinkTimeoutError(f"read {self.url}: nothing", self.url)
+
+    def close(self):
+        self.closed = True
+
+
+class CutLink(MemoryLink):
+    """A MemoryLink that is gone (closed) as soon as ``when(device)`` holds after a write."""
+
+    def __init__(self, device: FakeDevice, when) -> None:
+        super().__init__(device)
+        self.when = when
+
+    def write(self, data, timeout_s=None):
+        super().write(data, timeout_s)
+        if self.when(self.device):
+            self.closed = True
 
 
 # ----------------------------------------------------------------------------- backup file
@@ -74,3 +111,51 @@ def test_backup_without_hard_links_copies_and_never_overwrites(tmp_path, monkeyp
     with pytest.raises(FlashError, match="b.json exists; nothing was written to the device"):
         flash_parameters(client_for(dev), OLD, 1, tmp_path / "b.json")
     assert read_backup(tmp_path / "b.json")["blob"] == OLD and dev.flash == NEW
+
+
+# ----------------------------------------------------------------------------- open links
+@pytest.mark.parametrize(
+    "cut_when",
+    [
+        pytest.param(lambda dev: dev.acted["param_commit"] > 0, id="after-commit"),
+        pytest.param(lambda dev: dev.resets > 0, id="after-reset"),
+        pytest.param(lambda dev: dev.acted["param_set"] > 0, id="before-commit"),
+    ],
+)
+def test_failed_recovery_closes_every_reconnected_client(tmp_path, cut_when):
+    """The link goes after a step; every reconnection opens a link that never answers (the
+    recovery's hello, or the hello after the reset, times out): all of them are closed, so
+    the next connection to a one-client device (the SIL) is not blocked."""
+    dev = FakeDevice(active_blob=OLD)
+    opened: list[DeadLink] = []
+    fast = ClientConfig(request_timeout_s=0.02, request_retries=1, reset_recovery_timeout_s=0.3)
+    first = DeviceClient(CutLink(dev, cut_when), fast, first_seq=1)
+    with pytest.raises(FlashInterruptedError, match="link failure at") as info:
+        flash_parameters(
+            first,
+            NEW,
+            1,
+            tmp_path / "b.json",
+            reconnect=lambda: DeviceClient(DeadLink(opened), fast),
+        )
+    assert info.value.active in ("old", "unknown")
+    assert opened and [link.closed for link in opened] == [True] * len(opened)
+    assert first.link.closed
+
+
+def test_client_reconnected_after_reset_is_closed_when_the_commit_did_not_take(tmp_path):
+    class Forgetful(FakeDevice):
+        def _on_param_commit(self, f):
+            return {"status": Status.OK}  # says stored, stores nothing
+
+    dev = Forgetful(active_blob=OLD)
+    links: list[MemoryLink] = []
+
+    def reconnect() -> DeviceClient:
+        links.append(MemoryLink(dev))
+        return DeviceClient(links[-1], FAST, first_seq=900)
+
+    first = DeviceClient(CutLink(dev, lambda d: d.resets > 0), FAST, first_seq=1)
+    with pytest.raises(FlashError, match="uses its old set, not the new one"):
+        flash_parameters(first, NEW, 1, tmp_path / "b.json", reconnect=reconnect)
+    assert len(links) == 1 and links[0].closed

@@ -195,29 +195,38 @@ def read_backup(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def _hello_after_reset(client: DeviceClient, reconnect: Reconnect | None) -> DeviceClient:
-    """hello until the restarted device answers (reconnecting when the link dropped)."""
+    """hello until the restarted device answers (reconnecting when the link dropped). A client
+    made here is closed when this raises; ``client`` is closed when replaced."""
     deadline = time.monotonic() + client.config.reset_recovery_timeout_s
+    given = client
     attempt = 0
-    while True:
-        attempt += 1
-        try:
-            client.hello()
-            return client
-        except (LinkError, DeviceTimeoutError) as exc:
-            if time.monotonic() >= deadline:
-                raise
-            log.info("hello after reset on %s: attempt %d failed (%s)", client.url, attempt, exc)
-            if isinstance(exc, LinkError) and reconnect is not None:
-                client.close()
-                try:
-                    client = reconnect()
-                except LinkError as exc2:
-                    log.info("reconnect after reset failed (%s)", exc2)
-                    if time.monotonic() >= deadline:
-                        raise
-                    time.sleep(0.1)
-            elif isinstance(exc, LinkClosedError):
-                raise
+    try:
+        while True:
+            attempt += 1
+            try:
+                client.hello()
+                return client
+            except (LinkError, DeviceTimeoutError) as exc:
+                if time.monotonic() >= deadline:
+                    raise
+                log.info(
+                    "hello after reset on %s: attempt %d failed (%s)", client.url, attempt, exc
+                )
+                if isinstance(exc, LinkError) and reconnect is not None:
+                    client.close()
+                    try:
+                        client = reconnect()
+                    except LinkError as exc2:
+                        log.info("reconnect after reset failed (%s)", exc2)
+                        if time.monotonic() >= deadline:
+                            raise
+                        time.sleep(0.1)
+                elif isinstance(exc, LinkClosedError):
+                    raise
+    except BaseException:
+        if client is not given:
+            client.close()
+        raise
 
 
 def _same(p: ParamSet | None, blob: bytes | None, format_version: int | None) -> bool:
@@ -260,6 +269,7 @@ def flash_parameters(
     commit_sent = False
     step = "hello"
     old: ParamSet | None = None
+    given = client
     try:
         if client.version is None:
             client.hello()
@@ -308,12 +318,18 @@ def flash_parameters(
         return _recover(
             client, exc, step, commit_sent, reconnect, old, blob, format_version, path, say
         )
+    except BaseException:
+        if client is not given:
+            client.close()  # made by reconnect after the reset
+        raise
     if _same(active, blob, format_version):
         log.info(
             "flash on %s: new set active (CRC-32 0x%08x), verified bit for bit", client.url, crc
         )
         say("param_get(active) after reset: the new set, equal bit for bit")
         return FlashResult("new", crc, path, "", client)
+    if client is not given:
+        client.close()
     which = (
         "its old set"
         if _same(active, old.blob if old else None, format_version if old else None)
@@ -360,6 +376,7 @@ def _recover(
             step,
         ) from exc
     client.close()
+    fresh: DeviceClient | None = None
     try:
         say(f"link failure at {step}: reconnecting to find out which set the device holds")
         fresh = reconnect()
@@ -370,7 +387,11 @@ def _recover(
             fresh.reset()
             fresh = _hello_after_reset(fresh, reconnect)
         active = _read_active(fresh)
-    except (LinkError, DeviceError) as exc2:
+    except BaseException as exc2:
+        if fresh is not None:
+            fresh.close()  # a one-client device (the SIL) would refuse the next connection
+        if not isinstance(exc2, (LinkError, DeviceError)):
+            raise
         state = "unknown" if commit_sent else "old"
         holds = (
             "either its old or the new complete set"

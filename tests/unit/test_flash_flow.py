@@ -56,15 +56,18 @@ class DeadLink:
 
 
 class CutLink(MemoryLink):
-    """A MemoryLink that is gone (closed) as soon as ``when(device)`` holds after a write."""
+    """A MemoryLink that is gone (closed) as soon as ``when(device)`` holds after a write (with
+    ``before``: at the first write after it holds; the response to the write before comes)."""
 
-    def __init__(self, device: FakeDevice, when) -> None:
+    def __init__(self, device: FakeDevice, when, before: bool = False) -> None:
         super().__init__(device)
-        self.when = when
+        self.when, self.before = when, before
 
     def write(self, data, timeout_s=None):
+        if self.before and self.when(self.device):
+            self.closed = True
         super().write(data, timeout_s)
-        if self.when(self.device):
+        if not self.before and self.when(self.device):
             self.closed = True
 
 
@@ -115,21 +118,21 @@ def test_backup_without_hard_links_copies_and_never_overwrites(tmp_path, monkeyp
 
 # ----------------------------------------------------------------------------- open links
 @pytest.mark.parametrize(
-    "cut_when",
+    ("cut_when", "before"),
     [
-        pytest.param(lambda dev: dev.acted["param_commit"] > 0, id="after-commit"),
-        pytest.param(lambda dev: dev.resets > 0, id="after-reset"),
-        pytest.param(lambda dev: dev.acted["param_set"] > 0, id="before-commit"),
+        pytest.param(lambda dev: dev.acted["param_commit"] > 0, False, id="at-commit"),
+        pytest.param(lambda dev: dev.resets > 0, True, id="hello-after-reset"),
+        pytest.param(lambda dev: dev.acted["param_set"] > 0, False, id="before-commit"),
     ],
 )
-def test_failed_recovery_closes_every_reconnected_client(tmp_path, cut_when):
+def test_failed_recovery_closes_every_reconnected_client(tmp_path, cut_when, before):
     """The link goes after a step; every reconnection opens a link that never answers (the
     recovery's hello, or the hello after the reset, times out): all of them are closed, so
     the next connection to a one-client device (the SIL) is not blocked."""
     dev = FakeDevice(active_blob=OLD)
     opened: list[DeadLink] = []
     fast = ClientConfig(request_timeout_s=0.02, request_retries=1, reset_recovery_timeout_s=0.3)
-    first = DeviceClient(CutLink(dev, cut_when), fast, first_seq=1)
+    first = DeviceClient(CutLink(dev, cut_when, before), fast, first_seq=1)
     with pytest.raises(FlashInterruptedError, match="link failure at") as info:
         flash_parameters(
             first,
@@ -139,6 +142,8 @@ def test_failed_recovery_closes_every_reconnected_client(tmp_path, cut_when):
             reconnect=lambda: DeviceClient(DeadLink(opened), fast),
         )
     assert info.value.active in ("old", "unknown")
+    if before:
+        assert info.value.step == "hello after reset"
     assert opened and [link.closed for link in opened] == [True] * len(opened)
     assert first.link.closed
 
@@ -155,7 +160,8 @@ def test_client_reconnected_after_reset_is_closed_when_the_commit_did_not_take(t
         links.append(MemoryLink(dev))
         return DeviceClient(links[-1], FAST, first_seq=900)
 
-    first = DeviceClient(CutLink(dev, lambda d: d.resets > 0), FAST, first_seq=1)
+    # The device restarts and the link goes with it (a USB device re-enumerating).
+    first = DeviceClient(CutLink(dev, lambda d: d.resets > 0, before=True), FAST, first_seq=1)
     with pytest.raises(FlashError, match="uses its old set, not the new one"):
         flash_parameters(first, NEW, 1, tmp_path / "b.json", reconnect=reconnect)
     assert len(links) == 1 and links[0].closed

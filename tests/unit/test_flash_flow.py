@@ -11,12 +11,13 @@ import os
 import numpy as np
 import pytest
 
+from magcal.commands import flash as flash_command
 from magcal.device import fixed_point
 from magcal.device.client import ClientConfig, DeviceClient
 from magcal.device.flash import FlashError, FlashInterruptedError, flash_parameters, read_backup
 from magcal.device.generated import Status
 from magcal.link import LinkClosedError, LinkTimeoutError
-from tests.fake_device import FakeDevice, MemoryLink
+from tests.fake_device import FakeDevice, LossyLink, MemoryLink
 
 FAST = ClientConfig(request_timeout_s=0.02, request_retries=3, reset_recovery_timeout_s=0.5)
 
@@ -165,3 +166,26 @@ def test_client_reconnected_after_reset_is_closed_when_the_commit_did_not_take(t
     with pytest.raises(FlashError, match="uses its old set, not the new one"):
         flash_parameters(first, NEW, 1, tmp_path / "b.json", reconnect=reconnect)
     assert len(links) == 1 and links[0].closed
+
+
+# ----------------------------------------------------------------------------- no backup
+def test_recovery_before_the_backup_step_reports_no_backup(tmp_path, capsys):
+    """The link goes during info (before the backup) on a device that already holds the new
+    set: the recovery finds the new set active, and the result names no backup file."""
+    dev = FakeDevice(active_blob=NEW)
+    link = LossyLink(MemoryLink(dev), disconnect_after=40)
+    r = flash_parameters(
+        DeviceClient(link, FAST, first_seq=5),
+        NEW,
+        1,
+        tmp_path / "b.json",
+        reconnect=lambda: DeviceClient(MemoryLink(dev), FAST, first_seq=900),
+    )
+    assert r.active == "new" and r.recovered_from.startswith("info: ")
+    assert r.backup_path is None and not (tmp_path / "b.json").exists()
+    assert dev.acted["param_set"] == 0
+
+    assert flash_command._finish(r, r.client) == 0
+    out = capsys.readouterr().out
+    assert "device holds the NEW set" in out and "previous set saved" not in out
+    assert "no backup was made" in out

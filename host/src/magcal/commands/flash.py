@@ -361,7 +361,13 @@ def _finish(result: FlashResult, first: DeviceClient) -> int:
     if result.client is not None and result.client is not first:
         result.client.close()
     print(f"new parameters active (crc32 0x{result.crc32:08x}); device holds the NEW set")
-    print(f"previous set saved in {result.backup_path} (magcal flash --restore to put it back)")
+    if result.backup_path is None:
+        print(
+            "no backup was made: the device already held this set before anything was written "
+            "(found after reconnecting)"
+        )
+    else:
+        print(f"previous set saved in {result.backup_path} (magcal flash --restore to put it back)")
     return 0
 
 

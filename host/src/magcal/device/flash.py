@@ -79,14 +79,16 @@ class FlashResult:
 
     active        : "new"
     crc32         : the set's CRC-32/ISO-HDLC
-    backup_path   : where the previous set was saved
+    backup_path   : where the previous set was saved; None when no backup was written (a
+                    link failure came before the backup step and the recovery found the new
+                    set already active: nothing was written)
     recovered_from: the link failure the flow recovered from ("" when none)
     client        : the client to go on with (a reconnected one after a recovery)
     """
 
     active: str
     crc32: int
-    backup_path: Path
+    backup_path: Path | None
     recovered_from: str = ""
     client: DeviceClient | None = field(default=None, compare=False, repr=False)
 
@@ -267,6 +269,7 @@ def flash_parameters(
     path = Path(backup_path)
     say = progress or _no_progress
     commit_sent = False
+    backup_written = False
     step = "hello"
     old: ParamSet | None = None
     given = client
@@ -289,6 +292,7 @@ def flash_parameters(
             + ("none (the device has no set)" if old is None else f"CRC-32 0x{old.crc32:08x}")
         )
         _write_backup(path, old, info, client.url, overwrite_backup)
+        backup_written = True
         log.info("flash on %s: previous set saved to %s", client.url, path)
         say(f"backup: the current set saved to {path}")
         step = "param_set"
@@ -316,7 +320,16 @@ def flash_parameters(
         active = _read_active(client)
     except (LinkError, DeviceTimeoutError) as exc:
         return _recover(
-            client, exc, step, commit_sent, reconnect, old, blob, format_version, path, say
+            client,
+            exc,
+            step,
+            commit_sent,
+            reconnect,
+            old,
+            blob,
+            format_version,
+            path if backup_written else None,
+            say,
         )
     except BaseException:
         if client is not given:
@@ -351,10 +364,11 @@ def _recover(
     old: ParamSet | None,
     blob: bytes,
     format_version: int,
-    path: Path,
+    path: Path | None,
     say: Progress = _no_progress,
 ) -> FlashResult:
-    """After a link failure at ``step``: find which complete set the device holds."""
+    """After a link failure at ``step``: find which complete set the device holds. ``path``
+    is the backup written (None: none was)."""
     url = client.url
     log.warning(
         "flash on %s: link failure at %s (%s); finding out what the device holds", url, step, exc

@@ -16,6 +16,10 @@ On start the process prints three lines (each flushed)::
 
 :func:`start_sil` parses them with a timeout. Every wait here has a timeout, and a timeout
 raises :class:`SilError` (the process is killed first when it was being started).
+
+Its stderr (one line per refused feed line, and its errors) goes to an unnamed temporary
+file, not a pipe: a pipe nobody reads while it runs fills up (64 KB) and would block the
+device in fprintf. :meth:`SilProcess.stderr_text` reads it at any time.
 """
 
 from __future__ import annotations
@@ -25,9 +29,11 @@ import re
 import selectors
 import signal
 import subprocess
+import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import IO
 
 from magcal.errors import MagcalError
 
@@ -60,12 +66,14 @@ class SilProcess:
     feed_port : the sensor feed's TCP port
     lines : the start-up lines, as printed
     pty : the pseudo-terminal path with ``--pty``, else ""
+    stderr_file : the file its stderr goes to (see :meth:`stderr_text`)
     """
 
     proc: subprocess.Popen
     proto_port: int
     feed_port: int
     lines: list[str]
+    stderr_file: IO[bytes]
     pty: str = ""
 
     @property
@@ -94,16 +102,14 @@ class SilProcess:
         self.close_pipes()
 
     def close_pipes(self) -> None:
-        for stream in (self.proc.stdout, self.proc.stderr):
+        """Close its stdout pipe and the stderr file (stderr_text then raises SilError)."""
+        for stream in (self.proc.stdout, self.stderr_file):
             if stream is not None and not stream.closed:
                 stream.close()
 
     def stderr_text(self) -> str:
-        """What the process wrote to stderr (only once it has exited, else "")."""
-        err = self.proc.stderr
-        if self.proc.poll() is None or err is None or err.closed:
-            return ""
-        return err.read().decode(errors="replace")
+        """What the process has written to stderr so far (also while it runs)."""
+        return _read_file(self.stderr_file)
 
     def __enter__(self) -> SilProcess:
         return self
@@ -114,6 +120,14 @@ class SilProcess:
                 self.stop()
         finally:
             self.kill()
+
+
+def _read_file(f: IO[bytes]) -> str:
+    """All of f from its start (f's position is not used: the child writes through its own
+    file descriptor); SilError when it was closed."""
+    if f.closed:
+        raise SilError("magcal-sil's stderr is no longer available (the process was killed)")
+    return os.pread(f.fileno(), os.fstat(f.fileno()).st_size, 0).decode(errors="replace")
 
 
 def read_lines(proc: subprocess.Popen, count: int, timeout_s: float) -> list[str]:
@@ -174,24 +188,38 @@ def start_sil(
     if not binary.exists():
         raise SilError(f"{binary} does not exist: run `make sil` first")
     proto_args = ["--pty"] if pty else ["--tcp", "0"]
-    proc = subprocess.Popen(
-        [str(binary), "--flash", str(flash), *proto_args, "--feed-tcp", "0", *extra],
-        stdout=subprocess.PIPE,
-        stderr=subprocess.PIPE,
-    )
+    err = tempfile.TemporaryFile(prefix="magcal-sil-stderr-")
+    try:
+        proc = subprocess.Popen(
+            [str(binary), "--flash", str(flash), *proto_args, "--feed-tcp", "0", *extra],
+            stdout=subprocess.PIPE,
+            stderr=err,
+        )
+    except BaseException:
+        err.close()
+        raise
     try:
         lines = read_lines(proc, 3, timeout_s)
         proto = (_PROTO_PTY_RE if pty else _PROTO_TCP_RE).match(lines[0])
         feed = _FEED_RE.match(lines[1])
         if proto is None or feed is None or lines[2] != _READY:
             raise SilError(f"unexpected start-up lines from magcal-sil: {lines}")
+    except SilError as exc:
+        _kill_started(proc)
+        said = _read_file(err).strip()
+        err.close()
+        raise SilError(f"{exc}; its stderr: {said}" if said else str(exc)) from exc
     except BaseException:
-        proc.kill()
-        proc.wait(timeout=STOP_TIMEOUT_S)
-        for stream in (proc.stdout, proc.stderr):
-            if stream is not None:
-                stream.close()
+        _kill_started(proc)
+        err.close()
         raise
     if pty:
-        return SilProcess(proc, 0, int(feed.group(1)), lines, pty=proto.group(1))
-    return SilProcess(proc, int(proto.group(1)), int(feed.group(1)), lines)
+        return SilProcess(proc, 0, int(feed.group(1)), lines, err, pty=proto.group(1))
+    return SilProcess(proc, int(proto.group(1)), int(feed.group(1)), lines, err)
+
+
+def _kill_started(proc: subprocess.Popen) -> None:
+    proc.kill()
+    proc.wait(timeout=STOP_TIMEOUT_S)
+    if proc.stdout is not None:
+        proc.stdout.close()

@@ -1,8 +1,12 @@
-"""tests/sil/world.py: the mirror of the SIL port's quantisation (the value of a count, round
+"""magcal.sim.world: the mirror of the SIL port's quantisation (the value of a count, round
 half away from zero, saturation at the int16 limits), the exact round trip counts -> SI (the
 client's conversion) -> counts, the physical feed lines (exact reprs), the feed socket, and
 the true calibration in the device's format. tests/sil/test_sil_client.py checks the mirror
-against the device itself."""
+against the device itself.
+
+Of WorldFeeder only the pause/resume hand-over is tested here (with a fake feed); its
+feeding of the SIL device, paced and paused between steps, is exercised end to end by
+tests/sil/test_demo_end_to_end.py (and tests/sil/test_cli_collect_verify.py)."""
 
 from __future__ import annotations
 

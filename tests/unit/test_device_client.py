@@ -195,10 +195,16 @@ def test_reused_seq_with_other_body_gets_nack_e_sequence():
 
 
 def test_unknown_message_gets_nack():
+    from magcal.device.framing import unpack_message
+
     dev = FakeDevice()
     dev.receive(encode_frame(0x55, 3, b""))
     c = client_for(dev)
-    c.link.read(0.01)  # the nack is there; a client ignores it (not its request)
+    # The nack is there (a client ignores it: not its request), naming the unknown id.
+    frames = [decode_frame(x) for x in c.link.read(0.01).split(b"\x00") if x]
+    assert [(f.id, f.seq) for f in frames] == [(MessageId.NACK, 3)]
+    _, fields = unpack_message(MessageId.NACK, frames[0].payload)
+    assert fields == {"status": Status.E_UNKNOWN_MESSAGE, "request_id": 0x55}
     assert dev.acted == {}
 
 

@@ -112,8 +112,9 @@ def scale_text(s: Scale) -> str:
     return f"{s.num}/{s.den}e{s.exp10} {s.unit.name.lower()}"
 
 
-def _scale_in(s: Scale, exp10_shift: int) -> Scale:
-    """The same scale in units 10^-exp10_shift times the SI unit (exact)."""
+def scale_in(s: Scale, exp10_shift: int) -> Scale:
+    """The same scale in units 10^-exp10_shift times the SI unit (exact): for µT,
+    ``scale_in(s, UT_PER_T_EXP10)``."""
     return Scale(s.num, s.den, s.exp10 + exp10_shift, s.unit)
 
 
@@ -146,7 +147,7 @@ def counts_to_session_units(sensor: SensorInfo, counts: np.ndarray) -> np.ndarra
     the exact rational rounded once."""
     scale = sensor.count_scale
     if sensor.kind == "mag":
-        scale = _scale_in(scale, UT_PER_T_EXP10)
+        scale = scale_in(scale, UT_PER_T_EXP10)
     return scale.counts_to_si(np.asarray(counts, dtype=np.int64).reshape(-1, 3))
 
 

@@ -54,10 +54,9 @@ from magcal.device.client import (
     DeviceInfo,
     ParamWhich,
     Sample,
-    Scale,
     StreamKind,
 )
-from magcal.device.collect import seq_gap
+from magcal.device.collect import UT_PER_T_EXP10, scale_in, seq_gap
 from magcal.device.generated import Status
 from magcal.errors import MagcalError
 from magcal.io.session import Session
@@ -361,8 +360,7 @@ def heading_of_session(
             f"verify: the session's mag_unit is {unit or 'not given'!r}; the device's set "
             "applies to sessions in uT recorded with magcal collect"
         )
-    s = info.sensor("mag").count_scale
-    per_count_ut = Scale(s.num, s.den, s.exp10 + 6, s.unit).si
+    per_count_ut = scale_in(info.sensor("mag").count_scale, UT_PER_T_EXP10).si
     counts = session.mag / per_count_ut
     rounded = np.rint(counts)
     if np.max(np.abs(counts - rounded), initial=0.0) > 1e-3 or np.max(np.abs(rounded)) > 32768:

@@ -74,6 +74,7 @@ class FakeDevice:
         max_version: int = 1,
         sensors=DEFAULT_SENSORS,
         fail_commit: bool = False,
+        commit_answer: tuple[Status, bool] | None = None,
     ) -> None:
         self.flash = active_blob  # what storage holds (survives reset)
         self.active = active_blob  # what is in use (loaded at reset)
@@ -82,6 +83,9 @@ class FakeDevice:
         self.min_version, self.max_version = min_version, max_version
         self.sensors = sensors
         self.fail_commit = fail_commit
+        # (status, stored): a good commit answers status, having stored the staged set or not
+        # (E_OUTCOME_UNKNOWN after either: SPEC §5's "either set may be the stored one").
+        self.commit_answer = commit_answer
         self.deframer = Deframer()
         self.outbox = bytearray()
         self.cache: tuple[int, int, int, bytes] | None = None  # seq, id, crc, response
@@ -282,6 +286,11 @@ class FakeDevice:
             return {"status": Status.E_CRC}
         if self.fail_commit:
             return {"status": Status.E_FLASH}
+        if self.commit_answer is not None:
+            status, stored = self.commit_answer
+            if stored:
+                self.flash = self.staged
+            return {"status": status}
         self.flash = self.staged  # atomic, as storage.h's two-slot commit
         return {"status": Status.OK}
 

@@ -356,9 +356,9 @@ def test_flash_refuses_other_format(tmp_path):
 
 def test_flash_failed_commit_keeps_old(tmp_path):
     dev = FakeDevice(active_blob=OLD, fail_commit=True)
-    with pytest.raises(DeviceError, match="param_commit.*E_FLASH"):
+    with pytest.raises(FlashError, match="param_commit.*E_FLASH.*keeps its old set") as info:
         flash_parameters(client_for(dev), NEW, 1, tmp_path / "b.json")
-    assert dev.flash == OLD
+    assert dev.flash == OLD and info.value.active == "old" and info.value.commit_sent
 
 
 def test_flash_detects_staged_mismatch(tmp_path):

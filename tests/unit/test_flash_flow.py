@@ -11,13 +11,16 @@ import os
 import numpy as np
 import pytest
 
+from magcal import cli
+from magcal.calib.frames import field_direction
 from magcal.commands import flash as flash_command
 from magcal.device import fixed_point
 from magcal.device.client import ClientConfig, DeviceClient
 from magcal.device.flash import FlashError, FlashInterruptedError, flash_parameters, read_backup
 from magcal.device.generated import Status
+from magcal.io.result import CalibrationResult, write_result
 from magcal.link import LinkClosedError, LinkTimeoutError
-from tests.fake_device import FakeDevice, LossyLink, MemoryLink
+from tests.fake_device import FakeDevice, LossyLink, MemoryLink, serve_tcp
 
 FAST = ClientConfig(request_timeout_s=0.02, request_retries=3, reset_recovery_timeout_s=0.5)
 
@@ -189,3 +192,109 @@ def test_recovery_before_the_backup_step_reports_no_backup(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "device holds the NEW set" in out and "previous set saved" not in out
     assert "no backup was made" in out
+
+
+# ----------------------------------------------------------------------------- commit outcome
+@pytest.mark.parametrize("stored", [True, False], ids=["stored-new", "stored-nothing"])
+def test_commit_answered_outcome_unknown_is_settled_by_reset_and_read_back(tmp_path, stored):
+    """SPEC §5: E_OUTCOME_UNKNOWN means either set may be stored; the host resets, reads the
+    active set and compares it with the backup and the new blob (on the same link)."""
+    dev = FakeDevice(active_blob=OLD, commit_answer=(Status.E_OUTCOME_UNKNOWN, stored))
+    c = client_for(dev)
+    said: list[str] = []
+    if stored:
+        r = flash_parameters(c, NEW, 1, tmp_path / "b.json", progress=said.append)
+        assert (r.active, r.backup_path, r.client) == ("new", tmp_path / "b.json", c)
+        assert r.recovered_from.startswith("param_commit: ") and "E_OUTCOME_UNKNOWN" in (
+            r.recovered_from
+        )
+    else:
+        with pytest.raises(
+            FlashInterruptedError, match=r"E_OUTCOME_UNKNOWN.*holds its old complete set"
+        ) as info:
+            flash_parameters(c, NEW, 1, tmp_path / "b.json", progress=said.append)
+        e = info.value
+        assert (e.active, e.step, e.commit_sent) == ("old", "param_commit", True)
+        assert e.backup_path == tmp_path / "b.json" and e.backup_written
+    assert dev.resets == 1 and dev.active == (NEW if stored else OLD)
+    assert not c.link.closed  # the link was fine: no reconnection, the caller's client kept
+    assert any(line.startswith("reset:") for line in said)
+
+
+@pytest.mark.parametrize(
+    "status", [Status.E_CRC, Status.E_STATE, Status.E_FLASH, Status.E_RANGE], ids=lambda s: s.name
+)
+def test_commit_refusals_that_store_nothing_say_old_without_reset(tmp_path, status):
+    """SPEC §5: these answers to a commit mean the previous set is certainly the stored one."""
+    dev = FakeDevice(active_blob=OLD, commit_answer=(status, False))
+    with pytest.raises(FlashError, match=f"param_commit.*{status.name}.*keeps its old set") as info:
+        flash_parameters(client_for(dev), NEW, 1, tmp_path / "b.json")
+    e = info.value
+    assert (e.active, e.step, e.commit_sent) == ("old", "param_commit", True)
+    assert e.backup_path == tmp_path / "b.json" and dev.resets == 0 and dev.flash == OLD
+
+
+def test_refusal_before_the_commit_says_old_and_whether_a_backup_was_made(tmp_path):
+    class Refuses(FakeDevice):
+        def _on_param_set(self, f):
+            return {"status": Status.E_CONDITION, "crc32": 0}
+
+    with pytest.raises(FlashError, match="param_set.*E_CONDITION.*keeps its old set") as info:
+        flash_parameters(client_for(Refuses(active_blob=OLD)), NEW, 1, tmp_path / "b.json")
+    e = info.value
+    assert (e.active, e.step, e.commit_sent, e.backup_path) == (
+        "old",
+        "param_set",
+        False,
+        tmp_path / "b.json",
+    )
+
+
+@pytest.fixture
+def fake_over_tcp():
+    """serve(device) -> its socket:// URL (the fake behind a TCP socket; stopped at the end)."""
+    stops = []
+
+    def serve(dev: FakeDevice) -> str:
+        port, stop, thread = serve_tcp(dev)
+        stops.append((stop, thread))
+        return f"socket://127.0.0.1:{port}"
+
+    yield serve
+    for stop, thread in stops:
+        stop.set()
+        thread.join(5.0)
+
+
+@pytest.mark.parametrize("stored", [True, False], ids=["stored-new", "stored-nothing"])
+def test_cli_says_what_the_library_found_after_outcome_unknown(
+    tmp_path, capsys, fake_over_tcp, stored
+):
+    """magcal flash takes the library's outcome: the new set found is a success (exit 0), the
+    old one a failure naming the OLD set and the backup."""
+    dev = FakeDevice(active_blob=OLD, commit_answer=(Status.E_OUTCOME_UNKNOWN, stored))
+    url = fake_over_tcp(dev)
+    result = tmp_path / "r.json"
+    write_result(
+        result,
+        CalibrationResult(
+            "ml",
+            np.eye(3) * 50.0,
+            np.zeros(3),
+            field_direction(np.deg2rad(60.0)),
+            60.0,
+            extra={"mag_unit": "uT"},
+        ),
+    )
+    backup = tmp_path / "b.json"
+    capsys.readouterr()
+    rc = cli.main(["flash", str(result), "--port", url, "--backup", str(backup)])
+    out, err = capsys.readouterr()
+    assert dev.resets == 1 and read_backup(backup)["blob"] == OLD
+    if stored:
+        assert rc == 0, err
+        assert "device holds the NEW set" in out and f"previous set saved in {backup}" in out
+        assert dev.active != OLD
+    else:
+        assert rc == 2 and f"device holds the OLD set — backup at {backup}" in err
+        assert dev.active == OLD

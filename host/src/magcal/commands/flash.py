@@ -23,6 +23,7 @@ key; the size of one count from the device (info's exact magnetometer count scal
 from __future__ import annotations
 
 import sys
+from collections.abc import Callable
 from datetime import datetime, timezone
 from fractions import Fraction
 from pathlib import Path
@@ -31,11 +32,11 @@ import numpy as np
 
 from magcal.commands.common import OPEN_TIMEOUT_S, add_link_arguments, open_device
 from magcal.device import fixed_point
-from magcal.device.client import DeviceClient, DeviceError, DeviceInfo, ParamWhich, Scale
+from magcal.device.client import DeviceClient, DeviceInfo, Scale
 from magcal.device.flash import (
     FlashError,
-    FlashInterruptedError,
     FlashResult,
+    Progress,
     flash_parameters,
     read_backup,
     restore,
@@ -44,7 +45,7 @@ from magcal.device.framing import crc32_iso_hdlc
 from magcal.device.generated import Status, Unit
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult, read_result
-from magcal.link import LinkError, open_link
+from magcal.link import open_link
 
 #: The magnetometer units a result may be in, with their size in tesla (None: raw counts).
 MAG_UNIT_TESLA: dict[str, Fraction | None] = {
@@ -263,21 +264,6 @@ def _chosen_backup(arg: str | None, default: Path) -> Path:
 # ---------------------------------------------------------------- the flow
 
 
-class _Tracker:
-    """Prints flash_parameters' progress and notes whether the commit was sent."""
-
-    def __init__(self) -> None:
-        self.commit_sent = False
-        self.backup_written = False
-
-    def __call__(self, text: str) -> None:
-        if text.startswith("param_commit"):
-            self.commit_sent = True
-        if text.startswith("backup:"):
-            self.backup_written = True
-        _say(text)
-
-
 def _reconnect(url: str):
     def reconnect() -> DeviceClient:
         return DeviceClient(open_link(url, OPEN_TIMEOUT_S))
@@ -285,28 +271,8 @@ def _reconnect(url: str):
     return reconnect
 
 
-def _probe_active(url: str, old: bytes | None, new: bytes) -> str:
-    """After a refusal past the commit: restart the device and read its active set."""
-    try:
-        with open_link(url, OPEN_TIMEOUT_S) as link:
-            c = DeviceClient(link)
-            c.hello()
-            c.reset()
-            c.hello()
-            try:
-                active = c.param_get(ParamWhich.ACTIVE).blob
-            except DeviceError as exc:
-                if exc.status != Status.E_NO_PARAMS:
-                    raise
-                active = None
-    except MagcalError as exc:
-        _say(f"could not read the active set back ({exc})")
-        return UNKNOWN
-    return NEW if active == new else OLD if active == old else UNKNOWN
-
-
-def _holds(state: str, backup: Path | None, written: bool) -> str:
-    if not written or backup is None:
+def _holds(state: str, backup: Path | None) -> str:
+    if backup is None:
         return f"device holds the {state} set, untouched (no backup was made)"
     where = f" — backup at {backup}"
     if state == UNKNOWN:
@@ -317,46 +283,21 @@ def _holds(state: str, backup: Path | None, written: bool) -> str:
     return f"device holds the {state} set{where}"
 
 
-def _flash(
-    url: str,
-    client: DeviceClient,
-    blob: bytes,
-    backup: Path,
-    write,
-) -> FlashResult:
-    """Run ``write`` (flash_parameters or restore with a tracker); on failure raise
-    MagcalError saying which set the device holds."""
-    track = _Tracker()
+def _flash(write: Callable[[Progress], FlashResult]) -> FlashResult:
+    """Run ``write`` (flash_parameters or restore, given the progress printer); on failure
+    raise FlashCommandError saying which set the device holds, as the library found out."""
     try:
-        return write(track)
-    except FlashInterruptedError as exc:
+        return write(_say)
+    except FlashError as exc:
         state = {"old": OLD, "new": NEW}.get(exc.active, UNKNOWN)
-        raise FlashCommandError(f"{exc}; {_holds(state, backup, track.backup_written)}") from exc
-    except (FlashError, DeviceError, LinkError) as exc:
-        if not track.commit_sent:
-            state = OLD  # nothing is stored without a commit
-        elif (
-            isinstance(exc, DeviceError)
-            and exc.op == "param_commit"
-            and (exc.status in (Status.E_CRC, Status.E_STATE))
-        ):
-            state = OLD  # the device refused to store anything
-        else:
-            client.close()
-            old = None
-            if track.backup_written:
-                try:
-                    old = read_backup(backup).get("blob")
-                except FlashError:
-                    old = None
-            state = _probe_active(url, old, blob)
-        raise FlashCommandError(f"{exc}; {_holds(state, backup, track.backup_written)}") from exc
+        raise FlashCommandError(f"{exc}; {_holds(state, exc.backup_path)}") from exc
 
 
 def _finish(result: FlashResult, first: DeviceClient) -> int:
     if result.recovered_from:
         _say(
-            f"recovered from a link failure ({result.recovered_from}); verified after reconnecting"
+            f"the flow was interrupted ({result.recovered_from}); the new set was then read back "
+            "and verified"
         )
     if result.client is not None and result.client is not first:
         result.client.close()
@@ -379,7 +320,7 @@ def run(args) -> int:
     except MagcalError as exc:
         # Refused or failed before the flow's first write (result, unit, link, hello, info,
         # format, conversion, backup path): the device was not written to.
-        raise FlashCommandError(f"{exc}; {_holds(OLD, None, False)}") from exc
+        raise FlashCommandError(f"{exc}; {_holds(OLD, None)}") from exc
 
 
 def _run(args) -> int:
@@ -422,10 +363,6 @@ def _run(args) -> int:
         _say(f"backup of the current set goes to {backup}")
         url = args.port
         result_ = _flash(
-            url,
-            dev.client,
-            blob,
-            backup,
             lambda progress: flash_parameters(
                 dev.client,
                 blob,
@@ -472,10 +409,6 @@ def _run_restore(args) -> int:
         _say(f"backup of the current set goes to {backup}")
         url = args.port
         result_ = _flash(
-            url,
-            dev.client,
-            blob,
-            backup,
             lambda progress: restore(
                 dev.client,
                 src,

@@ -49,18 +49,41 @@ _NO_HARD_LINKS = {errno.EPERM, errno.ENOTSUP, errno.EOPNOTSUPP, errno.ENOSYS}
 
 
 class FlashError(MagcalError):
-    """flash_parameters or restore stopped before writing, or a read-back did not match."""
+    """flash_parameters or restore failed. Where the device stands:
 
+    active      : the complete set it holds: "old" (nothing was stored: refused or failed
+                  before the commit, a commit refusal that stores nothing, or read back),
+                  "new", or "unknown" (it could not be found out, or is neither)
+    step        : the step that failed ("" before the flow's steps)
+    commit_sent : whether param_commit was sent
+    backup_path : the backup of the previous set, None when none was written
+    """
 
-class FlashInterruptedError(FlashError):
-    """The flash flow was interrupted by a link failure. ``active`` says which complete set
-    the device holds: "old", "new" or "unknown" (it could not be asked); ``step`` is the step
-    that failed."""
-
-    def __init__(self, message: str, active: str, step: str) -> None:
+    def __init__(
+        self,
+        message: str,
+        active: str = "old",
+        step: str = "",
+        *,
+        commit_sent: bool = False,
+        backup_path: Path | None = None,
+    ) -> None:
         super().__init__(message)
         self.active = active
         self.step = step
+        self.commit_sent = commit_sent
+        self.backup_path = backup_path
+
+    @property
+    def backup_written(self) -> bool:
+        return self.backup_path is not None
+
+
+class FlashInterruptedError(FlashError):
+    """The flow was interrupted, by a link failure or by a commit whose outcome the device
+    could not tell (E_OUTCOME_UNKNOWN), and the host then tried to find out which complete set
+    the device holds: ``active`` "old" (found, or no commit was sent) or "unknown" (it could
+    not be asked, or holds neither); a device found holding the new set is a FlashResult."""
 
 
 Reconnect = Callable[[], DeviceClient]
@@ -237,6 +260,42 @@ def _same(p: ParamSet | None, blob: bytes | None, format_version: int | None) ->
     return p.blob == blob and p.format_version == format_version
 
 
+#: Answers to param_commit after which the previous set is certainly the stored one (SPEC §5).
+_COMMIT_STORED_NOTHING = {Status.E_CRC, Status.E_STATE, Status.E_FLASH, Status.E_RANGE}
+
+
+@dataclass
+class _Flow:
+    """Where a flash_parameters call is: for its messages, errors and recovery."""
+
+    url: str
+    blob: bytes
+    format_version: int
+    path: Path
+    say: Progress
+    step: str = "hello"
+    old: ParamSet | None = None
+    backup_written: bool = False
+    commit_sent: bool = False
+
+    @property
+    def crc(self) -> int:
+        return crc32_iso_hdlc(self.blob)
+
+    @property
+    def backup(self) -> Path | None:
+        return self.path if self.backup_written else None
+
+    def error(self, message: str, active: str = "old", cls: type[FlashError] = FlashError):
+        return cls(
+            message,
+            active,
+            self.step,
+            commit_sent=self.commit_sent,
+            backup_path=self.backup,
+        )
+
+
 def flash_parameters(
     client: DeviceClient,
     blob: bytes,
@@ -258,186 +317,198 @@ def flash_parameters(
         and after a link failure to find out what the device holds)
     progress : called with a line of text at each step (nothing when None)
 
-    Returns FlashResult(active="new"), also when a link failure was recovered from and the
-    device was found to hold the new set. Raises FlashInterruptedError with ``active`` "old"
-    or "unknown" when a link failure left the device without the new set (or nobody could
-    ask it); DeviceError when the device refused a step (it then keeps its old set);
-    FlashError when a read-back differs or before writing anything (backup, format checks).
-    """
-    blob = bytes(blob)
-    crc = crc32_iso_hdlc(blob)
-    path = Path(backup_path)
-    say = progress or _no_progress
-    commit_sent = False
-    backup_written = False
-    step = "hello"
-    old: ParamSet | None = None
+    Returns FlashResult(active="new"), also when the flow was interrupted and the device was
+    then found to hold the new set. Interrupted means a link failure, or a commit answered
+    E_OUTCOME_UNKNOWN (either set may be stored; SPEC §5) or a refusal after the commit: the
+    device is then reset (when the commit was sent) and its active set compared with the backup
+    and with ``blob``, on the same client when its link works, else on a reconnected one.
+    Raises FlashInterruptedError with ``active`` "old" or "unknown" when that finds the old set
+    or cannot tell; FlashError with ``active`` "old" when the device refused a step before the
+    commit or refused the commit with E_CRC, E_STATE, E_FLASH or E_RANGE (nothing stored), or
+    before anything was written (backup, format checks); FlashError when a read-back differs
+    (``active`` says which set is in use). Every error also says whether the commit was sent
+    and where the backup is (``backup_path``; None: none was written)."""
+    flow = _Flow(
+        client.url, bytes(blob), format_version, Path(backup_path), progress or _no_progress
+    )
+    blob, crc, path, say = flow.blob, flow.crc, flow.path, flow.say
     given = client
     try:
         if client.version is None:
             client.hello()
-        step = "info"
+        flow.step = "info"
         info = client.info()
         if info.params_format_version != format_version or info.params_size != len(blob):
-            raise FlashError(
+            raise flow.error(
                 f"flash on {client.url}: the device takes parameter format "
                 f"{info.params_format_version} of {info.params_size} bytes; this set is format "
                 f"{format_version} of {len(blob)} bytes; nothing was written: convert the "
                 "calibration for this firmware"
             )
-        step = "param_get(active)"
-        old = _read_active(client)
+        flow.step = "param_get(active)"
+        flow.old = old = _read_active(client)
         say(
             "param_get(active): the current set is "
             + ("none (the device has no set)" if old is None else f"CRC-32 0x{old.crc32:08x}")
         )
+        flow.step = "backup"
         _write_backup(path, old, info, client.url, overwrite_backup)
-        backup_written = True
+        flow.backup_written = True
         log.info("flash on %s: previous set saved to %s", client.url, path)
         say(f"backup: the current set saved to {path}")
-        step = "param_set"
+        flow.step = "param_set"
         say(f"param_set: staging the new set ({len(blob)} bytes, CRC-32 0x{crc:08x})")
         client.param_set(format_version, blob)
-        step = "param_get(staged)"
+        flow.step = "param_get(staged)"
         staged = client.param_get(ParamWhich.STAGED)
         if not _same(staged, blob, format_version) or staged.crc32 != crc:
-            raise FlashError(
+            raise flow.error(
                 f"flash on {client.url}: the staged set read back differs from the one sent "
                 "(nothing committed; the device keeps its old set): check the link and retry"
             )
         say("param_get(staged): read back, equal bit for bit")
-        step = "param_commit"
-        commit_sent = True
+        flow.step = "param_commit"
+        flow.commit_sent = True
         say(f"param_commit: storing CRC-32 0x{crc:08x}")
-        client.param_commit(crc)
-        step = "reset"
+        try:
+            client.param_commit(crc)
+        except DeviceError as exc:
+            if isinstance(exc, DeviceTimeoutError) or exc.status not in _COMMIT_STORED_NOTHING:
+                raise
+            raise flow.error(
+                f"flash on {client.url}: {exc}; the device stored nothing and keeps its old set "
+                "(SPEC §5): run flash again"
+            ) from exc
+        flow.step = "reset"
         say("reset: restarting the device")
         client.reset()
-        step = "hello after reset"
+        flow.step = "hello after reset"
         client = _hello_after_reset(client, reconnect)
         say("hello: the device answers again after the reset")
-        step = "param_get(active) after reset"
+        flow.step = "param_get(active) after reset"
         active = _read_active(client)
+        if not _same(active, blob, format_version):
+            which = (
+                "its old set"
+                if _same(active, old.blob if old else None, old.format_version if old else None)
+                else "another set"
+            )
+            raise flow.error(
+                f"flash on {client.url}: after commit and reset the device uses {which}, not "
+                f"the new one (CRC-32 0x{crc:08x}); the commit did not take effect: run flash "
+                f"again, and restore {path} if needed",
+                "old" if which == "its old set" else "unknown",
+            )
     except (LinkError, DeviceTimeoutError) as exc:
-        return _recover(
-            client,
-            exc,
-            step,
-            commit_sent,
-            reconnect,
-            old,
-            blob,
-            format_version,
-            path if backup_written else None,
-            say,
-        )
+        return _find_out(client, given, exc, flow, reconnect, link_ok=False)
+    except DeviceError as exc:
+        if not flow.commit_sent:
+            raise flow.error(
+                f"flash on {client.url}: {exc}; nothing was committed, so the device keeps its "
+                "old set"
+            ) from exc
+        # E_OUTCOME_UNKNOWN (or an answer SPEC §5 does not give a commit, or a refusal after
+        # a stored commit): either set may be the stored one, and the link works.
+        return _find_out(client, given, exc, flow, reconnect, link_ok=True)
     except BaseException:
         if client is not given:
             client.close()  # made by reconnect after the reset
         raise
-    if _same(active, blob, format_version):
-        log.info(
-            "flash on %s: new set active (CRC-32 0x%08x), verified bit for bit", client.url, crc
-        )
-        say("param_get(active) after reset: the new set, equal bit for bit")
-        return FlashResult("new", crc, path, "", client)
-    if client is not given:
-        client.close()
-    which = (
-        "its old set"
-        if _same(active, old.blob if old else None, format_version if old else None)
-        else "another set"
-    )
-    raise FlashError(
-        f"flash on {client.url}: after commit and reset the device uses {which}, not the new "
-        f"one (CRC-32 0x{crc:08x}); the commit did not take effect: run flash again, and "
-        f"restore {path} if needed"
-    )
+    log.info("flash on %s: new set active (CRC-32 0x%08x), verified bit for bit", client.url, crc)
+    say("param_get(active) after reset: the new set, equal bit for bit")
+    return FlashResult("new", crc, path, "", client)
 
 
-def _recover(
+def _find_out(
     client: DeviceClient,
+    given: DeviceClient,
     exc: Exception,
-    step: str,
-    commit_sent: bool,
+    flow: _Flow,
     reconnect: Reconnect | None,
-    old: ParamSet | None,
-    blob: bytes,
-    format_version: int,
-    path: Path | None,
-    say: Progress = _no_progress,
+    link_ok: bool,
 ) -> FlashResult:
-    """After a link failure at ``step``: find which complete set the device holds. ``path``
-    is the backup written (None: none was)."""
-    url = client.url
-    log.warning(
-        "flash on %s: link failure at %s (%s); finding out what the device holds", url, step, exc
-    )
-    prefix = f"flash on {url}: link failure at {step} ({exc})"
-    if reconnect is None:
-        if not commit_sent:
-            raise FlashInterruptedError(
-                f"{prefix}; the commit was never sent, so the device holds its old complete "
-                "set: reconnect and run flash again",
-                "old",
-                step,
+    """After ``exc`` at ``flow.step``: find which complete set the device holds, on ``client``
+    when its link works (``link_ok``), else on a reconnected one. After a commit the device is
+    reset first (a stored set becomes active at the next reset). Clients made here are closed
+    unless returned; ``given`` (the caller's) is closed only when its link failed."""
+    url, step, commit_sent = flow.url, flow.step, flow.commit_sent
+    if link_ok:
+        prefix = f"flash on {url}: {step} left open which set is stored ({exc})"
+    else:
+        prefix = f"flash on {url}: link failure at {step} ({exc})"
+    log.warning("%s; finding out what the device holds", prefix)
+    if not link_ok:
+        client.close()
+        if reconnect is None:
+            if not commit_sent:
+                raise flow.error(
+                    f"{prefix}; the commit was never sent, so the device holds its old "
+                    "complete set: reconnect and run flash again",
+                    "old",
+                    FlashInterruptedError,
+                ) from exc
+            raise flow.error(
+                f"{prefix}; the commit was sent, so the device holds either its old or the new "
+                "complete set (a commit is atomic): reconnect, read the active set (magcal "
+                "verify) and flash again if it is the old one",
+                "unknown",
+                FlashInterruptedError,
             ) from exc
-        raise FlashInterruptedError(
-            f"{prefix}; the commit was sent, so the device holds either its old or the new "
-            "complete set (a commit is atomic): reconnect, read the active set (magcal verify) "
-            "and flash again if it is the old one",
-            "unknown",
-            step,
-        ) from exc
-    client.close()
-    fresh: DeviceClient | None = None
+    fresh: DeviceClient | None = client if link_ok else None
+
+    def close_ours() -> None:
+        if fresh is not None and fresh is not given:
+            fresh.close()  # a one-client device (the SIL) would refuse the next connection
+
     try:
-        say(f"link failure at {step}: reconnecting to find out which set the device holds")
-        fresh = reconnect()
-        fresh.hello()
+        if fresh is None:
+            flow.say(f"link failure at {step}: reconnecting to find out which set the device holds")
+            fresh = reconnect()
+        if fresh.version is None:
+            fresh.hello()
         if commit_sent:
             # A committed set becomes active at the next reset: restart to find out.
-            say("reset: the commit may have been stored; restarting to find out")
+            flow.say("reset: the commit may have been stored; restarting to find out")
             fresh.reset()
             fresh = _hello_after_reset(fresh, reconnect)
         active = _read_active(fresh)
     except BaseException as exc2:
-        if fresh is not None:
-            fresh.close()  # a one-client device (the SIL) would refuse the next connection
+        close_ours()
         if not isinstance(exc2, (LinkError, DeviceError)):
             raise
-        state = "unknown" if commit_sent else "old"
         holds = (
             "either its old or the new complete set"
             if commit_sent
             else "its old complete set (the commit was never sent)"
         )
-        raise FlashInterruptedError(
-            f"{prefix}; reconnecting failed too ({exc2}); the device holds {holds}: check the "
+        again = "reconnecting" if not link_ok else "resetting and reading it back"
+        raise flow.error(
+            f"{prefix}; {again} failed too ({exc2}); the device holds {holds}: check the "
             "link, then read the active set (magcal verify) and flash again if needed",
-            state,
-            step,
+            "unknown" if commit_sent else "old",
+            FlashInterruptedError,
         ) from exc
-    if _same(active, blob, format_version):
+    if _same(active, flow.blob, flow.format_version):
         log.warning("flash on %s: recovered; the device holds the new set (verified)", url)
-        return FlashResult("new", crc32_iso_hdlc(blob), path, f"{step}: {exc}", fresh)
+        flow.say("param_get(active): the new set, equal bit for bit")
+        return FlashResult("new", flow.crc, flow.backup, f"{step}: {exc}", fresh)
+    close_ours()
+    old = flow.old
     # Without a commit nothing was stored: whatever is active is the set from before.
     if not commit_sent or _same(
         active, old.blob if old else None, old.format_version if old else None
     ):
-        fresh.close()
-        raise FlashInterruptedError(
-            f"{prefix}; reconnected: the device holds its old complete set (verified bit for "
+        raise flow.error(
+            f"{prefix}; found out: the device holds its old complete set (verified bit for "
             "bit): run flash again",
             "old",
-            step,
+            FlashInterruptedError,
         ) from exc
-    fresh.close()
-    raise FlashInterruptedError(
-        f"{prefix}; reconnected: the device's active set is neither the old nor the new one: "
-        f"restore {path} or flash again",
+    raise flow.error(
+        f"{prefix}; found out: the device's active set is neither the old nor the new one: "
+        f"restore {flow.path} or flash again",
         "unknown",
-        step,
+        FlashInterruptedError,
     ) from exc
 
 
@@ -460,9 +531,12 @@ def restore(
             f"restore: backup {p} records that the device had no parameter set; there is "
             "nothing to write back (the protocol has no erase)"
         )
-    if client.version is None:
-        client.hello()
-    info = client.info()
+    try:
+        if client.version is None:
+            client.hello()
+        info = client.info()
+    except (LinkError, DeviceError) as exc:
+        raise FlashError(f"restore: {exc}; nothing was written", "old", "info") from exc
     if doc.get("device_uid") != info.uid_hex and not force:
         raise FlashError(
             f"restore: backup {p} is of device {doc.get('device_uid')}, this is device "

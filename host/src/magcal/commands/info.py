@@ -6,8 +6,7 @@ import sys
 
 from magcal.commands.common import add_link_arguments, open_device
 from magcal.device.client import Scale
-
-SI_UNIT = {"mag": "T", "acc": "m/s²", "gyr": "rad/s"}
+from magcal.device.collect import SI_UNIT_TEXT as SI_UNIT
 
 
 def add_parser(sub) -> None:

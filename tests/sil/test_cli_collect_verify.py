@@ -33,11 +33,10 @@ from magcal.device import fixed_point
 from magcal.device.client import DeviceClient
 from magcal.device.flash import flash_parameters
 from magcal.io.session import read_session
-from magcal.link import open_link
+from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 from magcal.sim.world import FeedClient, WorldFeeder, make_world, tumbling_session
 from tests.sil.conftest import REPO_ROOT, SIL_BINARY
 
-LINK_OPEN_TIMEOUT_S = 5.0
 SUBPROCESS_TIMEOUT_S = 60.0
 SPEEDUP = 10.0  # device seconds per wall-clock second
 SIL_UID = "c0ffee"

@@ -55,7 +55,7 @@ from magcal.device.flash import flash_parameters, read_backup
 from magcal.device.framing import unpack_message
 from magcal.device.generated import MessageId
 from magcal.device.sil import REPO_ROOT, SIL_BINARY
-from magcal.link import open_link
+from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 from magcal.sim.world import FeedClient, WorldFeeder, make_world, tumbling_session
 from tests.sil.lossy_proxy import Faults, LossyProxy, Unit
 
@@ -87,7 +87,6 @@ SESSION_S = 3.0  # 100 Hz: ~400 samples with the 1 s of rest
 FEED_SPEEDUP = 8.0
 STREAM_DEADLINE_S = 15.0
 READ_POLL_S = 0.2
-LINK_OPEN_TIMEOUT_S = 5.0
 SIL_FLASH_PAGE = 2048  # sil_main.c: SIL_FLASH_PAGE_SIZE, slot A page 0, slot B page 1
 STORAGE_MAGIC = b"MCPS"
 STORAGE_MARKER = 0xC0DE600D

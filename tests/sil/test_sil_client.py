@@ -31,11 +31,10 @@ from magcal.device.client import (
 from magcal.device.flash import flash_parameters, read_backup
 from magcal.device.generated import Unit
 from magcal.device.sil import REPO_ROOT, SIL_BINARY
-from magcal.link import open_link
+from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 from magcal.sim.scenarios import preset, simulate
 from magcal.sim.world import FeedClient, count_si, device_counts, make_world, physical_line
 
-LINK_OPEN_TIMEOUT_S = 5.0
 SIL_STREAM_TIMEOUT_S = 10.0  # a loaded machine (2 shared cores) may be slow to feed
 N_RAW = 150
 N_CORRECTED = 150

@@ -9,10 +9,11 @@ from dataclasses import dataclass
 
 from magcal.device.client import DeviceClient, DeviceInfo, HelloResult
 from magcal.errors import MagcalError
-from magcal.link import open_link
+from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 
-#: How long opening the link may take (a USB device re-enumerating after a reset), s.
-OPEN_TIMEOUT_S = 5.0
+#: The link layer's LINK_OPEN_TIMEOUT_S under its old name, for commands/flash.py until it
+#: imports that (then delete this).
+OPEN_TIMEOUT_S = LINK_OPEN_TIMEOUT_S
 
 
 def add_link_arguments(p: argparse.ArgumentParser) -> None:
@@ -56,7 +57,7 @@ def open_device(url: str) -> Iterator[DeviceSession]:
     """Open ``url``, say hello, read info; close the link on the way out, whatever happens."""
     if not url:
         raise MagcalError("no device given: pass --port URL")
-    with open_link(url, OPEN_TIMEOUT_S) as link:
+    with open_link(url, LINK_OPEN_TIMEOUT_S) as link:
         client = DeviceClient(link)
         hello = client.hello()
         info = client.info()

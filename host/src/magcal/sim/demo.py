@@ -74,7 +74,7 @@ from magcal.device.sil import REPO_ROOT, SIL_BINARY, SilProcess, build_sil, star
 from magcal.errors import MagcalError
 from magcal.io.result import read_result
 from magcal.io.session import Session, read_session, session_from_arrays, write_session
-from magcal.link import open_link
+from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 from magcal.report.accuracy import heading_rms_deg
 from magcal.sim.world import (
     FIELD_STRENGTH_T,
@@ -86,7 +86,6 @@ from magcal.sim.world import (
 )
 
 MAGCAL = REPO_ROOT / "host" / "magcal"
-LINK_OPEN_TIMEOUT_S = 5.0
 #: Margin on a step's expected wall time before it is declared hung, s.
 STEP_TIMEOUT_MARGIN_S = 60.0
 #: Wait for one streamed sample while the world feeds, s.

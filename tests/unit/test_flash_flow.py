@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import errno
 import os
+import re
 
 import numpy as np
 import pytest
@@ -15,9 +16,9 @@ from magcal import cli
 from magcal.calib.frames import field_direction
 from magcal.commands import flash as flash_command
 from magcal.device import fixed_point
-from magcal.device.client import ClientConfig, DeviceClient
+from magcal.device.client import ClientConfig, DeviceClient, Scale
 from magcal.device.flash import FlashError, FlashInterruptedError, flash_parameters, read_backup
-from magcal.device.generated import Status
+from magcal.device.generated import Status, Unit
 from magcal.io.result import CalibrationResult, write_result
 from magcal.link import LinkClosedError, LinkTimeoutError
 from tests.fake_device import FakeDevice, LossyLink, MemoryLink, serve_tcp
@@ -298,3 +299,30 @@ def test_cli_says_what_the_library_found_after_outcome_unknown(
     else:
         assert rc == 2 and f"device holds the OLD set — backup at {backup}" in err
         assert dev.active == OLD
+
+
+# ----------------------------------------------------------------------------- one definition
+def test_scale_text_is_shared_by_info_and_flash():
+    from magcal.commands import common, info
+
+    s = Scale(122, 1, -6, Unit.STANDARD_GRAVITY)
+    assert common.scale_text(s) == "122/1 × 10^-6 standard_gravity"
+    assert common.scale_text(Scale(1, 6842, 0, Unit.GAUSS)) == "1/6842 gauss"
+    assert not hasattr(info, "_scale_text") and not hasattr(flash_command, "_scale_text")
+
+
+def test_cli_restore_uses_the_librarys_checks_and_default_path(tmp_path, capsys, fake_over_tcp):
+    """magcal flash --restore refuses a backup of "no set" with restore's own message, and
+    backs the current set up to the library's default path."""
+    dev = FakeDevice()
+    flash_parameters(client_for(dev), OLD, 1, tmp_path / "none.json")  # records "no set"
+    flash_parameters(client_for(dev), NEW, 1, tmp_path / "old.json")  # records OLD
+    url = fake_over_tcp(dev)
+    capsys.readouterr()
+    assert cli.main(["flash", "--restore", str(tmp_path / "none.json"), "--port", url]) == 2
+    err = capsys.readouterr().err
+    assert "restore: backup" in err and "had no parameter set; there is nothing to write" in err
+    assert cli.main(["flash", "--restore", str(tmp_path / "old.json"), "--port", url]) == 0
+    (made,) = tmp_path.glob("old.before-restore-*Z.json")
+    assert re.fullmatch(r"old\.before-restore-\d{8}T\d{12}Z\.json", made.name)  # µs stamp
+    assert read_backup(made)["blob"] == NEW and dev.active == OLD

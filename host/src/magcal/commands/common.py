@@ -7,7 +7,7 @@ import contextlib
 from collections.abc import Iterator
 from dataclasses import dataclass
 
-from magcal.device.client import DeviceClient, DeviceInfo, HelloResult
+from magcal.device.client import DeviceClient, DeviceInfo, HelloResult, Scale
 from magcal.errors import MagcalError
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 
@@ -40,6 +40,13 @@ def positive(kind):
         return v
 
     return parse
+
+
+def scale_text(s: Scale) -> str:
+    """An exact scale as the device gives it: "1/6842 gauss", "122 × 10^-6 standard_gravity"
+    is written "122/1 × 10^-6 standard_gravity"."""
+    exp = f" × 10^{s.exp10}" if s.exp10 else ""
+    return f"{s.num}/{s.den}{exp} {s.unit.name.lower()}"
 
 
 @dataclass(frozen=True)

@@ -30,15 +30,16 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.commands.common import OPEN_TIMEOUT_S, add_link_arguments, open_device
+from magcal.commands.common import OPEN_TIMEOUT_S, add_link_arguments, open_device, scale_text
 from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, DeviceInfo, Scale
 from magcal.device.flash import (
     FlashError,
     FlashResult,
     Progress,
+    before_restore_path,
     flash_parameters,
-    read_backup,
+    restorable_backup,
     restore,
 )
 from magcal.device.framing import crc32_iso_hdlc
@@ -155,11 +156,6 @@ def unit_per_count(scale: Scale, mag_unit: str) -> float:
         )
     tesla = Fraction(scale.num, scale.den) * Fraction(10) ** scale.exp10
     return float(tesla * _MAG_SCALE_TESLA[scale.unit] / unit_t)
-
-
-def _scale_text(s: Scale) -> str:
-    exp = f" × 10^{s.exp10}" if s.exp10 else ""
-    return f"{s.num}/{s.den}{exp} {s.unit.name.lower()}"
 
 
 def check_device_format(info: DeviceInfo, url: str) -> None:
@@ -346,7 +342,7 @@ def _run(args) -> int:
         upc = unit_per_count(scale, unit)
         _say(
             f"{args.result}: method {result.method}, D and o in {unit}; one count = "
-            f"{_scale_text(scale)} = {upc:.9g} {unit}"
+            f"{scale_text(scale)} = {upc:.9g} {unit}"
         )
         params = convert(result, upc, args.result)
         blob = fixed_point.encode(params)
@@ -379,12 +375,7 @@ def _run_restore(args) -> int:
     if args.mag_unit:
         raise MagcalError("flash: --mag-unit has no meaning with --restore (a backup is counts)")
     src = Path(args.restore)
-    doc = read_backup(src)
-    if doc.get("blob") is None:
-        raise MagcalError(
-            f"flash: backup {src} records that the device had no parameter set; there is "
-            "nothing to write back (the protocol has no erase)"
-        )
+    doc = restorable_backup(src)
     blob: bytes = doc["blob"]
     _say(
         f"backup {src}: device {doc.get('device_uid')}, taken {doc.get('time')}, "
@@ -404,8 +395,7 @@ def _run_restore(args) -> int:
                 raise MagcalError(f"flash: backup {src} holds no readable set ({exc})") from exc
             print("dry run: nothing was written to the device")
             return 0
-        default = _free_path(src.with_name(f"{src.stem}.before-restore-{_stamp()}.json"))
-        backup = _chosen_backup(args.backup, default)
+        backup = _chosen_backup(args.backup, before_restore_path(src))
         _say(f"backup of the current set goes to {backup}")
         url = args.port
         result_ = _flash(

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import sys
 
-from magcal.commands.common import add_link_arguments, open_device
-from magcal.device.client import Scale
+from magcal.commands.common import add_link_arguments, open_device, scale_text
 from magcal.device.collect import SI_UNIT_TEXT as SI_UNIT
 
 
@@ -13,11 +12,6 @@ def add_parser(sub) -> None:
     p = sub.add_parser("info", help="show the device's firmware, protocol and sensors")
     add_link_arguments(p)
     p.set_defaults(run=run)
-
-
-def _scale_text(s: Scale) -> str:
-    exp = f" × 10^{s.exp10}" if s.exp10 else ""
-    return f"{s.num}/{s.den}{exp} {s.unit.name.lower()}"
 
 
 def run(args, out=None) -> int:
@@ -37,8 +31,8 @@ def run(args, out=None) -> int:
             file=out,
         )
         for s in i.sensors:
-            full = _scale_text(s.full_scale)
-            count = f"{_scale_text(s.count_scale)} = {s.count_scale.si:.6g} {SI_UNIT[s.kind]}"
+            full = scale_text(s.full_scale)
+            count = f"{scale_text(s.count_scale)} = {s.count_scale.si:.6g} {SI_UNIT[s.kind]}"
             print(
                 f"{s.kind:<10} {s.name} (id 0x{s.sensor_id:02x}): full scale ±{full}, "
                 f"one count = {count}",

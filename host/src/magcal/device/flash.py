@@ -512,6 +512,25 @@ def _find_out(
     ) from exc
 
 
+def restorable_backup(path: str | os.PathLike) -> dict[str, Any]:
+    """read_backup, refusing a backup that records no set (there is nothing to write back)."""
+    doc = read_backup(path)
+    if doc.get("blob") is None:
+        raise FlashError(
+            f"restore: backup {path} records that the device had no parameter set; there is "
+            "nothing to write back (the protocol has no erase)"
+        )
+    return doc
+
+
+def before_restore_path(backup_path: str | os.PathLike) -> Path:
+    """Where restore saves the set it replaces, by default:
+    ``<backup>.before-restore-<UTC time, µs>.json`` next to the backup."""
+    p = Path(backup_path)
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
+    return p.with_name(f"{p.stem}.before-restore-{stamp}.json")
+
+
 def restore(
     client: DeviceClient,
     backup_path: str | os.PathLike,
@@ -522,15 +541,10 @@ def restore(
     progress: Progress | None = None,
 ) -> FlashResult:
     """Write a backup back with :func:`flash_parameters` (the current set is backed up first,
-    to ``new_backup_path``, default ``<backup>.before-restore-<time>.json``). Refuses a backup
-    of another device (its uid) unless force."""
+    to ``new_backup_path``, default :func:`before_restore_path`). Refuses a backup that records
+    no set, and one of another device (its uid) unless force."""
     p = Path(backup_path)
-    doc = read_backup(p)
-    if doc.get("blob") is None:
-        raise FlashError(
-            f"restore: backup {p} records that the device had no parameter set; there is "
-            "nothing to write back (the protocol has no erase)"
-        )
+    doc = restorable_backup(p)
     try:
         if client.version is None:
             client.hello()
@@ -542,14 +556,11 @@ def restore(
             f"restore: backup {p} is of device {doc.get('device_uid')}, this is device "
             f"{info.uid_hex}; nothing was written: use that device's backup (or force)"
         )
-    if new_backup_path is None:
-        stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%S%fZ")
-        new_backup_path = p.with_name(f"{p.stem}.before-restore-{stamp}.json")
     return flash_parameters(
         client,
         doc["blob"],
         int(doc["format_version"]),
-        new_backup_path,
+        before_restore_path(p) if new_backup_path is None else new_backup_path,
         reconnect=reconnect,
         progress=progress,
     )

@@ -35,9 +35,6 @@ The figures (:class:`DemoReport`):
   which the default output exponent of ``fixed_point.from_calibration`` guarantees (output
   rounding 1/2 LSB plus the parameters' quantisation at most 1/2 LSB).
 
-Until a device command (collect, flash, verify) exists in ``magcal.commands`` the demo does
-that step with the library calls of ``magcal.device`` and says so.
-
 Everything is written under the output directory: session.csv, result.json, backup.json,
 plots/, flash.bin, device.csv (the corrected stream) and report.json.
 """
@@ -45,7 +42,6 @@ plots/, flash.bin, device.csv (the corrected stream) and report.json.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
 import math
 import os
@@ -61,19 +57,17 @@ from pathlib import Path
 import numpy as np
 
 from magcal.calib import frames, quality
-from magcal.device import fixed_point
 from magcal.device.client import (
     ClientConfig,
     Corrected,
     DeviceClient,
     DeviceInfo,
-    Sample,
     StreamKind,
 )
 from magcal.device.sil import REPO_ROOT, SIL_BINARY, SilProcess, build_sil, start_sil
 from magcal.errors import MagcalError
 from magcal.io.result import read_result
-from magcal.io.session import Session, read_session, session_from_arrays, write_session
+from magcal.io.session import Session, read_session
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 from magcal.report.accuracy import heading_rms_deg
 from magcal.sim.world import (
@@ -125,7 +119,7 @@ class DemoReport:
 
     seed: int
     kind: str
-    steps: dict[str, str] = field(default_factory=dict)  # step -> "cli" or "library"
+    steps: dict[str, str] = field(default_factory=dict)  # step -> "cli": ran host/magcal
     session_samples: int = 0
     session_unit_per_count: float = 0.0
     heading_grid_identity_deg: float = math.nan
@@ -141,11 +135,6 @@ class DemoReport:
 
 
 # ----------------------------------------------------------------------------- helpers
-
-
-def have_command(name: str) -> bool:
-    """Whether ``magcal NAME`` exists (a module in magcal.commands)."""
-    return importlib.util.find_spec(f"magcal.commands.{name}") is not None
 
 
 def run_cli(args: list[str], timeout_s: float, log: Log) -> None:
@@ -197,69 +186,6 @@ def _read_stream(client: DeviceClient, duration_s: float, kind: type) -> list:
         out.append(s)
         if s.t_us - out[0].t_us >= duration_s * 1e6:
             return out
-
-
-# ------------------------------------------------------- library stand-ins for commands
-
-
-def collect_library(url: str, out: Path, duration_s: float, log: Log) -> None:
-    """What ``magcal collect`` does, with library calls: a raw stream of duration_s device
-    seconds, written as a session (mag in uT, gyr rad/s, acc m/s^2, t = device time s)."""
-    with _client(url) as client:
-        client.hello()
-        info = client.info()
-        client.stream_start(StreamKind.RAW)
-        samples = _read_stream(client, duration_s, Sample)
-        stats = client.stream_stop()
-    log(
-        f"    collected {len(samples)} samples (device: sent {stats.sent}, dropped {stats.dropped})"
-    )
-    scales = {k: info.sensor(k).count_scale for k in ("mag", "acc", "gyr")}
-    t = np.array([s.t_us for s in samples], dtype=np.float64) / 1e6
-    arr = {k: np.array([getattr(s, k) for s in samples]) for k in scales}
-    session = session_from_arrays(
-        t,
-        scales["gyr"].counts_to_si(arr["gyr"]),
-        scales["acc"].counts_to_si(arr["acc"]),
-        scales["mag"].counts_to_si(arr["mag"]) * 1e6,
-        {"source": "magcal demo (library collect)", "mag_unit": "uT"},
-    )
-    write_session(out, session)
-
-
-def flash_library(url: str, result_path: Path, backup: Path, unit_per_count: float) -> None:
-    """What ``magcal flash`` does, with library calls."""
-    from magcal.device.flash import flash_parameters
-
-    result = read_result(result_path)
-    params = fixed_point.from_calibration(result.D_inv, result.o, unit_per_count=unit_per_count)
-    blob = fixed_point.encode(params)
-    client = _client(url)
-    try:
-        client.hello()
-        done = flash_parameters(
-            client,
-            blob,
-            fixed_point.FORMAT_VERSION,
-            backup,
-            reconnect=lambda: _client(url),
-            overwrite_backup=True,
-        )
-        client = done.client
-    finally:
-        client.close()
-
-
-def verify_library(url: str, duration_s: float, log: Log) -> None:
-    """What ``magcal verify`` does, with library calls: the corrected stream's field norm."""
-    with _client(url) as client:
-        client.hello()
-        client.stream_start(StreamKind.CORRECTED)
-        cor = _read_stream(client, duration_s, Corrected)
-        client.stream_stop()
-    m = np.array([np.ldexp(np.asarray(s.m_b, float), s.out_exp - 31) for s in cor])
-    n = np.linalg.norm(m, axis=1)
-    log(f"    corrected field norm {n.mean():.5f} ± {n.std():.5f} over {len(cor)} samples")
 
 
 # ------------------------------------------------------------------------- figures
@@ -452,18 +378,14 @@ def _run_on_device(
             report.seconds[name] = time.monotonic() - t0
 
         # collect
-        mode = "cli" if have_command("collect") else "library"
-        report.steps["collect"] = mode
-        step(f"collect: {cfg.collect_s:g} s of device time while the world tumbles ({mode})")
-        if mode == "cli":
-            # --max-samples: collect_s of device time whatever the speed-up (--duration is
-            # the host's clock).
-            n_samples = round(cfg.collect_s * rate)
-            args = ["collect", "--port", url, "-o", str(session_path)]
-            args += ["--max-samples", str(n_samples), "--coverage", "off"]
-            fed_step("collect", lambda: run_cli(args, cfg.collect_s / wall + timeout, log))
-        else:
-            fed_step("collect", lambda: collect_library(url, session_path, cfg.collect_s, log))
+        report.steps["collect"] = "cli"
+        step(f"collect: {cfg.collect_s:g} s of device time while the world tumbles")
+        # --max-samples: collect_s of device time whatever the speed-up (--duration is the
+        # host's clock).
+        n_samples = round(cfg.collect_s * rate)
+        args = ["collect", "--port", url, "-o", str(session_path)]
+        args += ["--max-samples", str(n_samples), "--coverage", "off"]
+        fed_step("collect", lambda: run_cli(args, cfg.collect_s / wall + timeout, log))
         session = read_session(session_path)
         u, rows = match_session(session, world, info)
         report.session_samples = len(session)
@@ -490,29 +412,21 @@ def _run_on_device(
         report.heading_grid_ml_deg = heading_rms_deg(truth_c, result.D / u, result.o / u)
 
         # flash
-        mode = "cli" if have_command("flash") else "library"
-        report.steps["flash"] = mode
-        step(f"flash: {result_path.name}, backup {backup.name} ({mode})")
+        report.steps["flash"] = "cli"
+        step(f"flash: {result_path.name}, backup {backup.name}")
         t0 = time.monotonic()
-        if mode == "cli":
-            args = ["flash", str(result_path), "--port", url, "--backup", str(backup)]
-            if "mag_unit" in session.meta:  # the session's unit, as its header says
-                args += ["--mag-unit", session.meta["mag_unit"]]
-            run_cli(args, timeout, log)
-        else:
-            flash_library(url, result_path, backup, u)
+        args = ["flash", str(result_path), "--port", url, "--backup", str(backup)]
+        if "mag_unit" in session.meta:  # the session's unit, as its header says
+            args += ["--mag-unit", session.meta["mag_unit"]]
+        run_cli(args, timeout, log)
         report.seconds["flash"] = time.monotonic() - t0
 
         # verify
-        mode = "cli" if have_command("verify") else "library"
-        report.steps["verify"] = mode
-        step(f"verify: {cfg.verify_s:g} s of the device's corrected output ({mode})")
-        if mode == "cli":
-            # --samples: verify_s of device time whatever the speed-up.
-            args = ["verify", "--port", url, "--samples", str(round(cfg.verify_s * rate))]
-            fed_step("verify", lambda: run_cli(args, 2 * cfg.verify_s / wall + timeout, log))
-        else:
-            fed_step("verify", lambda: verify_library(url, cfg.verify_s, log))
+        report.steps["verify"] = "cli"
+        step(f"verify: {cfg.verify_s:g} s of the device's corrected output")
+        # --samples: verify_s of device time whatever the speed-up.
+        args = ["verify", "--port", url, "--samples", str(round(cfg.verify_s * rate))]
+        fed_step("verify", lambda: run_cli(args, 2 * cfg.verify_s / wall + timeout, log))
 
         # the device's own corrected output, noise-free readings of the same motion
         step(f"check: {cfg.check_s:g} s of corrected output, noise-free, against the truth")

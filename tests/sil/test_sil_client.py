@@ -1,6 +1,6 @@
 """The host's client library against the SIL device (build/sil/magcal-sil) end to end:
 open_link("socket://..."), hello/info, a simulated session fed through the feed socket as
-physical values (tests/sil/world.py, P lines) and streamed back raw as the counts the device
+physical values (magcal.sim.world, P lines) and streamed back raw as the counts the device
 made of them (count, order, values exactly as world.device_counts predicts), flash_parameters
 of the simulator's true calibration, then the corrected stream within 1 LSB of
 fixed_point.emulate. And the device's quantisation at the edges: values at half counts,

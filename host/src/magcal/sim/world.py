@@ -1,7 +1,7 @@
 """World simulator for the SIL device: a simulated session turned into the sensor-feed lines.
 
-(Moved here from tests/sil/world.py so that ``make demo`` can use it too; the API is the
-same, plus :func:`tumbling_session` and :class:`WorldFeeder` for feeding in real time.)
+(In the package, not the tests, so that ``make demo`` can use it too; :func:`tumbling_session`
+and :class:`WorldFeeder` are for feeding in real time.)
 
 The SIL executable (build/sil/magcal-sil) reads its sensors from a TCP "feed" socket, one text
 line per event (firmware/port/posix/sensor_feed.h):

@@ -383,3 +383,30 @@ def test_verify_a_failed_stop_after_a_read_error_is_logged_and_the_read_error_ra
     assert "could not stop the stream after DeviceTimeoutError (stream_stop: link lost)" in (
         caplog.text
     )
+
+
+@pytest.mark.parametrize(
+    "unit, factor, match",
+    [
+        ("T", 1.0, r"mag_unit is 'T'; .* in uT recorded with magcal collect"),
+        ("uT", 1.001, "not whole counts of this device's magnetometer"),
+    ],
+)
+def test_verify_refuses_an_unusable_session_before_streaming(unit, factor, match):
+    from magcal.device.verify import VerifyError, verify
+    from magcal.io.session import session_from_arrays
+
+    s = _collect(FakeClient(_samples(100)), max_samples=100).session
+    bad = session_from_arrays(s.t, s.gyr, s.acc, s.mag * factor, {**s.meta, "mag_unit": unit})
+    client = VerifyClient(range(5))
+    with pytest.raises(VerifyError, match=match):
+        verify(client, _info(), n_samples=5, session=bad)
+    assert client.calls == []  # nothing streamed
+
+
+def test_verify_measures_a_session_from_collect():
+    from magcal.device.verify import verify
+
+    s = _collect(FakeClient(_samples(1000)), max_samples=1000).session
+    r = verify(VerifyClient(range(5)), _info(), n_samples=5, heading=False, session=s)
+    assert r.session_heading is not None and r.session_heading.n > 900

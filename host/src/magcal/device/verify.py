@@ -313,6 +313,8 @@ def verify(
     """
     if n_samples is None and duration_s is None:
         n_samples = DEFAULT_SAMPLES
+    # An unusable session is refused before anything is streamed.
+    session_counts = session_mag_counts(info, session) if session is not None else None
     params, crc = read_active_params(client)
     cor, gaps = _stream(client, StreamKind.CORRECTED, n_samples, duration_s, clock)
     if not cor:
@@ -334,7 +336,7 @@ def verify(
         note = "" if head is not None else "not measurable: no sample with |acc| near g"
     session_head = None
     if session is not None:
-        session_head = heading_of_session(info, params, session)
+        session_head = _heading_of_session_counts(params, session, session_counts)
     return VerifyReport(crc, params, norm_spread(m), mismatches, gaps, head, note, session_head)
 
 
@@ -354,6 +356,13 @@ def heading_of_session(
 ) -> HeadingConsistency | None:
     """Heading consistency of the active set applied to a session recorded by magcal
     collect (mag in uT, converted back to the device's counts: they must be whole counts)."""
+    return _heading_of_session_counts(params, session, session_mag_counts(info, session))
+
+
+def session_mag_counts(info: DeviceInfo, session: Session) -> np.ndarray:
+    """(N, 3) int64: the session's magnetometer (µT, as magcal collect writes it) as this
+    device's raw counts. VerifyError when its mag_unit is not uT or the values are not whole
+    counts of this device's magnetometer."""
     unit = session.meta.get("mag_unit", "").strip()
     if unit != "uT":
         raise VerifyError(
@@ -363,10 +372,19 @@ def heading_of_session(
     per_count_ut = scale_in(info.sensor("mag").count_scale, UT_PER_T_EXP10).si
     counts = session.mag / per_count_ut
     rounded = np.rint(counts)
-    if np.max(np.abs(counts - rounded), initial=0.0) > 1e-3 or np.max(np.abs(rounded)) > 32768:
+    if (
+        np.max(np.abs(counts - rounded), initial=0.0) > 1e-3
+        or np.max(np.abs(rounded), initial=0.0) > 32768
+    ):
         raise VerifyError(
             "verify: the session's magnetometer values are not whole counts of this device's "
             "magnetometer: was it recorded from another device or sensor range?"
         )
-    m = fixed_point.output_to_float(params, fixed_point.emulate(params, rounded.astype(np.int64)))
+    return rounded.astype(np.int64)
+
+
+def _heading_of_session_counts(
+    params: fixed_point.DeviceParams, session: Session, counts: np.ndarray
+) -> HeadingConsistency | None:
+    m = fixed_point.output_to_float(params, fixed_point.emulate(params, counts))
     return heading_consistency(session.t, session.acc, session.gyr, m)

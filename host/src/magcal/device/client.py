@@ -87,6 +87,10 @@ class DeviceTimeoutError(DeviceError):
     """No response after every retry (status E_EMPTY: nothing was received)."""
 
 
+class _AttemptTimeoutError(DeviceTimeoutError):
+    """One attempt of a request got no response in time (the request retries)."""
+
+
 class VersionMismatchError(DeviceError):
     """Host and device share no protocol version."""
 
@@ -527,13 +531,15 @@ class DeviceClient:
                     seq,
                 )
             self.link.write(wire)
-            f = self._await(req.id, resp, seq, timeout_s, op)
-            if f is not None:
-                if check and f["status"] != Status.OK:
-                    if name == "stream_start":
-                        self._stream_seq = None
-                    raise _refusal(op, f["status"], self.url)
-                return f
+            try:
+                f = self._await(req.id, resp, seq, timeout_s, op)
+            except _AttemptTimeoutError:
+                continue
+            if check and f["status"] != Status.OK:
+                if name == "stream_start":
+                    self._stream_seq = None
+                raise _refusal(op, f["status"], self.url)
+            return f
         if name == "stream_start":
             self._stream_seq = None
         raise DeviceTimeoutError(
@@ -545,8 +551,9 @@ class DeviceClient:
 
     def _await(
         self, req_id: int, resp_id: int, seq: int, timeout_s: float, op: str
-    ) -> dict[str, Any] | None:
-        """The response's fields, or None when the attempt timed out (the caller retries)."""
+    ) -> dict[str, Any]:
+        """The response's fields; _AttemptTimeoutError when none came within timeout_s (the
+        caller retries), the device's DeviceError on a nack."""
         deadline = time.monotonic() + timeout_s
         self._awaiting = (req_id, resp_id, seq, op)
         self._response = None
@@ -555,7 +562,11 @@ class DeviceClient:
             while self._response is None:
                 remaining = deadline - time.monotonic()
                 if remaining <= 0 or not self._pump(remaining):
-                    break
+                    raise _AttemptTimeoutError(
+                        f"{op} on {self.url}: no response within {timeout_s:.3g} s (seq {seq})",
+                        Status.E_EMPTY,
+                        op,
+                    )
                 if self._nack is not None:
                     raise self._nack
             return self._response

@@ -13,7 +13,7 @@ import sys
 
 from magcal.calib import observability
 from magcal.commands.common import add_link_arguments, open_device, positive
-from magcal.device.collect import CollectError, CollectResult, Progress, collect
+from magcal.device.collect import CollectError, CollectProgress, CollectResult, collect
 from magcal.errors import MagcalError
 from magcal.io.session import check_writable, write_session
 
@@ -57,7 +57,7 @@ def progress_printer(stream=None):
     tty = stream.isatty()
     state = {"next": 0.0, "shown": False}
 
-    def show(p: Progress) -> None:
+    def show(p: CollectProgress) -> None:
         line = (
             f"{p.samples:7d} samples  {p.rate_hz:6.1f}/s  dropped {p.dropped}  "
             f"coverage {100 * p.coverage:5.1f} %  {p.hint}"

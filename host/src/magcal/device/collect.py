@@ -73,7 +73,7 @@ class CollectError(MagcalError):
 
 
 @dataclass(frozen=True)
-class Progress:
+class CollectProgress:
     """What collect reports while it runs."""
 
     samples: int
@@ -197,7 +197,7 @@ def collect(
     coverage_target: float | None = None,
     max_samples: int | None = None,
     min_samples: int = 0,
-    progress: Callable[[Progress], None] | None = None,
+    progress: Callable[[CollectProgress], None] | None = None,
     clock: Callable[[], float] = time.monotonic,
 ) -> CollectResult:
     """Record the raw stream into a session until a stop condition (see the module docstring).
@@ -206,7 +206,7 @@ def collect(
     coverage_target : stop once this fraction (0..1) of field directions is covered and at
         least ``min_samples`` samples were recorded
     max_samples : stop after this many samples
-    progress : called about every PROGRESS_INTERVAL_S with a :class:`Progress`
+    progress : called about every PROGRESS_INTERVAL_S with a :class:`CollectProgress`
 
     Returns a CollectResult (``interrupted`` after Ctrl-C). Raises CollectError with the
     partial result on a device or link error, or when no sample arrives for STALL_TIMEOUT_S.
@@ -323,13 +323,15 @@ def _feed_coverage(
     return tracker.state(force=force)
 
 
-def _progress(rec: _Recorder, state: CoverageState, elapsed: float, times: list[float]):
+def _progress(
+    rec: _Recorder, state: CoverageState, elapsed: float, times: list[float]
+) -> CollectProgress:
     rate = (
         (len(times) - 1) / (times[-1] - times[0])
         if len(times) > 1 and times[-1] > times[0]
         else 0.0
     )
-    return Progress(len(rec), elapsed, rate, rec.gaps, state.coverage, state.hint)
+    return CollectProgress(len(rec), elapsed, rate, rec.gaps, state.coverage, state.hint)
 
 
 def _result(

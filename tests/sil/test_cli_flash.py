@@ -37,9 +37,8 @@ from magcal.device.framing import Deframer, Frame, crc32_iso_hdlc
 from magcal.device.generated import MessageId, Status
 from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.io.result import CalibrationResult, write_result
-from magcal.link import open_link
+from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 
-LINK_OPEN_TIMEOUT_S = 5.0
 PROXY_JOIN_TIMEOUT_S = 5.0
 
 pytestmark = pytest.mark.skipif(

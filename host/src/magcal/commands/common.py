@@ -11,10 +11,6 @@ from magcal.device.client import DeviceClient, DeviceInfo, HelloResult, Scale
 from magcal.errors import MagcalError
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 
-#: The link layer's LINK_OPEN_TIMEOUT_S under its old name, for commands/flash.py until it
-#: imports that (then delete this).
-OPEN_TIMEOUT_S = LINK_OPEN_TIMEOUT_S
-
 
 def add_link_arguments(p: argparse.ArgumentParser) -> None:
     """``--port URL`` (required for now; ``--mavlink`` comes with the autopilot issue)."""

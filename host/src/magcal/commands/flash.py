@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.commands.common import OPEN_TIMEOUT_S, add_link_arguments, open_device, scale_text
+from magcal.commands.common import add_link_arguments, open_device, scale_text
 from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, DeviceInfo, Scale
 from magcal.device.flash import (
@@ -46,7 +46,7 @@ from magcal.device.framing import crc32_iso_hdlc
 from magcal.device.generated import Status, Unit
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult, read_result
-from magcal.link import open_link
+from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 
 #: The magnetometer units a result may be in, with their size in tesla (None: raw counts).
 MAG_UNIT_TESLA: dict[str, Fraction | None] = {
@@ -262,7 +262,7 @@ def _chosen_backup(arg: str | None, default: Path) -> Path:
 
 def _reconnect(url: str):
     def reconnect() -> DeviceClient:
-        return DeviceClient(open_link(url, OPEN_TIMEOUT_S))
+        return DeviceClient(open_link(url, LINK_OPEN_TIMEOUT_S))
 
     return reconnect
 

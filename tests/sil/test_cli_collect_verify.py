@@ -108,10 +108,12 @@ def _check_session(path, world, info):
     assert m["acc_count_scale"].startswith("122/1e-6 standard_gravity")
     assert m["gyr_sensor"].startswith("LSM6DSO") and m["port"].startswith("socket://")
     assert int(m["samples"]) == len(s)
-    # Every sample is one the world fed, at its time, and consecutive (no drops).
+    # Every sample is one the world fed, at its time, in order; any sample missing is one the
+    # device dropped (its link was full: a loaded machine) and collect counted it.
     k = world.indices(np.rint(s.t * 1e6).astype(np.int64))
-    assert np.array_equal(np.diff(k), np.ones(len(k) - 1)), "samples missing"
-    assert m["dropped"] == "0" and m["seq_gaps"] == "0"
+    step = np.diff(k)
+    assert np.all(step >= 1), "samples out of order or repeated"
+    assert int(np.sum(step - 1)) == int(m["seq_gaps"]) <= int(m["dropped"]), "drops not counted"
     # Units: the values fed within one count of each sensor.
     mag_ut = world.mag_t[k] * 1e6
     assert np.max(np.abs(s.mag - mag_ut)) <= 100 / 6842 * 0.5 + 1e-9

@@ -76,7 +76,7 @@ build/libmagcal_fw.so: $(FW_SRC) $(FW_HDR)
 accuracy: setup
 	$(PY) tools/accuracy_report.py --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy
 
-bench: setup
+bench: setup sil
 	$(PY) bench/run_bench.py --out bench/results.json
 	$(PY) bench/firmware_figures.py --out bench/firmware.json
 	$(PY) bench/link_figures.py --out bench/link.json

@@ -105,3 +105,167 @@ def test_nearest_finds_enumerated_and_angle():
     assert rot.nearest(rot.px4_matrix(45), "px4", max_index=47).index == 45
     with pytest.raises(ValueError, match="unknown autopilot"):
         rot.nearest(np.eye(3), "betaflight")
+
+
+# --- mapping ---------------------------------------------------------------------------------
+from magcal.autopilot import mapping  # noqa: E402
+from magcal.autopilot.mapping import AutopilotMappingError  # noqa: E402
+
+
+def _random_rotation(rng, max_deg=180.0):
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    ang = np.deg2rad(rng.uniform(0, max_deg))
+    K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(ang) * K + (1 - np.cos(ang)) * K @ K
+
+
+def _random_calibration(rng, F, misalign_deg=10.0):
+    """D = F · (rotation × SPD near identity), o within a few tenths of F."""
+    Q = _random_rotation(rng, misalign_deg)
+    B = rng.normal(scale=0.08, size=(3, 3))
+    spd = np.eye(3) + (B + B.T) / 2
+    D = F * Q @ spd
+    o = rng.normal(scale=0.3 * F, size=3)
+    return np.linalg.inv(D), o
+
+
+@pytest.mark.parametrize("seed", range(20))
+@pytest.mark.parametrize("old_orient", [0, 6, 38])
+def test_ardupilot_round_trip_custom(seed, old_orient):
+    rng = np.random.default_rng(seed)
+    F = 500.0
+    D_inv, o = _random_calibration(rng, F)
+    R_old = rot.ardupilot_matrix(old_orient)
+    out = mapping.to_ardupilot(D_inv, o, F, R_old, compass=2)
+    raw = rng.normal(scale=600, size=(50, 3))
+    y = raw @ R_old.T
+    ours = F * (y - o) @ D_inv.T
+    assert out.params["COMPASS_ORIENT2"] == 101
+    assert np.allclose(mapping.ardupilot_correct(raw, out.params, compass=2), ours, atol=1e-9 * F)
+    assert out.heading_rms_deg == 0.0
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_ardupilot_round_trip_enumerated(seed):
+    rng = np.random.default_rng(100 + seed)
+    F = 480.0
+    _, o = _random_calibration(rng, F)
+    B = rng.normal(scale=0.05, size=(3, 3))
+    P = np.eye(3) + (B + B.T) / 2
+    R_old = rot.ardupilot_matrix(0)
+    target = rot.ardupilot_matrix(int(rng.integers(0, 44)))
+    D_inv = P @ target / F  # F·D⁻¹ = P' U' with U' enumerated
+    out = mapping.to_ardupilot(D_inv, o, F, R_old)
+    assert rot.ardupilot_matrix(int(out.params["COMPASS_ORIENT"])) == pytest.approx(target)
+    raw = rng.normal(scale=600, size=(50, 3))
+    ours = F * (raw @ R_old.T - o) @ D_inv.T
+    assert np.allclose(mapping.ardupilot_correct(raw, out.params), ours, atol=1e-9 * F)
+
+
+@pytest.mark.parametrize("seed", range(20))
+@pytest.mark.parametrize("rot0", [None, 2, 38])
+def test_px4_round_trip_custom(seed, rot0):
+    rng = np.random.default_rng(200 + seed)
+    F = 0.5
+    D_inv, o = _random_calibration(rng, F)
+    Rot0 = None if rot0 is None else rot.px4_matrix(rot0)
+    out = mapping.to_px4(D_inv, o, F, Rot0, index=1, allow_custom=True)
+    raw = rng.normal(scale=0.6, size=(50, 3))
+    y = raw if Rot0 is None else raw @ Rot0.T
+    ours = F * (y - o) @ D_inv.T
+    assert out.params["CAL_MAG1_ROT"] == 100
+    assert np.allclose(mapping.px4_correct(raw, out.params, index=1), ours, atol=1e-9 * F)
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_px4_round_trip_enumerated(seed):
+    rng = np.random.default_rng(300 + seed)
+    F = 0.45
+    _, o = _random_calibration(rng, F)
+    B = rng.normal(scale=0.05, size=(3, 3))
+    P = np.eye(3) + (B + B.T) / 2
+    target = rot.px4_matrix(int(rng.integers(0, 41)))
+    D_inv = target @ P / F  # F·D⁻¹ = U P with U enumerated
+    out = mapping.to_px4(D_inv, o, F)
+    assert rot.px4_matrix(int(out.params["CAL_MAG0_ROT"])) == pytest.approx(target)
+    raw = rng.normal(scale=0.6, size=(50, 3))
+    ours = F * (raw - o) @ D_inv.T
+    assert np.allclose(mapping.px4_correct(raw, out.params), ours, atol=1e-9 * F)
+
+
+def test_polar_forms():
+    rng = np.random.default_rng(5)
+    A = rng.normal(size=(3, 3))
+    U, P = mapping.polar_right(A)
+    P2, U2 = mapping.polar_left(A)
+    assert np.allclose(U @ P, A) and np.allclose(P2 @ U2, A)
+    assert np.allclose(U, U2) and np.allclose(P, P.T) and np.allclose(P2, P2.T)
+
+
+def test_ardupilot_offset_limit_refused():
+    F = 500.0
+    with pytest.raises(AutopilotMappingError, match=r"COMPASS_OFS_X = -2000 mG exceeds"):
+        mapping.to_ardupilot(np.eye(3) / F, np.array([2000.0, 0, 0]), F, np.eye(3))
+
+
+def test_ardupilot_diagonal_limit_refused():
+    F = 500.0
+    with pytest.raises(AutopilotMappingError, match=r"COMPASS_DIA_Z = .* outside 0.2–5.0"):
+        mapping.to_ardupilot(np.diag([1, 1, 30.0]) / F, np.zeros(3), F, np.eye(3))
+
+
+def test_ardupilot_offdiagonal_limit_refused():
+    F = 500.0
+    S = np.array([[2.0, 1.5, 0], [1.5, 2.0, 0], [0, 0, 1.0]])
+    with pytest.raises(AutopilotMappingError, match=r"COMPASS_ODI_X = .* outside ±1.0"):
+        mapping.to_ardupilot(S / F, np.zeros(3), F, np.eye(3))
+
+
+def test_ardupilot_scale_used_when_diagonal_out_of_range():
+    F = 500.0
+    D_inv = np.diag([5.5, 5.2, 5.3]) / F
+    out = mapping.to_ardupilot(D_inv, np.zeros(3), F, np.eye(3))
+    assert out.params["COMPASS_SCALE"] == pytest.approx(1.4)
+    raw = np.random.default_rng(0).normal(size=(10, 3))
+    assert np.allclose(mapping.ardupilot_correct(raw, out.params), F * raw @ D_inv.T)
+
+
+def test_px4_scale_limit_refused_and_offset_warning():
+    F = 0.5
+    with pytest.raises(AutopilotMappingError, match=r"CAL_MAG0_YSCALE = 4.000 outside 0.1–3.0"):
+        mapping.to_px4(np.diag([1, 4.0, 1]) / F, np.zeros(3), F)
+    out = mapping.to_px4(np.eye(3) / F, np.array([0, 0, 1.5]), F)
+    assert any("ZOFF" in n for n in out.notes)
+
+
+def test_reflection_refused():
+    with pytest.raises(AutopilotMappingError, match="reflection"):
+        mapping.to_px4(np.diag([1, 1, -1.0]), np.zeros(3), 1.0)
+
+
+@pytest.mark.parametrize("autopilot", ["ardupilot", "px4"])
+def test_unrepresentable_rotation_heading_error_grows(autopilot):
+    F = 500.0 if autopilot == "ardupilot" else 0.5
+    errors = []
+    for angle in (1.0, 3.0, 10.0):
+        D_inv = rot.euler_deg_to_matrix(0, 0, angle) / F
+        if autopilot == "ardupilot":
+            out = mapping.to_ardupilot(D_inv, np.zeros(3), F, np.eye(3), allow_custom=False)
+        else:
+            out = mapping.to_px4(D_inv, np.zeros(3), F, allow_custom=False)
+        assert out.residual_angle_deg == pytest.approx(angle)
+        assert any("not represented" in n for n in out.notes)
+        errors.append(out.heading_rms_deg)
+    assert 0 < errors[0] < errors[1] < errors[2]
+    # a body-z misalignment of 10° is a 10° heading error when level, more or less when tilted
+    assert 5.0 < errors[2] < 20.0
+
+
+def test_internal_compass_keeps_rotation():
+    F = 500.0
+    D_inv = rot.euler_deg_to_matrix(3, 0, 0) / F
+    out = mapping.to_ardupilot(D_inv, np.zeros(3), F, np.eye(3), external=False)
+    assert "COMPASS_ORIENT" not in out.params
+    assert out.residual_angle_deg == pytest.approx(3.0)
+    assert out.heading_rms_deg > 0

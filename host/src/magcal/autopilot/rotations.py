@@ -130,8 +130,11 @@ def matrix_to_euler_deg(R: np.ndarray) -> tuple[float, float, float]:
 
 def rotation_angle_deg(A: np.ndarray, B: np.ndarray) -> float:
     """Angle (degrees) of the rotation ``A Bᵀ`` between two rotations (3, 3)."""
-    c = (np.trace(np.asarray(A) @ np.asarray(B).T) - 1.0) / 2.0
-    return float(np.rad2deg(np.arccos(np.clip(c, -1.0, 1.0))))
+    E = np.asarray(A, dtype=float) @ np.asarray(B, dtype=float).T
+    # atan2(sin, cos) rather than arccos: accurate near 0° and 180°
+    sin = 0.5 * np.linalg.norm([E[2, 1] - E[1, 2], E[0, 2] - E[2, 0], E[1, 0] - E[0, 1]])
+    cos = (np.trace(E) - 1.0) / 2.0
+    return float(np.rad2deg(np.arctan2(sin, cos)))
 
 
 def _matrices(table: tuple[tuple[str, float, float, float], ...]) -> np.ndarray:

@@ -1,0 +1,374 @@
+"""Map a magcal calibration onto ArduPilot and PX4 compass parameters, and back.
+
+magcal gives ``m_b = D⁻¹ (y − o)`` with ``‖m_b‖ = 1``; times the local field strength ``F``
+it is the field in physical units. ``y`` is the magnetometer vector in the autopilot's raw
+units (ArduPilot mG, PX4 gauss) *after* the rotation in force (``R_old``/``Rot0``, identity when
+``y`` is in the sensor frame) and before any offset or scale correction.
+
+On-board corrections, as in the sources (checked with the code search tool):
+
+- ArduPilot ``libraries/AP_Compass/AP_Compass_Backend.cpp`` (commit 20172681):
+  ``rotate_field`` (driver/board rotation, then ``COMPASS_ORIENTn`` for an external compass,
+  or the custom matrix for ROTATION_CUSTOM), then ``correct_field``: ``mag += offsets``;
+  ``mag *= scale_factor`` only if ``have_scale_factor`` (AP_Compass.cpp: within
+  [COMPASS_MIN_SCALE_FACTOR, COMPASS_MAX_SCALE_FACTOR]); ``mag = M · mag`` with
+  ``M = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]]`` (all-zero
+  diagonals → 1); then motor compensation (not modelled here: zero when disarmed/idle).
+  So ``B = M · s · (R · raw + OFS)``, as autopilots.md says. An *internal* compass is rotated
+  by AHRS_ORIENTATION, not COMPASS_ORIENT: its rotation cannot be changed by us.
+  The custom matrix is ``Matrix3::from_euler(roll, pitch, yaw)`` (3-2-1); in the commit read,
+  ROTATION_CUSTOM = 100 with the compass's own custom angles; newer releases use 101/102 with
+  ``CUST_ROT1_*``/``CUST_ROT2_*`` (AP_CustomRotations.cpp: "euler 321 (yaw, pitch, roll)
+  ordering", degrees; AP_AHRS.cpp converts the old 100 to 101). We write 101/102.
+- PX4 ``src/lib/sensor_calibration/Magnetometer.hpp`` ``Correct()`` (commit 021ee44a):
+  ``_rotation * (_scale * ((data + power·comp) − _offset))``; ``Magnetometer.cpp``
+  (commit 033e9cee) builds ``_scale`` from SCALE (diagonal) and ODIAG (0,1), (0,2), (1,2)
+  symmetric, and ``_rotation = get_rot_matrix(CAL_MAGn_ROT)``; an external ROT outside
+  [0, ROTATION_MAX) is reset to 0 and an internal one is −1 (board rotation). That commit has
+  **no** custom rotation: ROT = 100 with ``CAL_MAGn_ROLL/PITCH/YAW`` (autopilots.md) is not
+  confirmed by the sources read, so :func:`to_px4` allows it only when asked.
+- Limits: ArduPilot |OFS| < COMPASS_OFFS_MAX (default 1800 mG), DIA 0.2–5.0, |ODI| < 1
+  (autopilots.md, ArduPilot's own calibrator); SCALE used only in [0.85, 1.4]
+  (CompassCalibrator.h COMPASS_MIN/MAX_SCALE_FACTOR). PX4 scales 0.1–3.0 (autopilots.md);
+  offsets beyond 1.3 G only draw a warning on board (mag_calibration.cpp
+  MAG_MAX_OFFSET_LEN) and here too; no off-diagonal limit was found in the sources read.
+
+Mapping (autopilots.md): ArduPilot ``F·D⁻¹ = P'·U'`` (left polar) ⇒ ``R_new = U'·R_old``,
+``OFS = −U'·o``, ``M·s = P'``. PX4 ``F·D⁻¹ = U·P`` (right polar) ⇒ ``Rot = U·Rot0``,
+``S = Rot0ᵀ·P·Rot0``, ``off = Rot0ᵀ·o``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from magcal.autopilot import rotations
+from magcal.calib import frames, quality
+from magcal.errors import MagcalError
+
+AP_OFFS_MAX_DEFAULT_MG = 1800.0
+AP_DIA_MIN, AP_DIA_MAX = 0.2, 5.0
+AP_ODI_MAX = 1.0
+AP_SCALE_MIN, AP_SCALE_MAX = 0.85, 1.4
+AP_CUSTOM_ORIENT = (101, 102)
+PX4_SCALE_MIN, PX4_SCALE_MAX = 0.1, 3.0
+PX4_OFFSET_WARN_GAUSS = 1.3
+PX4_CUSTOM_ROT = 100
+#: Field inclination used for the heading error of a dropped rotation (a mid latitude).
+DEFAULT_INCLINATION_DEG = 60.0
+
+
+class AutopilotMappingError(MagcalError):
+    """A calibration cannot be expressed in an autopilot's compass parameters."""
+
+
+@dataclass(frozen=True)
+class AutopilotParams:
+    """Compass parameters for one autopilot, plus how faithful they are.
+
+    params               : name → value, ready to write (mG / gauss, degrees)
+    rotation             : (3, 3) sensor→body rotation the parameters select
+    residual_angle_deg   : angle of the misalignment left out (0 when represented)
+    heading_rms_deg      : RMS heading error over SO(3) caused by leaving it out
+    notes                : human-readable remarks (nearest rotation chosen, warnings)
+    """
+
+    params: dict[str, float]
+    rotation: np.ndarray
+    residual_angle_deg: float = 0.0
+    heading_rms_deg: float = 0.0
+    notes: tuple[str, ...] = field(default_factory=tuple)
+
+
+def polar_right(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A (3, 3) = U · P, U orthogonal, P symmetric positive semi-definite."""
+    U, P = scipy.linalg.polar(np.asarray(A, dtype=float), side="right")
+    return U, (P + P.T) / 2.0
+
+
+def polar_left(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A (3, 3) = P' · U', P' symmetric positive semi-definite, U' orthogonal."""
+    U, P = scipy.linalg.polar(np.asarray(A, dtype=float), side="left")
+    return (P + P.T) / 2.0, U
+
+
+def _check_calibration(D_inv: np.ndarray, field_strength: float, what: str) -> np.ndarray:
+    A = field_strength * np.asarray(D_inv, dtype=float)
+    if A.shape != (3, 3) or not np.all(np.isfinite(A)):
+        raise AutopilotMappingError(f"{what}: D⁻¹ must be a finite 3×3 matrix")
+    if not field_strength > 0:
+        raise AutopilotMappingError(f"{what}: field strength {field_strength} must be > 0")
+    if np.linalg.det(A) <= 0:
+        raise AutopilotMappingError(
+            f"{what}: det(D⁻¹) ≤ 0 (a reflection), no rotation can represent it: "
+            "check the sensor axes and recalibrate"
+        )
+    return A
+
+
+def _heading_rms_deg(A_true: np.ndarray, A_used: np.ndarray, inclination_deg: float) -> float:
+    """RMS heading error (deg) when the correction ``A_used (y − o)`` replaces ``A_true (y − o)``.
+
+    Same metric as quality.calibration_heading_errors: noise-free fields over an SO(3) grid.
+    """
+    m_n = frames.field_direction(np.deg2rad(inclination_deg))
+    D_true = np.linalg.inv(A_true)
+    D_used = np.linalg.inv(A_used)
+    o = np.zeros(3)
+    return quality.rms_deg(quality.calibration_heading_errors(D_true, o, m_n, D_used, o))
+
+
+def _ap_names(compass: int) -> dict[str, str]:
+    k = "" if compass == 1 else str(compass)
+    names = {f"OFS_{a}": f"COMPASS_OFS{k}_{a}" for a in "XYZ"}
+    names |= {f"DIA_{a}": f"COMPASS_DIA{k}_{a}" for a in "XYZ"}
+    names |= {f"ODI_{a}": f"COMPASS_ODI{k}_{a}" for a in "XYZ"}
+    names |= {"SCALE": f"COMPASS_SCALE{k}", "ORIENT": f"COMPASS_ORIENT{k}"}
+    return names
+
+
+def _split_scale(P: np.ndarray) -> tuple[np.ndarray, float]:
+    """Split P' into M · s. s = 1 (SCALE written as 1.0) unless a diagonal is out of
+    [0.2, 5]; then s moves the geometric mean of the diagonal towards 1 within [0.85, 1.4].
+    Keeping s = 1 puts the whole soft-iron correction in M, where it is exact; SCALE is a
+    single scalar the on-board calibrator uses for field-strength only."""
+    d = np.diag(P)
+    if np.all((d >= AP_DIA_MIN) & (d <= AP_DIA_MAX)):
+        return P, 1.0
+    s = float(np.clip(np.exp(np.mean(np.log(d))), AP_SCALE_MIN, AP_SCALE_MAX))
+    return P / s, s
+
+
+def to_ardupilot(
+    D_inv: np.ndarray,
+    o: np.ndarray,
+    field_mG: float,
+    R_old: np.ndarray,
+    *,
+    compass: int = 1,
+    external: bool = True,
+    allow_custom: bool = True,
+    custom_slot: int = 1,
+    offs_max_mG: float = AP_OFFS_MAX_DEFAULT_MG,
+    inclination_deg: float = DEFAULT_INCLINATION_DEG,
+) -> AutopilotParams:
+    """ArduPilot parameters for ``B = F · D⁻¹ (y − o)``, ``y = R_old · raw`` (mG).
+
+    D_inv : (3, 3) unit-field calibration, per mG;  o : (3,) offset in mG (y frame)
+    field_mG : local field strength F (mG);  R_old : (3, 3) rotation in force when y was taken
+    compass : 1, 2, 3 (parameter names COMPASS_OFS_X, COMPASS_OFS2_X, …)
+    external : an internal compass follows AHRS_ORIENTATION, so its rotation stays R_old
+    allow_custom : may ORIENT be 101/102 (CUST_ROT_ENABLE and CUST_ROTn_ROLL/PITCH/YAW)
+    """
+    A = _check_calibration(D_inv, field_mG, "ArduPilot mapping")
+    o = np.asarray(o, dtype=float)
+    R_old = np.asarray(R_old, dtype=float)
+    P, U = polar_left(A)
+    R_want = U @ R_old
+    notes: list[str] = []
+    params: dict[str, float] = {}
+    names = _ap_names(compass)
+    near = rotations.nearest(R_want, "ardupilot")
+    if not external:
+        # an internal compass follows AHRS_ORIENTATION, which also turns the IMU
+        R_new, orient = R_old, None
+        left_deg = rotations.rotation_angle_deg(R_want, R_old)
+        if left_deg >= 1e-6:
+            notes.append(
+                "misalignment not represented (an internal compass follows AHRS_ORIENTATION): "
+                f"rotation left {left_deg:.2f}° from the estimate"
+            )
+    elif near.angle_deg < 1e-6:
+        R_new, orient = near.matrix, near.index
+    elif allow_custom:
+        R_new, orient = R_want, AP_CUSTOM_ORIENT[custom_slot - 1]
+        roll, pitch, yaw = rotations.matrix_to_euler_deg(R_want)
+        params["CUST_ROT_ENABLE"] = 1.0
+        params |= {
+            f"CUST_ROT{custom_slot}_ROLL": roll,
+            f"CUST_ROT{custom_slot}_PITCH": pitch,
+            f"CUST_ROT{custom_slot}_YAW": yaw,
+        }
+    else:
+        R_new, orient = near.matrix, near.index
+        notes.append(
+            "misalignment not represented (custom rotations are not allowed): nearest "
+            f"enumerated rotation {near.index} {near.name} is {near.angle_deg:.2f}° from the "
+            "estimate"
+        )
+    # y-frame correction actually applied: P' · R_new R_oldᵀ (y − o);  OFS = −R_new R_oldᵀ o
+    C = R_new @ R_old.T
+    ofs = -C @ o
+    M, s = _split_scale(P)
+    _check_ardupilot_limits(ofs, M, s, offs_max_mG)
+    params |= {names[f"OFS_{a}"]: float(ofs[i]) for i, a in enumerate("XYZ")}
+    params |= {names[f"DIA_{a}"]: float(M[i, i]) for i, a in enumerate("XYZ")}
+    params |= {
+        names["ODI_X"]: float(M[0, 1]),
+        names["ODI_Y"]: float(M[0, 2]),
+        names["ODI_Z"]: float(M[1, 2]),
+    }
+    params[names["SCALE"]] = s
+    if orient is not None:
+        params[names["ORIENT"]] = float(orient)
+    residual = rotations.rotation_angle_deg(R_want, R_new)
+    heading = 0.0 if residual < 1e-6 else _heading_rms_deg(A, P @ C, inclination_deg)
+    if heading:
+        notes.append(f"leaving it out costs {heading:.2f}° RMS heading error")
+    return AutopilotParams(params, R_new, residual, heading, tuple(notes))
+
+
+def _check_ardupilot_limits(ofs: np.ndarray, M: np.ndarray, s: float, offs_max: float) -> None:
+    for i, a in enumerate("XYZ"):
+        if abs(ofs[i]) >= offs_max:
+            raise AutopilotMappingError(
+                f"ArduPilot COMPASS_OFS_{a} = {ofs[i]:.0f} mG exceeds COMPASS_OFFS_MAX "
+                f"{offs_max:.0f} mG: move the compass away from magnetic parts or raise "
+                "COMPASS_OFFS_MAX"
+            )
+        if not AP_DIA_MIN <= M[i, i] <= AP_DIA_MAX:
+            raise AutopilotMappingError(
+                f"ArduPilot COMPASS_DIA_{a} = {M[i, i]:.3f} outside {AP_DIA_MIN}–{AP_DIA_MAX} "
+                f"(COMPASS_SCALE {s:.3f}): check the field strength and the raw units (mG)"
+            )
+    for a, v in zip("XYZ", (M[0, 1], M[0, 2], M[1, 2]), strict=True):
+        if abs(v) >= AP_ODI_MAX:
+            raise AutopilotMappingError(
+                f"ArduPilot COMPASS_ODI_{a} = {v:.3f} outside ±{AP_ODI_MAX}: the soft-iron "
+                "distortion is too strong for ArduPilot; check the calibration"
+            )
+
+
+def _px4_names(index: int) -> dict[str, str]:
+    p = f"CAL_MAG{index}_"
+    names = {f"{a}OFF": f"{p}{a}OFF" for a in "XYZ"}
+    names |= {f"{a}SCALE": f"{p}{a}SCALE" for a in "XYZ"}
+    names |= {f"{a}ODIAG": f"{p}{a}ODIAG" for a in "XYZ"}
+    names |= {k: p + k for k in ("ROT", "ROLL", "PITCH", "YAW")}
+    return names
+
+
+def to_px4(
+    D_inv: np.ndarray,
+    o: np.ndarray,
+    field_gauss: float,
+    Rot0: np.ndarray | None = None,
+    *,
+    index: int = 0,
+    allow_custom: bool = False,
+    max_rotation_index: int = rotations.PX4_MAX_COMMON_INDEX,
+    inclination_deg: float = DEFAULT_INCLINATION_DEG,
+) -> AutopilotParams:
+    """PX4 parameters for ``B = F · D⁻¹ (y − o)``, ``y = Rot0 · raw`` (gauss).
+
+    D_inv : (3, 3) unit-field calibration, per gauss;  o : (3,) offset in gauss (y frame)
+    field_gauss : F;  Rot0 : (3, 3) rotation already applied to y (default: y is raw)
+    index : n in CAL_MAGn_*;  allow_custom : write ROT = 100 with CAL_MAGn_ROLL/PITCH/YAW
+    (unconfirmed in the sources read; off by default).
+    """
+    A = _check_calibration(D_inv, field_gauss, "PX4 mapping")
+    o = np.asarray(o, dtype=float)
+    Rot0 = np.eye(3) if Rot0 is None else np.asarray(Rot0, dtype=float)
+    U, P = polar_right(A)
+    R_want = U @ Rot0
+    names = _px4_names(index)
+    params: dict[str, float] = {}
+    notes: list[str] = []
+    near = rotations.nearest(R_want, "px4", max_rotation_index)
+    if near.angle_deg < 1e-6:
+        R_new = near.matrix
+        params[names["ROT"]] = float(near.index)
+    elif allow_custom:
+        R_new = R_want
+        roll, pitch, yaw = rotations.matrix_to_euler_deg(R_want)
+        params[names["ROT"]] = float(PX4_CUSTOM_ROT)
+        params |= {names["ROLL"]: roll, names["PITCH"]: pitch, names["YAW"]: yaw}
+    else:
+        R_new = near.matrix
+        params[names["ROT"]] = float(near.index)
+        notes.append(
+            f"misalignment not represented (custom rotation not allowed): nearest enumerated "
+            f"rotation {near.index} {near.name} is {near.angle_deg:.2f}° from the estimate"
+        )
+    S = Rot0.T @ P @ Rot0
+    off = Rot0.T @ o
+    for i, a in enumerate("XYZ"):
+        if not PX4_SCALE_MIN <= S[i, i] <= PX4_SCALE_MAX:
+            raise AutopilotMappingError(
+                f"PX4 CAL_MAG{index}_{a}SCALE = {S[i, i]:.3f} outside "
+                f"{PX4_SCALE_MIN}–{PX4_SCALE_MAX}: check the field strength and the raw "
+                "units (gauss)"
+            )
+        if abs(off[i]) > PX4_OFFSET_WARN_GAUSS:
+            notes.append(
+                f"CAL_MAG{index}_{a}OFF = {off[i]:.2f} G is beyond {PX4_OFFSET_WARN_GAUSS} G: "
+                "PX4 warns the sensor may saturate"
+            )
+    params |= {names[f"{a}OFF"]: float(off[i]) for i, a in enumerate("XYZ")}
+    params |= {names[f"{a}SCALE"]: float(S[i, i]) for i, a in enumerate("XYZ")}
+    params |= {
+        names["XODIAG"]: float(S[0, 1]),
+        names["YODIAG"]: float(S[0, 2]),
+        names["ZODIAG"]: float(S[1, 2]),
+    }
+    residual = rotations.rotation_angle_deg(R_want, R_new)
+    heading = 0.0
+    if residual >= 1e-6:
+        # y-frame correction applied: R_new S Rot0ᵀ (y − o) = R_new Rot0ᵀ P (y − o)
+        heading = _heading_rms_deg(A, R_new @ Rot0.T @ P, inclination_deg)
+        notes.append(f"leaving it out costs {heading:.2f}° RMS heading error")
+    return AutopilotParams(params, R_new, residual, heading, tuple(notes))
+
+
+def ardupilot_rotation(params: dict[str, float], compass: int = 1) -> np.ndarray:
+    """(3, 3) rotation selected by COMPASS_ORIENTn (0–43, or 101/102 with CUST_ROTn_*)."""
+    orient = int(params[_ap_names(compass)["ORIENT"]])
+    if orient in AP_CUSTOM_ORIENT:
+        k = orient - 100
+        return rotations.euler_deg_to_matrix(
+            params[f"CUST_ROT{k}_ROLL"], params[f"CUST_ROT{k}_PITCH"], params[f"CUST_ROT{k}_YAW"]
+        )
+    return rotations.ardupilot_matrix(orient)
+
+
+def ardupilot_correct(raw: np.ndarray, params: dict[str, float], compass: int = 1) -> np.ndarray:
+    """ArduPilot's rotate_field + correct_field (no motor compensation) on raw (N, 3) mG."""
+    n = _ap_names(compass)
+    raw = np.atleast_2d(np.asarray(raw, dtype=float))
+    mag = raw @ ardupilot_rotation(params, compass).T  # rotate_field
+    ofs = np.array([params[n[f"OFS_{a}"]] for a in "XYZ"])
+    dia = np.array([params[n[f"DIA_{a}"]] for a in "XYZ"])
+    odi = np.array([params[n[f"ODI_{a}"]] for a in "XYZ"])
+    if np.all(dia == 0):
+        dia = np.ones(3)
+    mag = mag + ofs
+    s = params.get(n["SCALE"], 0.0)
+    if AP_SCALE_MIN <= s <= AP_SCALE_MAX:  # have_scale_factor()
+        mag = mag * s
+    M = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+    return mag @ M.T
+
+
+def px4_rotation(params: dict[str, float], index: int = 0) -> np.ndarray:
+    """(3, 3) rotation selected by CAL_MAGn_ROT (0–47, or 100 with CAL_MAGn_ROLL/PITCH/YAW)."""
+    n = _px4_names(index)
+    rot_value = int(params[n["ROT"]])
+    if rot_value == PX4_CUSTOM_ROT:
+        return rotations.euler_deg_to_matrix(
+            params[n["ROLL"]], params[n["PITCH"]], params[n["YAW"]]
+        )
+    return rotations.px4_matrix(rot_value)
+
+
+def px4_correct(raw: np.ndarray, params: dict[str, float], index: int = 0) -> np.ndarray:
+    """PX4 Magnetometer::Correct (no power compensation) on raw (N, 3) gauss."""
+    n = _px4_names(index)
+    raw = np.atleast_2d(np.asarray(raw, dtype=float))
+    off = np.array([params[n[f"{a}OFF"]] for a in "XYZ"])
+    d = [params[n[f"{a}SCALE"]] for a in "XYZ"]
+    od = [params[n[f"{a}ODIAG"]] for a in "XYZ"]
+    S = np.array([[d[0], od[0], od[1]], [od[0], d[1], od[2]], [od[1], od[2], d[2]]])
+    return (raw - off) @ S.T @ px4_rotation(params, index).T

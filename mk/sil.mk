@@ -15,7 +15,7 @@ SIL_FW_BUILD := 0x$(or $(shell git rev-parse --short=8 HEAD 2>/dev/null),0)
 
 sil: $(SIL_BIN)
 
-$(SIL_BIN): $(SIL_SRC) $(wildcard firmware/port/posix/*.h) $(FW_SRC) $(FW_HDR) mk/sil.mk
+$(SIL_BIN): $(SIL_SRC) $(wildcard firmware/port/posix/*.h) firmware/port/demo_sensors.h $(FW_SRC) $(FW_HDR) mk/sil.mk
 	@mkdir -p $(@D)
 	gcc $(FW_WARN) -O2 -g $(FW_INC) -Ifirmware/port/posix -DMC_SIL_FW_BUILD=$(SIL_FW_BUILD)u \
 		$(SIL_SRC) $(FW_SRC) -o $@

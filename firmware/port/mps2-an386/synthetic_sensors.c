@@ -3,6 +3,7 @@
 
 #include <stddef.h>
 
+#include "../demo_sensors.h"
 #include "magcal/fixed.h"
 #include "systick_time.h"
 
@@ -111,35 +112,11 @@ static uint64_t synth_now_us(void *ctx)
     return mc_synth_now_us((mc_synth_sensors_t *)ctx);
 }
 
-static void set_info(mc_sensor_info_t *info, mc_sensor_kind_t kind, uint8_t id, const char *name,
-                     mc_scale_t full_scale, mc_scale_t count_scale)
-{
-    size_t i = 0;
-    info->kind = (uint8_t)kind;
-    info->id = id;
-    for (; name[i] != '\0' && i + 1u < sizeof info->name; ++i) {
-        info->name[i] = name[i];
-    }
-    for (; i < sizeof info->name; ++i) {
-        info->name[i] = '\0';
-    }
-    info->full_scale = full_scale;
-    info->count_scale = count_scale;
-}
-
-/* The SIL's table (sil_main.c, init_device). */
+/* The SIL's table (port/demo_sensors.h). */
 static mc_status_t synth_describe(void *ctx, mc_sensor_info_t out[MC_SENSOR_COUNT])
 {
-    static const mc_scale_t mag_fs = {4, 1u, 0, MC_UNIT_GAUSS};
-    static const mc_scale_t mag_count = {1, 6842u, 0, MC_UNIT_GAUSS};
-    static const mc_scale_t acc_fs = {4, 1u, 0, MC_UNIT_STANDARD_GRAVITY};
-    static const mc_scale_t acc_count = {122, 1u, -6, MC_UNIT_STANDARD_GRAVITY};
-    static const mc_scale_t gyr_fs = {500, 1u, 0, MC_UNIT_DEG_PER_S};
-    static const mc_scale_t gyr_count = {175, 1u, -4, MC_UNIT_DEG_PER_S};
     (void)ctx;
-    set_info(&out[MC_SENSOR_MAG], MC_SENSOR_MAG, 0x3Du, "LIS3MDL", mag_fs, mag_count);
-    set_info(&out[MC_SENSOR_ACC], MC_SENSOR_ACC, 0x6Cu, "LSM6DSO", acc_fs, acc_count);
-    set_info(&out[MC_SENSOR_GYR], MC_SENSOR_GYR, 0x6Cu, "LSM6DSO", gyr_fs, gyr_count);
+    mc_demo_sensors_describe(out);
     return MC_OK;
 }
 

@@ -66,6 +66,7 @@
 #include <unistd.h>
 #include <arpa/inet.h>
 
+#include "../demo_sensors.h"
 #include "flash_file.h"
 #include "magcal/device.h"
 #include "sensor_feed.h"
@@ -417,31 +418,10 @@ static void close_feed(void)
 
 static void init_device(const uint32_t uid[3])
 {
-    static const mc_scale_t mag_fs = {4, 1u, 0, MC_UNIT_GAUSS};
-    static const mc_scale_t mag_count = {1, 6842u, 0, MC_UNIT_GAUSS};
-    static const mc_scale_t acc_fs = {4, 1u, 0, MC_UNIT_STANDARD_GRAVITY};
-    static const mc_scale_t acc_count = {122, 1u, -6, MC_UNIT_STANDARD_GRAVITY};
-    static const mc_scale_t gyr_fs = {500, 1u, 0, MC_UNIT_DEG_PER_S};
-    static const mc_scale_t gyr_count = {175, 1u, -4, MC_UNIT_DEG_PER_S};
     mc_sensor_info_t info[MC_SENSOR_COUNT];
     mc_device_config_t cfg;
 
-    memset(info, 0, sizeof info);
-    info[MC_SENSOR_MAG].kind = (uint8_t)MC_SENSOR_MAG;
-    info[MC_SENSOR_MAG].id = 0x3Du;
-    memcpy(info[MC_SENSOR_MAG].name, "LIS3MDL", 8u);
-    info[MC_SENSOR_MAG].full_scale = mag_fs;
-    info[MC_SENSOR_MAG].count_scale = mag_count;
-    info[MC_SENSOR_ACC].kind = (uint8_t)MC_SENSOR_ACC;
-    info[MC_SENSOR_ACC].id = 0x6Cu;
-    memcpy(info[MC_SENSOR_ACC].name, "LSM6DSO", 8u);
-    info[MC_SENSOR_ACC].full_scale = acc_fs;
-    info[MC_SENSOR_ACC].count_scale = acc_count;
-    info[MC_SENSOR_GYR].kind = (uint8_t)MC_SENSOR_GYR;
-    info[MC_SENSOR_GYR].id = 0x6Cu;
-    memcpy(info[MC_SENSOR_GYR].name, "LSM6DSO", 8u);
-    info[MC_SENSOR_GYR].full_scale = gyr_fs;
-    info[MC_SENSOR_GYR].count_scale = gyr_count;
+    mc_demo_sensors_describe(info);
     errno = 0;
     if (mc_sensor_feed_init(&S.feed, info) != MC_OK) {
         fail("sensor feed: invalid sensor description");

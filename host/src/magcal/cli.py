@@ -277,15 +277,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _add_device_commands(sub) -> None:
-    """The commands that talk to a device (magcal.commands); imported here, not at the top,
-    so that simulate and calibrate do not load the serial stack."""
-    # One line per command module; each sets its parser's ``run``.
-    from magcal.commands import collect, flash, info, verify
+    """Every module of :mod:`magcal.commands` that defines ``add_parser`` is a command; they
+    are imported here, not at the top, so that simulate and calibrate do not load the serial
+    or MAVLink stacks. A new command is a new module there, and nothing here changes."""
+    import importlib
+    import pkgutil
 
-    info.add_parser(sub)
-    flash.add_parser(sub)
-    collect.add_parser(sub)
-    verify.add_parser(sub)
+    import magcal.commands as commands
+
+    for module in sorted(pkgutil.iter_modules(commands.__path__), key=lambda m: m.name):
+        loaded = importlib.import_module(f"{commands.__name__}.{module.name}")
+        add = getattr(loaded, "add_parser", None)
+        if add is not None:
+            add(sub)
 
 
 def refusal(command: str, exc: BaseException | str) -> str:

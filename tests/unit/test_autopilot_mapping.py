@@ -269,3 +269,29 @@ def test_internal_compass_keeps_rotation():
     assert "COMPASS_ORIENT" not in out.params
     assert out.residual_angle_deg == pytest.approx(3.0)
     assert out.heading_rms_deg > 0
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_uncorrect_inverts_the_onboard_correction(seed):
+    """Undoing the correction in force gives back the raw field (the collect and import paths
+    recover raw data this way), for both autopilots and with scale factors on and off."""
+    rng = np.random.default_rng(400 + seed)
+    D_inv, o = _random_calibration(rng, 500.0)
+    ap = mapping.to_ardupilot(D_inv, o, 500.0, rot.ardupilot_matrix(6), compass=3).params
+    ap["COMPASS_SCALE3"] = [0.0, 1.2, 3.0][seed % 3]  # 0 and 3.0 are ignored on board
+    raw = rng.normal(scale=600, size=(40, 3))
+    back = mapping.ardupilot_uncorrect(mapping.ardupilot_correct(raw, ap, 3), ap, 3)
+    assert np.allclose(back, raw, rtol=0, atol=1e-9 * 600)
+    D_inv, o = _random_calibration(rng, 0.5)
+    px = mapping.to_px4(D_inv, o, 0.5, rot.px4_matrix(2), index=2, allow_custom=True).params
+    raw = rng.normal(scale=0.6, size=(40, 3))
+    back = mapping.px4_uncorrect(mapping.px4_correct(raw, px, 2), px, 2)
+    assert np.allclose(back, raw, rtol=0, atol=1e-9 * 0.6)
+
+
+def test_uncorrect_refuses_a_singular_scale_matrix():
+    params = {f"COMPASS_{k}_{a}": 0.0 for k in ("OFS", "ODI") for a in "XYZ"}
+    params |= {"COMPASS_DIA_X": 1.0, "COMPASS_DIA_Y": 1.0, "COMPASS_DIA_Z": 0.0}
+    params |= {"COMPASS_ORIENT": 0, "COMPASS_SCALE": 0.0}
+    with pytest.raises(mapping.AutopilotMappingError, match="singular"):
+        mapping.ardupilot_uncorrect(np.ones((2, 3)), params)

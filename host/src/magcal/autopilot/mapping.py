@@ -336,20 +336,42 @@ def ardupilot_rotation(params: dict[str, float], compass: int = 1) -> np.ndarray
 
 def ardupilot_correct(raw: np.ndarray, params: dict[str, float], compass: int = 1) -> np.ndarray:
     """ArduPilot's rotate_field + correct_field (no motor compensation) on raw (N, 3) mG."""
-    n = _ap_names(compass)
     raw = np.atleast_2d(np.asarray(raw, dtype=float))
     mag = raw @ ardupilot_rotation(params, compass).T  # rotate_field
+    ofs, Ms = _ap_scale_matrix(params, compass)
+    return (mag + ofs) @ Ms.T
+
+
+def _ap_scale_matrix(params: dict[str, float], compass: int) -> tuple[np.ndarray, np.ndarray]:
+    """(OFS, M·s) of correct_field, with the all-zero-diagonal and scale-factor rules."""
+    n = _ap_names(compass)
     ofs = np.array([params[n[f"OFS_{a}"]] for a in "XYZ"])
     dia = np.array([params[n[f"DIA_{a}"]] for a in "XYZ"])
     odi = np.array([params[n[f"ODI_{a}"]] for a in "XYZ"])
     if np.all(dia == 0):
         dia = np.ones(3)
-    mag = mag + ofs
     s = params.get(n["SCALE"], 0.0)
-    if AP_SCALE_MIN <= s <= AP_SCALE_MAX:  # have_scale_factor()
-        mag = mag * s
+    if not AP_SCALE_MIN <= s <= AP_SCALE_MAX:  # have_scale_factor() is false: no scaling
+        s = 1.0
     M = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
-    return mag @ M.T
+    return ofs, s * M
+
+
+def ardupilot_uncorrect(
+    corrected: np.ndarray, params: dict[str, float], compass: int = 1
+) -> np.ndarray:
+    """The raw sensor-frame field (N, 3) mG behind ArduPilot's corrected field (RAW_IMU,
+    SCALED_IMU2/3, DataFlash MAG): the inverse of :func:`ardupilot_correct` with the
+    parameters that were in force, as MAVProxy's magfit recovers raw data."""
+    ofs, Ms = _ap_scale_matrix(params, compass)
+    corrected = np.atleast_2d(np.asarray(corrected, dtype=float))
+    if np.linalg.cond(Ms) > 1e12:
+        raise AutopilotMappingError(
+            f"the compass {compass} scale matrix in force is singular: its correction cannot "
+            "be undone to recover the raw field"
+        )
+    body = np.linalg.solve(Ms, corrected.T).T - ofs
+    return body @ ardupilot_rotation(params, compass)  # Rᵀ: rotation matrices are orthogonal
 
 
 def px4_rotation(params: dict[str, float], index: int = 0) -> np.ndarray:
@@ -363,12 +385,31 @@ def px4_rotation(params: dict[str, float], index: int = 0) -> np.ndarray:
     return rotations.px4_matrix(rot_value)
 
 
-def px4_correct(raw: np.ndarray, params: dict[str, float], index: int = 0) -> np.ndarray:
-    """PX4 Magnetometer::Correct (no power compensation) on raw (N, 3) gauss."""
+def _px4_offset_scale(params: dict[str, float], index: int) -> tuple[np.ndarray, np.ndarray]:
     n = _px4_names(index)
-    raw = np.atleast_2d(np.asarray(raw, dtype=float))
     off = np.array([params[n[f"{a}OFF"]] for a in "XYZ"])
     d = [params[n[f"{a}SCALE"]] for a in "XYZ"]
     od = [params[n[f"{a}ODIAG"]] for a in "XYZ"]
     S = np.array([[d[0], od[0], od[1]], [od[0], d[1], od[2]], [od[1], od[2], d[2]]])
+    return off, S
+
+
+def px4_correct(raw: np.ndarray, params: dict[str, float], index: int = 0) -> np.ndarray:
+    """PX4 Magnetometer::Correct (no power compensation) on raw (N, 3) gauss."""
+    raw = np.atleast_2d(np.asarray(raw, dtype=float))
+    off, S = _px4_offset_scale(params, index)
     return (raw - off) @ S.T @ px4_rotation(params, index).T
+
+
+def px4_uncorrect(corrected: np.ndarray, params: dict[str, float], index: int = 0) -> np.ndarray:
+    """The raw sensor-frame field (N, 3) gauss behind PX4's corrected field (HIGHRES_IMU,
+    the ``vehicle_magnetometer`` topic): the inverse of :func:`px4_correct`."""
+    off, S = _px4_offset_scale(params, index)
+    corrected = np.atleast_2d(np.asarray(corrected, dtype=float))
+    if np.linalg.cond(S) > 1e12:
+        raise AutopilotMappingError(
+            f"the CAL_MAG{index} scale matrix in force is singular: its correction cannot be "
+            "undone to recover the raw field"
+        )
+    sensor = corrected @ px4_rotation(params, index)  # Rotᵀ
+    return np.linalg.solve(S, sensor.T).T + off

@@ -121,13 +121,40 @@ def _heading_rms_deg(A_true: np.ndarray, A_used: np.ndarray, inclination_deg: fl
     return quality.rms_deg(quality.calibration_heading_errors(D_true, o, m_n, D_used, o))
 
 
-def _ap_names(compass: int) -> dict[str, str]:
+#: ArduPilot's compass parameter names: COMPASS_OFS_X, COMPASS_OFS2_X, ... (every release
+#: checked), or one group per instance, COMPASS1_OFS_X, COMPASS2_OFS_X, ..., which pymavlink's
+#: tools/magfit_WMM.py also accepts ("new param format"; not found in a release read). A
+#: vehicle's naming is detected by asking for COMPASS_OFS_X and COMPASS1_OFS_X.
+AP_NAMING_LEGACY, AP_NAMING_PER_INSTANCE = "legacy", "per-instance"
+
+
+def _ap_names(compass: int, naming: str = AP_NAMING_LEGACY) -> dict[str, str]:
+    """Role ("OFS_X", "DIA_Y", "ODI_Z", "SCALE", "ORIENT") → parameter name of compass
+    1, 2, 3 in ``naming`` (AP_NAMING_LEGACY or AP_NAMING_PER_INSTANCE)."""
+    if naming == AP_NAMING_PER_INSTANCE:
+        p = f"COMPASS{compass}_"
+        names = {f"{g}_{a}": f"{p}{g}_{a}" for g in ("OFS", "DIA", "ODI") for a in "XYZ"}
+        return names | {"SCALE": p + "SCALE", "ORIENT": p + "ORIENT"}
+    if naming != AP_NAMING_LEGACY:
+        raise ValueError(f"unknown ArduPilot parameter naming {naming!r}")
     k = "" if compass == 1 else str(compass)
     names = {f"OFS_{a}": f"COMPASS_OFS{k}_{a}" for a in "XYZ"}
     names |= {f"DIA_{a}": f"COMPASS_DIA{k}_{a}" for a in "XYZ"}
     names |= {f"ODI_{a}": f"COMPASS_ODI{k}_{a}" for a in "XYZ"}
     names |= {"SCALE": f"COMPASS_SCALE{k}", "ORIENT": f"COMPASS_ORIENT{k}"}
     return names
+
+
+ap_param_names = _ap_names
+
+
+def ap_external_name(compass: int, naming: str = AP_NAMING_LEGACY) -> str:
+    """The parameter saying whether compass 1, 2, 3 is external (0 internal, 1 external,
+    2 forced external): COMPASS_EXTERNAL, COMPASS_EXTERN2, ...; per-instance COMPASSn_EXTERN
+    (unconfirmed, like that naming)."""
+    if naming == AP_NAMING_PER_INSTANCE:
+        return f"COMPASS{compass}_EXTERN"
+    return "COMPASS_EXTERNAL" if compass == 1 else f"COMPASS_EXTERN{compass}"
 
 
 def _split_scale(P: np.ndarray) -> tuple[np.ndarray, float]:
@@ -149,6 +176,7 @@ def to_ardupilot(
     R_old: np.ndarray,
     *,
     compass: int = 1,
+    naming: str = AP_NAMING_LEGACY,
     external: bool = True,
     allow_custom: bool = True,
     custom_slot: int = 1,
@@ -159,7 +187,7 @@ def to_ardupilot(
 
     D_inv : (3, 3) unit-field calibration, per mG;  o : (3,) offset in mG (y frame)
     field_mG : local field strength F (mG);  R_old : (3, 3) rotation in force when y was taken
-    compass : 1, 2, 3 (parameter names COMPASS_OFS_X, COMPASS_OFS2_X, …)
+    compass : 1, 2, 3 (parameter names COMPASS_OFS_X, COMPASS_OFS2_X, … in ``naming``)
     external : an internal compass follows AHRS_ORIENTATION, so its rotation stays R_old
     allow_custom : may ORIENT be 101/102 (CUST_ROT_ENABLE and CUST_ROTn_ROLL/PITCH/YAW)
     """
@@ -170,7 +198,7 @@ def to_ardupilot(
     R_want = U @ R_old
     notes: list[str] = []
     params: dict[str, float] = {}
-    names = _ap_names(compass)
+    names = _ap_names(compass, naming)
     near = rotations.nearest(R_want, "ardupilot")
     if not external:
         # an internal compass follows AHRS_ORIENTATION, which also turns the IMU
@@ -323,9 +351,11 @@ def to_px4(
     return AutopilotParams(params, R_new, residual, heading, tuple(notes))
 
 
-def ardupilot_rotation(params: dict[str, float], compass: int = 1) -> np.ndarray:
+def ardupilot_rotation(
+    params: dict[str, float], compass: int = 1, naming: str = AP_NAMING_LEGACY
+) -> np.ndarray:
     """(3, 3) rotation selected by COMPASS_ORIENTn (0–43, or 101/102 with CUST_ROTn_*)."""
-    orient = int(params[_ap_names(compass)["ORIENT"]])
+    orient = int(params[_ap_names(compass, naming)["ORIENT"]])
     if orient in AP_CUSTOM_ORIENT:
         k = orient - 100
         return rotations.euler_deg_to_matrix(
@@ -334,17 +364,21 @@ def ardupilot_rotation(params: dict[str, float], compass: int = 1) -> np.ndarray
     return rotations.ardupilot_matrix(orient)
 
 
-def ardupilot_correct(raw: np.ndarray, params: dict[str, float], compass: int = 1) -> np.ndarray:
+def ardupilot_correct(
+    raw: np.ndarray, params: dict[str, float], compass: int = 1, naming: str = AP_NAMING_LEGACY
+) -> np.ndarray:
     """ArduPilot's rotate_field + correct_field (no motor compensation) on raw (N, 3) mG."""
     raw = np.atleast_2d(np.asarray(raw, dtype=float))
-    mag = raw @ ardupilot_rotation(params, compass).T  # rotate_field
-    ofs, Ms = _ap_scale_matrix(params, compass)
+    mag = raw @ ardupilot_rotation(params, compass, naming).T  # rotate_field
+    ofs, Ms = _ap_scale_matrix(params, compass, naming)
     return (mag + ofs) @ Ms.T
 
 
-def _ap_scale_matrix(params: dict[str, float], compass: int) -> tuple[np.ndarray, np.ndarray]:
+def _ap_scale_matrix(
+    params: dict[str, float], compass: int, naming: str = AP_NAMING_LEGACY
+) -> tuple[np.ndarray, np.ndarray]:
     """(OFS, M·s) of correct_field, with the all-zero-diagonal and scale-factor rules."""
-    n = _ap_names(compass)
+    n = _ap_names(compass, naming)
     ofs = np.array([params[n[f"OFS_{a}"]] for a in "XYZ"])
     dia = np.array([params[n[f"DIA_{a}"]] for a in "XYZ"])
     odi = np.array([params[n[f"ODI_{a}"]] for a in "XYZ"])
@@ -357,21 +391,39 @@ def _ap_scale_matrix(params: dict[str, float], compass: int) -> tuple[np.ndarray
     return ofs, s * M
 
 
-def ardupilot_uncorrect(
-    corrected: np.ndarray, params: dict[str, float], compass: int = 1
+def ardupilot_undo_correct_field(
+    corrected: np.ndarray,
+    params: dict[str, float],
+    compass: int = 1,
+    naming: str = AP_NAMING_LEGACY,
 ) -> np.ndarray:
-    """The raw sensor-frame field (N, 3) mG behind ArduPilot's corrected field (RAW_IMU,
-    SCALED_IMU2/3, DataFlash MAG): the inverse of :func:`ardupilot_correct` with the
-    parameters that were in force, as MAVProxy's magfit recovers raw data."""
-    ofs, Ms = _ap_scale_matrix(params, compass)
+    """``y = R_old · raw`` (N, 3) mG behind ArduPilot's corrected field (RAW_IMU,
+    SCALED_IMU2/3, DataFlash MAG): correct_field undone, ``(M·s)⁻¹ B − OFS``, the field as
+    rotate_field left it (the y of :func:`to_ardupilot`). Needs no rotation, so it holds for an
+    internal compass too (rotated by AHRS_ORIENTATION and the board, not COMPASS_ORIENT)."""
+    ofs, Ms = _ap_scale_matrix(params, compass, naming)
     corrected = np.atleast_2d(np.asarray(corrected, dtype=float))
     if np.linalg.cond(Ms) > 1e12:
         raise AutopilotMappingError(
             f"the compass {compass} scale matrix in force is singular: its correction cannot "
             "be undone to recover the raw field"
         )
-    body = np.linalg.solve(Ms, corrected.T).T - ofs
-    return body @ ardupilot_rotation(params, compass)  # Rᵀ: rotation matrices are orthogonal
+    return np.linalg.solve(Ms, corrected.T).T - ofs
+
+
+def ardupilot_uncorrect(
+    corrected: np.ndarray,
+    params: dict[str, float],
+    compass: int = 1,
+    naming: str = AP_NAMING_LEGACY,
+) -> np.ndarray:
+    """The raw sensor-frame field (N, 3) mG behind ArduPilot's corrected field (RAW_IMU,
+    SCALED_IMU2/3, DataFlash MAG): the inverse of :func:`ardupilot_correct` with the
+    parameters that were in force, as MAVProxy's magfit recovers raw data. (An external
+    compass only: an internal one is rotated by AHRS_ORIENTATION, not COMPASS_ORIENT.)"""
+    body = ardupilot_undo_correct_field(corrected, params, compass, naming)
+    # Rᵀ on the right of row vectors: rotation matrices are orthogonal
+    return body @ ardupilot_rotation(params, compass, naming)
 
 
 def px4_rotation(params: dict[str, float], index: int = 0) -> np.ndarray:

@@ -292,3 +292,97 @@ def _subsample(n: int, limit: int) -> np.ndarray:
     if n <= limit:
         return np.arange(n)
     return np.unique(np.linspace(0, n - 1, limit).round().astype(int))
+
+
+# --------------------------------------------------------------------------------------------
+# magcal study: field norm of several calibrations (Zhao et al. Figure 1), and the heading
+# error of every method per scenario
+
+#: Colours of further series after raw (red) and the first calibration (blue).
+SERIES_COLORS = (RAW_COLOR, CALIBRATED_COLOR, "tab:green", "tab:purple", "tab:orange")
+
+
+def plot_norm_series(
+    norms: dict[str, np.ndarray],
+    reference: float,
+    path: str | os.PathLike,
+    *,
+    unit: str,
+    title: str = "Field norm before and after calibration",
+) -> Path:
+    """Field norm per sample of several series on one axis, with the reference norm.
+
+    norms     : label → (N,) float, norms in ``unit`` (the first is drawn red as the raw
+                data, the next blue, ...); all of the same length
+    reference : the true field norm, ``unit`` (dashed line)
+    unit      : the norms' unit, for the axis label
+    """
+    if not norms:
+        raise ValueError("plot_norm_series: no series to plot")
+    if len(norms) > len(SERIES_COLORS):
+        raise ValueError(f"plot_norm_series: at most {len(SERIES_COLORS)} series, got {len(norms)}")
+    arrays = {label: _array(v, f"norms[{label!r}]", None) for label, v in norms.items()}
+    first_label, first = next(iter(arrays.items()))
+    for label, v in arrays.items():
+        _same_length(first, f"norms[{first_label!r}]", v, f"norms[{label!r}]")
+    if not np.isfinite(reference) or reference <= 0.0:
+        raise ValueError(f"plot_norm_series: reference must be a positive norm, got {reference}")
+
+    fig = _new_figure((8.0, 3.8))
+    ax = fig.add_subplot()
+    k = np.arange(1, first.size + 1)
+    for (label, v), color in zip(arrays.items(), SERIES_COLORS, strict=False):
+        ax.plot(k, v, color=color, linewidth=0.7, label=f"{label} (std {v.std():.3g} {unit})")
+    ax.axhline(reference, color="0.3", linewidth=1.0, linestyle="--", label="reference norm")
+    ax.set_xlabel("sample")
+    ax.set_ylabel(f"field norm [{unit}]")
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="best", fontsize=8)
+    ax.grid(True, linewidth=0.3)
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_heading_error_comparison(
+    errors_deg: dict[str, dict[str, np.ndarray]],
+    path: str | os.PathLike,
+) -> Path:
+    """Box plots of the heading error of each method, one panel per scenario, log scale.
+
+    errors_deg : scenario → method → (K,) float, degrees (positive), the runs that
+                 calibrated; a method with no runs is shown as an empty slot
+    """
+    if not errors_deg:
+        raise ValueError("plot_heading_error_comparison: no scenario to plot")
+    fig = _new_figure((3.2 * len(errors_deg) + 0.8, 4.0))
+    for i, (scenario, by_method) in enumerate(errors_deg.items()):
+        ax = fig.add_subplot(1, len(errors_deg), i + 1)
+        labels, data = [], []
+        for method, values in by_method.items():
+            v = np.asarray(values, dtype=np.float64).ravel()
+            if v.size and (not np.isfinite(v).all() or (v <= 0.0).any()):
+                raise ValueError(
+                    f"plot_heading_error_comparison: {scenario}/{method} has non-finite or "
+                    "non-positive errors; a log scale needs positive values"
+                )
+            labels.append(f"{method}\n({v.size})")
+            data.append(v)
+        positions = [j + 1 for j, v in enumerate(data) if v.size]
+        if positions:
+            ax.boxplot(
+                [v for v in data if v.size],
+                positions=positions,
+                widths=0.6,
+                showfliers=True,
+                flierprops={"markersize": 2},
+            )
+            ax.set_yscale("log")
+        ax.set_xticks(range(1, len(labels) + 1), labels, fontsize=8)
+        ax.set_xlim(0.4, len(labels) + 0.6)
+        ax.set_title(scenario, fontsize=10)
+        ax.grid(True, axis="y", linewidth=0.3, which="both")
+        if i == 0:
+            ax.set_ylabel("heading error, RMS [°]")
+    fig.suptitle("Calibration-induced heading error per method (runs that calibrated)", fontsize=10)
+    fig.tight_layout()
+    return _save(fig, path)

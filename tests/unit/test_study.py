@@ -1,0 +1,285 @@
+"""magcal study: a tiny study writes its files; interrupted and resumed it gives the same
+summary without redoing runs; other settings are refused; runs are deterministic per seed;
+failures are counted; the Markdown tables hold the runs' numbers."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+
+from magcal import cli
+from magcal.sim.scenarios import PRESETS, ScenarioConfig
+from magcal.study import StudyError, StudySettingsError, make_settings, run_study
+from magcal.study import experiments as ex
+from magcal.study.runner import RUNS_FILE, SETTINGS_FILE, Task
+from magcal.study.summary import SUMMARY_FILE
+
+PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+
+#: The smallest study that still exercises every experiment this build can run.
+TINY = {"runs": 3, "zhao_runs": 2, "scenarios": ("table2",)}
+
+
+def tiny_settings(**overrides):
+    return make_settings(**{**TINY, **overrides})[0]
+
+
+def saved_records(folder) -> list[dict]:
+    lines = (folder / RUNS_FILE).read_text(encoding="utf-8").splitlines()
+    return [json.loads(line) for line in lines]
+
+
+def timeless(value):
+    """A summary as plain data without the measured times (``seconds*`` fields); NaN as a
+    string so that equal summaries compare equal."""
+    if dataclasses.is_dataclass(value):
+        value = dataclasses.asdict(value)
+    if isinstance(value, dict):
+        return {k: timeless(v) for k, v in value.items() if not k.startswith("seconds")}
+    if isinstance(value, list | tuple):
+        return [timeless(v) for v in value]
+    if isinstance(value, float) and math.isnan(value):
+        return "nan"
+    return value
+
+
+def without_seconds(result: dict) -> dict:
+    return {k: v for k, v in result.items() if k != "seconds"}
+
+
+def table(markdown: str, heading: str) -> tuple[list[str], list[list[str]]]:
+    """The first Markdown table after ``heading``: its column heads and its rows' cells."""
+    after = markdown[markdown.index(heading) :]
+    lines = [line for line in after.splitlines() if line.startswith("|")]
+    start = after.splitlines().index(lines[0])
+    rows = []
+    for line in after.splitlines()[start:]:
+        if not line.startswith("|"):
+            break
+        rows.append([c.strip() for c in line.strip("|").split("|")])
+    return rows[0], rows[2:]
+
+
+@pytest.fixture(scope="module")
+def straight(tmp_path_factory):
+    """The tiny study run once, uninterrupted, with 2 jobs."""
+    folder = tmp_path_factory.mktemp("straight")
+    settings = tiny_settings()
+    outcome = run_study(folder, settings, jobs=2)
+    return folder, settings, outcome
+
+
+def test_tiny_study_writes_its_files(straight):
+    folder, settings, outcome = straight
+    n_tasks = len(ex.tasks(settings))
+    assert outcome.runs_now == n_tasks and outcome.runs_before == 0
+    records = saved_records(folder)
+    assert sorted(r["key"] for r in records) == sorted(t.key for t in ex.tasks(settings))
+    assert json.loads((folder / SETTINGS_FILE).read_text())["runs"] == 3
+    pngs = [p for p in outcome.files if p.suffix == ".png"]
+    assert {p.name for p in pngs} >= {"figure8.png", "comparison.png"}
+    if "zhao-table1" in settings.experiments:
+        assert "zhao_figure1.png" in {p.name for p in pngs}
+    for p in pngs:
+        assert p.read_bytes()[:8] == PNG_MAGIC
+    text = (folder / SUMMARY_FILE).read_text(encoding="utf-8")
+    assert "## Kok & Schön (2016), Figure 8" in text
+    assert "## All methods on the same sessions" in text
+    assert outcome.summary.failed == 0
+
+
+def test_interrupted_then_resumed_equals_uninterrupted_and_redoes_nothing(
+    straight, tmp_path, monkeypatch
+):
+    _, settings, reference = straight
+    total = len(ex.tasks(settings))
+
+    def interrupt_after_two(record, seen=[]):  # noqa: B006 - a counter local to this test
+        seen.append(record["key"])
+        if len(seen) == 2:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        run_study(tmp_path, settings, jobs=2, on_record=interrupt_after_two)
+    first = saved_records(tmp_path)
+    # The two seen, and those in progress when the interrupt came, are saved; not all.
+    assert 2 <= len(first) < total
+
+    calls = []
+    for name, run in list(ex.RUNS.items()):
+
+        def counted(params, run=run, name=name):
+            calls.append((name, dict(params)))
+            return run(params)
+
+        monkeypatch.setitem(ex.RUNS, name, counted)
+    resumed = run_study(tmp_path, settings, jobs=1)
+
+    assert len(calls) == total - len(first) == resumed.runs_now
+    assert resumed.runs_before == len(first)
+    done_first = {(r["experiment"], json.dumps(r["params"], sort_keys=True)) for r in first}
+    redone = [c for c in calls if (c[0], json.dumps(c[1], sort_keys=True)) in done_first]
+    assert redone == []
+    keys = [r["key"] for r in saved_records(tmp_path)]
+    assert len(keys) == len(set(keys)) == total
+    assert timeless(resumed.summary) == timeless(reference.summary)
+
+
+def test_rerun_of_a_finished_study_runs_nothing(straight, tmp_path):
+    folder, settings, reference = straight
+    again = run_study(folder, settings, jobs=2)
+    assert again.runs_now == 0 and again.runs_before == len(ex.tasks(settings))
+    assert timeless(again.summary) == timeless(reference.summary)
+
+
+def test_resume_with_other_settings_is_refused(straight):
+    folder, settings, _ = straight
+    before = (folder / RUNS_FILE).read_bytes()
+    with pytest.raises(StudyError, match=r"other settings \(runs 3 there, 4 now\).*another folder"):
+        run_study(folder, tiny_settings(runs=4), jobs=1)
+    with pytest.raises(StudyError, match=r"seed 1 there, 7 now"):
+        run_study(folder, tiny_settings(seed=7), jobs=1)
+    assert (folder / RUNS_FILE).read_bytes() == before
+
+
+def test_cli_refuses_other_settings_in_one_paragraph(straight, capsys):
+    folder, *_ = straight
+    argv = ["study", str(folder), "--runs", "5", "--scenarios", "table2", "--zhao-runs", "2"]
+    assert cli.main(argv) == cli.EXIT_ERROR
+    # Notes on what this build cannot run may come first; the refusal is one line.
+    last = capsys.readouterr().err.splitlines()[-1]
+    assert last.startswith("magcal study: ") and "runs 3 there, 5 now" in last
+    assert "Traceback" not in last
+
+
+@pytest.mark.parametrize(
+    "task",
+    [
+        Task("figure8/seed=4", "figure8", {"seed": 4}),
+        Task(
+            "comparison/table2/ml/seed=4",
+            "comparison",
+            {"scenario": "table2", "method": "ml", "seed": 4},
+        ),
+    ],
+    ids=["figure8", "comparison"],
+)
+def test_a_run_depends_only_on_its_task(task):
+    a, b = ex.run_task(task), ex.run_task(task)
+    assert without_seconds(a) == without_seconds(b)
+    other = ex.run_task(dataclasses.replace(task, params={**task.params, "seed": 5}))
+    assert without_seconds(other) != without_seconds(a)
+
+
+def test_failures_are_counted_with_their_reason(tmp_path, monkeypatch):
+    # A scenario the observability checks must refuse (yaw-only motion), and a run that
+    # crashes outright: the study finishes and counts both, with reasons.
+    monkeypatch.setitem(
+        PRESETS, "yaw-only-test", ScenarioConfig(kind="mems", duration_s=10.0, motion="yaw-only")
+    )
+    real_figure8 = ex.RUNS["figure8"]
+
+    def crash_on_seed_2(params):
+        if params["seed"] == 2:
+            raise FloatingPointError("simulated crash")
+        return real_figure8(params)
+
+    monkeypatch.setitem(ex.RUNS, "figure8", crash_on_seed_2)
+    settings, _ = make_settings(
+        runs=2, experiments=("figure8", "comparison"), scenarios=("yaw-only-test",)
+    )
+    outcome = run_study(tmp_path, settings, jobs=2)
+
+    s = outcome.summary
+    assert s.figure8.runs == 2 and s.figure8.failed == 1
+    assert s.figure8.reasons[0].seeds == (2,)
+    assert "FloatingPointError: simulated crash" in s.figure8.reasons[0].text
+    for row in s.comparison:
+        assert (row.runs, row.ok, row.refused, row.exceptions) == (2, 0, 2, 0)
+        assert row.reasons[0].text.startswith("refused: ")
+    assert s.failed == 1 + 2 * len(settings.methods)
+    text = (tmp_path / SUMMARY_FILE).read_text(encoding="utf-8")
+    assert "simulated crash" in text and "refused: " in text
+
+
+def test_markdown_tables_hold_the_runs_numbers(straight):
+    folder, settings, _ = straight
+    text = (folder / SUMMARY_FILE).read_text(encoding="utf-8")
+    records = saved_records(folder)
+
+    head, rows = table(text, "### table2 ")
+    assert head == [
+        "method",
+        "runs",
+        "calibrated",
+        "exceptions",
+        "refused",
+        "heading error, median [°]",
+        "90th percentile [°]",
+        "max [°]",
+        "/ floor",
+        "s per run, median",
+    ]
+    assert [r[0] for r in rows] == list(settings.methods)
+    for row in rows:
+        mine = [
+            r["result"]
+            for r in records
+            if r["experiment"] == "comparison" and r["params"]["method"] == row[0]
+        ]
+        heading = np.array([r["heading_deg"] for r in mine])
+        ratio = np.array([r["heading_deg"] / r["floor_deg"] for r in mine])
+        assert row[1:5] == [str(len(mine)), str(len(mine)), "0", "0"]
+        assert row[5] == f"{np.median(heading):.3g}"
+        assert row[7] == f"{heading.max():.3g}"
+        assert row[8] == f"{np.median(ratio):.2f}"
+        assert row[9] == f"{np.median([r['seconds'] for r in mine]):.3f}"
+
+    head, rows = table(text, "## Kok & Schön (2016), Figure 8")
+    fig8 = [r["result"] for r in records if r["experiment"] == "figure8"]
+    assert [r[0] for r in rows] == [
+        "initial (Algorithm 1, step 1)",
+        "ML (Algorithm 1)",
+        "known-attitude floor",
+    ]
+    assert rows[0][1] == f"{np.median([r['ekf_init_deg'] for r in fig8]):.3g}"
+    assert rows[1][1] == f"{np.median([r['ekf_ml_deg'] for r in fig8]):.3g}"
+    assert rows[1][3] == f"{np.median([r['ml_deg'] for r in fig8]):.3g}"
+    assert rows[2][3] == f"{np.median([r['floor_deg'] for r in fig8]):.3g}"
+
+
+def test_cli_runs_a_study(tmp_path, capsys):
+    argv = ["study", str(tmp_path), "--runs", "1", "--experiments", "comparison"]
+    argv += ["--scenarios", "table2", "--jobs", "1"]
+    assert cli.main(argv) == 0
+    out = capsys.readouterr().out
+    assert f"wrote {tmp_path / SUMMARY_FILE}" in out
+    assert re.search(r"\d+ runs \(\d+ now, 0 resumed\), 0 failed", out)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "pattern"),
+    [
+        ({"experiments": ("figure9",)}, r"unknown experiment\(s\) figure9; choose from"),
+        ({"scenarios": ("moon",)}, r"unknown scenario\(s\) moon; choose from"),
+        ({"runs": 0}, r"--runs and --zhao-runs must be ≥ 1"),
+        ({"experiments": ()}, r"no experiment given"),
+    ],
+)
+def test_bad_settings_are_refused(kwargs, pattern):
+    with pytest.raises(StudySettingsError, match=pattern):
+        make_settings(**kwargs)
+
+
+def test_comparison_methods_follow_what_calibrate_accepts(monkeypatch):
+    import magcal.calib.pipeline as pipeline
+
+    monkeypatch.setattr(pipeline, "METHODS", ("ml", "init", "ckf"))
+    settings, notes = make_settings(experiments=("comparison",))
+    assert settings.methods == ("init", "ml", "ckf")
+    assert any("two-step" in n for n in notes)

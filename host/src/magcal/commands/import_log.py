@@ -1,0 +1,121 @@
+"""``magcal import LOG -o SESSION.csv``: a session from an ArduPilot or PX4 flight log.
+
+Reads a DataFlash ``.bin``, a MAVLink ``.tlog`` or a PX4 ``.ulg``, undoes the autopilot's
+compass correction, finds the stretch where the vehicle was turned by hand (or takes
+``--start/--end``), and writes the session. Progress and the stretch chosen go to stderr.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from magcal.calib import observability
+from magcal.commands.common import positive
+from magcal.io.session import check_writable, write_session
+from magcal.logs import ImportOptions, import_log
+from magcal.logs.stretch import describe
+
+#: Progress lines when stderr is not a terminal: one per this many percent.
+LOG_STEP_PCT = 25
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "import",
+        help="make a session from an ArduPilot .bin/.tlog or a PX4 .ulg flight log",
+        description="Make a calibration session from a flight log: ArduPilot DataFlash .bin, "
+        "MAVLink telemetry .tlog (ArduPilot or PX4) or PX4 .ulg. The autopilot's compass "
+        "correction is undone with the parameters in force; the stretch where the vehicle was "
+        "turned by hand is found from the gyroscope unless --start/--end give the range.",
+    )
+    p.add_argument("log", help="the flight log (.bin, .tlog or .ulg)")
+    p.add_argument("-o", "--output", required=True, help="session CSV to write")
+    p.add_argument(
+        "--compass",
+        type=positive(int),
+        default=1,
+        metavar="N",
+        help="magnetometer to import, 1 = the first (ArduPilot MAG instance 0, PX4 sensor_mag "
+        "instance 0); default 1",
+    )
+    p.add_argument(
+        "--imu",
+        type=positive(int),
+        default=1,
+        metavar="N",
+        help="IMU to pair it with, 1 = the first; default 1",
+    )
+    p.add_argument("--start", type=float, metavar="S", help="import from S seconds (log time)")
+    p.add_argument("--end", type=float, metavar="S", help="import up to S seconds (log time)")
+    p.set_defaults(run=run)
+
+
+def progress_printer(label: str, stream=None):
+    """``label: 45 %`` rewritten in place on a terminal, every LOG_STEP_PCT % otherwise."""
+    stream = stream or sys.stderr
+    tty = stream.isatty()
+    state = {"last": -1}
+
+    def show(fraction: float) -> None:
+        pct = int(100 * min(max(fraction, 0.0), 1.0))
+        if tty:
+            if pct != state["last"]:
+                stream.write(f"\r{label}: {pct:3d} %")
+                stream.flush()
+        elif pct // LOG_STEP_PCT != state["last"] // LOG_STEP_PCT or state["last"] < 0:
+            stream.write(f"{label}: {pct} %\n")
+        state["last"] = pct
+
+    def done() -> None:
+        if tty and state["last"] >= 0:
+            stream.write("\n")
+
+    show.done = done  # type: ignore[attr-defined]
+    return show
+
+
+def run(args, out=None, err=None) -> int:
+    out = out or sys.stdout
+    err = err or sys.stderr
+    check_writable(args.output, "writing session")
+    options = ImportOptions(compass=args.compass, imu=args.imu, start_s=args.start, end_s=args.end)
+    progress = progress_printer(f"reading {os.path.basename(args.log)}", err)
+    try:
+        result = import_log(args.log, options, progress)
+    finally:
+        progress.done()
+    streams, rows = result.streams, result.rows
+    print(
+        f"{streams.autopilot} {streams.log_format} log: IMU {streams.imu.instance} at "
+        f"{rows.imu_rate_hz:.1f} Hz, compass {streams.mag.instance} at {rows.mag_rate_hz:.1f} Hz "
+        f"({streams.mag.unit}), {rows.t[0]:.1f}–{rows.t[-1]:.1f} s",
+        file=err,
+    )
+    for note in streams.notes:
+        print(f"note: {note}", file=err)
+    if result.stretch is None:
+        print(f"range from --start/--end: {result.start_s:.2f}–{result.end_s:.2f} s", file=err)
+    else:
+        print(f"found {describe(result.stretch)}", file=err)
+        for other in result.others:
+            print(f"  also {describe(other)}", file=err)
+        print(
+            f"importing {result.start_s:.2f}–{result.end_s:.2f} s (with rest around it); "
+            "--start/--end choose another range",
+            file=err,
+        )
+    session = result.session
+    if len(session) < observability.MIN_SAMPLES:
+        print(
+            f"warning: {len(session)} samples; calibration needs at least "
+            f"{observability.MIN_SAMPLES}: choose a longer range",
+            file=err,
+        )
+    write_session(args.output, session)
+    print(
+        f"wrote {args.output} ({len(session)} samples, {result.start_s:.2f}–{result.end_s:.2f} s "
+        "log time)",
+        file=out,
+    )
+    return 0

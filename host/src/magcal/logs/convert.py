@@ -1,0 +1,192 @@
+"""From a log's streams to a magcal session: pair the sensors in time, cut, describe.
+
+**Pairing.** A session row holds one gyroscope, accelerometer and magnetometer vector at one
+time. Logs sample the magnetometer more slowly than the IMU (ArduPilot logs MAG at its
+compass-read rate, 10–100 Hz, and IMU at the loop rate, 50–400 Hz+; PX4 sensor_mag at
+50–100 Hz, sensor_combined at 200+ Hz). The rows are placed at the **magnetometer's own
+sample times**, and the IMU is brought to them:
+
+- the magnetometer is never interpolated: each row's field is one real reading, with its own
+  noise. Interpolating it onto the IMU's faster clock would invent readings whose errors are
+  correlated, which the maximum-likelihood fit would count as independent evidence, and would
+  bend the field's path between readings while the vehicle turns;
+- the gyroscope of row k is the **mean rate over [t_k, t_k+1]**, the integral of the
+  piecewise-linear IMU rate divided by the interval, because that is how the calibration's
+  filter uses it (``q_{k+1} = q_k ⊙ exp(½ (t_{k+1} − t_k) ω_k)``): the row then turns the
+  attitude through the angle the IMU measured, whatever the ratio of the rates (sampling
+  the rate at t_k only would lose most of a fast turn's detail at 10 Hz);
+- the accelerometer is linearly interpolated at t_k.
+
+The last magnetometer sample only closes the previous interval and is not a row; samples
+outside the IMU's time span are dropped. IMU data missing for longer than
+``max(IMU_GAP_MIN_S, IMU_GAP_FACTOR × its median interval)`` (telemetry loss) makes the rows
+across the gap unusable: they are marked, the detector avoids them, and an explicit range
+over them is refused.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal.io.session import Session, session_from_arrays
+from magcal.logs.streams import ImuStream, LogImportError, LogStreams, MagStream
+
+IMU_GAP_MIN_S = 0.1
+IMU_GAP_FACTOR = 10.0
+
+
+@dataclass(frozen=True)
+class Rows:
+    """Paired samples at the magnetometer's times.
+
+    t              : (K,) s;  gyr : (K, 3) rad/s, mean over [t_k, t_k+1];  acc : (K, 3) m/s²
+    mag            : (K, 3) raw magnetometer units
+    gap            : (K,) bool, the row's interval holds an IMU gap
+    suspect        : (K,) bool, the field's correction could not be undone (see MagStream)
+    imu_rate_hz, mag_rate_hz : median sample rates
+    """
+
+    t: np.ndarray
+    gyr: np.ndarray
+    acc: np.ndarray
+    mag: np.ndarray
+    gap: np.ndarray
+    suspect: np.ndarray
+    imu_rate_hz: float
+    mag_rate_hz: float
+
+
+def mean_rate(t: np.ndarray, gyr: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Mean of the piecewise-linear rate through (t, gyr) over each [a_k, b_k].
+
+    t : (N,) s, increasing;  gyr : (N, 3);  a, b : (K,) with t[0] ≤ a < b ≤ t[-1]
+    returns (K, 3): (G(b) − G(a)) / (b − a) with G the exact integral of the interpolant.
+    """
+    dt = np.diff(t)
+    cum = np.concatenate([np.zeros((1, 3)), np.cumsum(0.5 * (gyr[1:] + gyr[:-1]) * dt[:, None], 0)])
+
+    def integral(x: np.ndarray) -> np.ndarray:
+        i = np.clip(np.searchsorted(t, x, side="right") - 1, 0, t.size - 2)
+        u = (x - t[i])[:, None]
+        slope = (gyr[i + 1] - gyr[i]) / dt[i][:, None]
+        return cum[i] + gyr[i] * u + 0.5 * slope * u * u
+
+    return (integral(b) - integral(a)) / (b - a)[:, None]
+
+
+def pair(imu: ImuStream, mag: MagStream) -> Rows:
+    """Rows at the magnetometer's sample times (see the module docstring)."""
+    if imu.t.size < 2 or mag.t.size < 2:
+        raise LogImportError(
+            f"too few samples to pair: {imu.t.size} IMU and {mag.t.size} magnetometer samples"
+        )
+    inside = (mag.t >= imu.t[0]) & (mag.t <= imu.t[-1])
+    t_m = mag.t[inside]
+    field = mag.mag[inside]
+    suspect = mag.suspect[inside] if mag.suspect is not None else np.zeros(t_m.size, bool)
+    if t_m.size < 2:
+        raise LogImportError(
+            f"the magnetometer ({mag.source}, {mag.t[0]:.1f}–{mag.t[-1]:.1f} s) and the IMU "
+            f"({imu.source}, {imu.t[0]:.1f}–{imu.t[-1]:.1f} s) hardly overlap in time"
+        )
+    a, b = t_m[:-1], t_m[1:]
+    gyr = mean_rate(imu.t, imu.gyr, a, b)
+    acc = np.column_stack([np.interp(a, imu.t, imu.acc[:, j]) for j in range(3)])
+    imu_dt = np.diff(imu.t)
+    limit = max(IMU_GAP_MIN_S, IMU_GAP_FACTOR * float(np.median(imu_dt)))
+    gap = np.zeros(a.size, dtype=bool)
+    for g in np.flatnonzero(imu_dt > limit):
+        gap |= (a < imu.t[g + 1]) & (b > imu.t[g])
+    return Rows(
+        t=a,
+        gyr=gyr,
+        acc=acc,
+        mag=field[:-1],
+        gap=gap,
+        suspect=suspect[:-1],
+        imu_rate_hz=1.0 / float(np.median(imu_dt)),
+        mag_rate_hz=1.0 / float(np.median(np.diff(t_m))),
+    )
+
+
+def _range_problem(rows: Rows, sel: np.ndarray, what: np.ndarray) -> tuple[float, float] | None:
+    hit = np.flatnonzero(sel & what)
+    if hit.size == 0:
+        return None
+    return float(rows.t[hit[0]]), float(rows.t[hit[-1]])
+
+
+def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.ndarray:
+    """(K,) bool: the rows in [start_s, end_s]; refuses ranges that hold unusable rows."""
+    name = os.path.basename(streams.path)
+    sel = (rows.t >= start_s) & (rows.t <= end_s)
+    if not sel.any():
+        raise LogImportError(
+            f"{name}: no samples between {start_s:g} and {end_s:g} s; the paired data span "
+            f"{rows.t[0]:.1f}–{rows.t[-1]:.1f} s (log time)"
+        )
+    gap = _range_problem(rows, sel, rows.gap)
+    if gap is not None:
+        raise LogImportError(
+            f"{name}: IMU data are missing between {gap[0]:.2f} and {gap[1]:.2f} s (lost "
+            "messages), so the rotation there is unknown; choose a range without the gap "
+            "with --start/--end"
+        )
+    bad = _range_problem(rows, sel, rows.suspect)
+    if bad is not None:
+        raise LogImportError(
+            f"{name}: from {bad[0]:.2f} s on, {streams.mag.suspect_reason}; choose a range "
+            "before it with --start/--end"
+        )
+    return sel
+
+
+def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, str]:
+    """The session's metadata: the contract's ``source`` and ``mag_unit``, plus new optional
+    keys that say where the data came from and which parameters were in force (so that a
+    later ``flash`` can check it writes to the same setup)."""
+    name = os.path.basename(streams.path)
+    t0, t1 = float(rows.t[sel][0]), float(rows.t[sel][-1])
+    params_end = streams.params.at(t1)
+    recorded = {n: params_end[n] for n in streams.param_names if n in params_end}
+    changed = sorted(
+        {n for when, n, _ in streams.params.changes if t0 <= when <= t1 and n in recorded}
+    )
+    meta = {
+        "source": (
+            f"{name} ({streams.autopilot} {streams.log_format} log), compass "
+            f"{streams.mag.instance} ({streams.mag.source}), IMU {streams.imu.instance} "
+            f"({streams.imu.source}), {t0:.3f}–{t1:.3f} s"
+        ),
+        "mag_unit": streams.mag.unit,
+        "autopilot": streams.autopilot,
+        "log_file": name,
+        "log_format": streams.log_format,
+        "compass": str(streams.mag.instance),
+        "imu": str(streams.imu.instance),
+        "log_start_s": f"{t0:.6f}",
+        "log_end_s": f"{t1:.6f}",
+        "mag_frame": streams.mag.frame,
+        "resampling": (
+            f"rows at the magnetometer's samples ({rows.mag_rate_hz:.1f} Hz); gyroscope averaged "
+            f"over each row's interval, accelerometer interpolated (IMU {rows.imu_rate_hz:.1f} Hz)"
+        ),
+        "autopilot_params": json.dumps(recorded, sort_keys=True),
+    }
+    if changed:
+        meta["autopilot_params_changed"] = (
+            f"{', '.join(changed)} changed within this range; autopilot_params holds the values "
+            "at its end"
+        )
+    return meta
+
+
+def to_session(streams: LogStreams, rows: Rows, sel: np.ndarray) -> Session:
+    """The selected rows as a :class:`~magcal.io.session.Session` with metadata."""
+    return session_from_arrays(
+        rows.t[sel], rows.gyr[sel], rows.acc[sel], rows.mag[sel], session_meta(streams, rows, sel)
+    )

@@ -1,0 +1,256 @@
+"""Undo the autopilot's on-board compass correction along a log's parameter timeline.
+
+ArduPilot logs (DataFlash ``MAG``) and streams (``RAW_IMU``, ``SCALED_IMU2/3``) the
+*corrected* field. ``libraries/AP_Compass/AP_Compass_Logging.cpp`` writes
+``get_field(i)``, ``get_offsets(i)`` and ``get_motor_offsets(i)``, each cast to ``int16_t``
+(whole mG, truncated towards zero); ``AP_Compass_Backend::accumulate_sample`` makes that field
+as ``rotate_field`` (board and ``COMPASS_ORIENTn`` rotation) then ``correct_field``:
+``mag = M · s · (mag + OFS) + motor_offset`` (checked at commit 20172681; the motor
+offset is added *after* the matrix there). Here only ``correct_field`` is undone: the
+result stays in the frame ``rotate_field`` gave it, ``y = R_old · raw`` in the words of
+:mod:`magcal.autopilot.mapping`, which is what :func:`~magcal.autopilot.mapping.to_ardupilot`
+takes (with ``R_old`` the rotation in force). That frame is also the only one that can be
+recovered for an internal compass, whose rotation (``AHRS_ORIENTATION`` and the board's own)
+is not in the compass parameters.
+
+PX4's ``vehicle_magnetometer`` topic is ``Rot · S · (raw − off)``; undoing it gives the raw
+sensor-frame field (``Rot0 = I`` for :func:`~magcal.autopilot.mapping.to_px4`).
+
+A change of parameters mid-log is honoured: each sample is undone with the parameters in
+force at its time, and the samples in the :data:`MIXED_WINDOW_S` after a change are dropped
+(the autopilot averages several sensor readings into one logged sample, so the first ones
+after a change mix old and new corrections).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal.autopilot import mapping
+from magcal.logs.streams import LogImportError, ParamTimeline
+
+#: Samples this long after a compass-parameter change are dropped, s: ArduPilot averages the
+#: readings since its last compass read (10–100 Hz) into one logged field, PX4 publishes
+#: within a sensor period; half a second covers both with margin.
+MIXED_WINDOW_S = 0.5
+#: A logged offset (whole mG, truncated) may differ from the parameter by less than 1 mG;
+#: more than this means the offsets in use were not the parameters the log recorded.
+LOGGED_OFFSET_TOLERANCE_MG = 1.0 + 1e-6
+
+# The parameter names are mapping.py's: one place for them (its helpers are private, so a
+# rename there shows up here as an import error, not as silently wrong names).
+ardupilot_param_names = mapping._ap_names
+px4_param_names = mapping._px4_names
+
+
+@dataclass(frozen=True)
+class Undone:
+    """The raw field and which samples survived.
+
+    mag            : (K, 3) float, raw field (see the module docstring for the frame)
+    keep           : (N,) bool over the input samples; ``mag`` holds the kept ones
+    notes          : remarks for the user
+    suspect        : (K,) bool, samples whose logged offsets contradict the parameters
+    suspect_reason : why such a sample cannot be used (for the error if one is imported)
+    """
+
+    mag: np.ndarray
+    keep: np.ndarray
+    notes: tuple[str, ...]
+    suspect: np.ndarray
+    suspect_reason: str
+
+
+def ardupilot_required(compass: int) -> list[str]:
+    """The parameters whose values ``correct_field`` needs for ``compass`` (1-based state
+    index: COMPASS_OFS_X for 1, COMPASS_OFS2_X for 2, ...). COMPASS_SCALEn is optional
+    (older firmware has none: no scaling)."""
+    n = ardupilot_param_names(compass)
+    return [n[f"{k}_{a}"] for k in ("OFS", "DIA", "ODI") for a in "XYZ"]
+
+
+def ardupilot_recorded(compass: int, names: set[str]) -> tuple[str, ...]:
+    """The compass parameters to record in a session (those the log has), for ``flash``."""
+    n = ardupilot_param_names(compass)
+    k = "" if compass == 1 else str(compass)
+    wanted = list(n.values()) + [
+        f"COMPASS_EXTERN{k}" if compass > 1 else "COMPASS_EXTERNAL",
+        f"COMPASS_DEV_ID{k}",
+        f"COMPASS_MOT{k}_X",
+        f"COMPASS_MOT{k}_Y",
+        f"COMPASS_MOT{k}_Z",
+        "COMPASS_MOTCT",
+        "COMPASS_OFFS_MAX",
+        "AHRS_ORIENTATION",
+        "CUST_ROT_ENABLE",
+    ]
+    wanted += [f"CUST_ROT{s}_{a}" for s in (1, 2) for a in ("ROLL", "PITCH", "YAW")]
+    return tuple(name for name in wanted if name in names)
+
+
+def ardupilot_state_index(params: dict[str, float], instance: int) -> int:
+    """The parameter set (1-based state index) of logged compass ``instance`` (1-based).
+
+    ArduPilot logs and streams compasses in *priority* order (``get_field(i)`` is
+    ``_get_state(Priority(i))`` in AP_Compass.h), while COMPASS_OFS_X, COMPASS_OFS2_X, ...
+    belong to the detection order. The two differ when COMPASS_PRIOn_ID lists the device ids
+    in another order than COMPASS_DEV_ID, _ID2, _ID3; without those parameters they agree.
+    """
+    prio = params.get(f"COMPASS_PRIO{instance}_ID")
+    if not prio:
+        return instance
+    for state, name in enumerate(("COMPASS_DEV_ID", "COMPASS_DEV_ID2", "COMPASS_DEV_ID3"), 1):
+        if params.get(name) == prio:
+            return state
+    return instance
+
+
+def _segments(t: np.ndarray, changes: np.ndarray) -> list[tuple[int, int]]:
+    """Index ranges [i0, i1) of ``t`` between consecutive change times."""
+    cuts = np.searchsorted(t, np.unique(changes), side="left")
+    edges = np.concatenate([[0], cuts, [t.size]])
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True) if b > a]
+
+
+def _mixed(t: np.ndarray, changes: np.ndarray) -> np.ndarray:
+    """(N,) bool: samples within MIXED_WINDOW_S after a change."""
+    mixed = np.zeros(t.size, dtype=bool)
+    for c in np.unique(changes):
+        mixed |= (t > c) & (t <= c + MIXED_WINDOW_S)
+    return mixed
+
+
+def undo_ardupilot(
+    source: str,
+    t: np.ndarray,
+    corrected: np.ndarray,
+    params: ParamTimeline,
+    instance: int,
+    motor: np.ndarray | None = None,
+    logged_offsets: np.ndarray | None = None,
+) -> Undone:
+    """ArduPilot's ``correct_field`` undone for logged compass ``instance`` (1-based).
+
+    source         : the log's name, for messages
+    t              : (N,) s;  corrected : (N, 3) mG, the logged (corrected) field
+    params         : the parameters over time
+    motor          : (N, 3) mG, logged motor-interference offsets (DataFlash MOX/MOY/MOZ);
+                     None when not logged (telemetry: zero while disarmed)
+    logged_offsets : (N, 3) mG, the offsets the log says were in use (MAG OfsX/Y/Z); samples
+                     where they contradict the parameters are marked ``suspect``
+    returns        : the field after rotate_field, before correct_field, mG
+    """
+    state = ardupilot_state_index(params.at(float(t[0]) if t.size else 0.0), instance)
+    required = ardupilot_required(state)
+    missing = [n for n in required if n not in params.names()]
+    if missing:
+        raise LogImportError(
+            f"{source} has no value for {', '.join(missing)}: without the compass "
+            "parameters in force its corrected field cannot be undone; log the parameters "
+            "(ArduPilot writes PARM messages when a log opens; a ground station fetches "
+            "PARAM_VALUE when it connects)"
+        )
+    names = ardupilot_param_names(state)
+    watched = set(required) | {names["SCALE"]}
+    changes = params.change_times(watched)
+    mixed = _mixed(t, changes)
+    mag = np.empty_like(np.asarray(corrected, dtype=float))
+    suspect = np.zeros(t.size, dtype=bool)
+    notes: list[str] = []
+    if state != instance:
+        notes.append(
+            f"compass {instance} (priority order) uses the parameter set of compass {state} "
+            "(COMPASS_PRIOn_ID)"
+        )
+    for i0, i1 in _segments(t, changes):
+        p = params.at(float(t[i0]))
+        p.setdefault(names["SCALE"], 0.0)  # no COMPASS_SCALE (older firmware): no scaling
+        p[names["ORIENT"]] = 0.0  # undo correct_field only: keep rotate_field's frame
+        field = np.asarray(corrected[i0:i1], dtype=float)
+        if motor is not None:
+            field = field - motor[i0:i1]
+        if logged_offsets is not None:
+            suspect[i0:i1] = _offsets_disagree(logged_offsets[i0:i1], p, names)
+        mag[i0:i1] = mapping.ardupilot_uncorrect(field, p, state)
+    if changes.size:
+        notes.append(
+            f"compass parameters changed {changes.size} time(s) in the log; each sample was "
+            f"undone with those in force, and {int(mixed.sum())} sample(s) within "
+            f"{MIXED_WINDOW_S} s after a change were dropped"
+        )
+    reason = (
+        f"compass {instance} was corrected with other offsets than {names['OFS_X']}/_Y/_Z in "
+        "force (the logged OfsX/Y/Z differ): they changed without a parameter record "
+        "(in-flight learning, COMPASS_LEARN), so the correction cannot be undone there"
+    )
+    return Undone(mag[~mixed], ~mixed, tuple(notes), suspect[~mixed], reason)
+
+
+def _offsets_disagree(logged: np.ndarray, p: dict[str, float], names: dict[str, str]) -> np.ndarray:
+    """(N,) bool: the logged offsets are not the parameters' (truncated like the log's
+    ``int16_t`` cast, so a fraction of a mG is no disagreement)."""
+    ofs = np.array([p[names[f"OFS_{a}"]] for a in "XYZ"])
+    diff = np.abs(np.asarray(logged, dtype=float) - np.trunc(ofs))
+    return (diff > LOGGED_OFFSET_TOLERANCE_MG).any(axis=1)
+
+
+def px4_required(index: int) -> list[str]:
+    """CAL_MAGn_* parameters PX4's correction needs for calibration slot ``index`` (0-based)."""
+    n = px4_param_names(index)
+    return [n[k] for k in ("XOFF", "YOFF", "ZOFF", "XSCALE", "YSCALE", "ZSCALE")] + [
+        n[k] for k in ("XODIAG", "YODIAG", "ZODIAG", "ROT")
+    ]
+
+
+def px4_recorded(index: int, names: set[str]) -> tuple[str, ...]:
+    """The CAL_MAGn_* parameters to record in a session (those the log has)."""
+    n = px4_param_names(index)
+    wanted = list(n.values()) + [f"CAL_MAG{index}_ID", f"CAL_MAG{index}_PRIO", "SENS_BOARD_ROT"]
+    return tuple(name for name in wanted if name in names)
+
+
+def px4_calibration_index(params: dict[str, float], device_id: int) -> int | None:
+    """The n of the CAL_MAGn_ID equal to ``device_id``, or None."""
+    for n in range(8):
+        if params.get(f"CAL_MAG{n}_ID") == device_id:
+            return n
+    return None
+
+
+def undo_px4(
+    source: str, t: np.ndarray, corrected: np.ndarray, params: ParamTimeline, index: int
+) -> Undone:
+    """PX4's ``Rot · S · (raw − off)`` undone with CAL_MAG``index``_* in force at each time.
+
+    t : (N,) s;  corrected : (N, 3) gauss (vehicle_magnetometer);  returns raw gauss, sensor
+    frame.
+    """
+    required = px4_required(index)
+    missing = [n for n in required if n not in params.names()]
+    if missing:
+        raise LogImportError(
+            f"{source} has no value for {', '.join(missing)}: without the calibration in force "
+            "the corrected field cannot be undone; log sensor_mag (raw) instead"
+        )
+    rot = px4_param_names(index)["ROT"]
+    changes = params.change_times(set(required))
+    mixed = _mixed(t, changes)
+    mag = np.empty_like(np.asarray(corrected, dtype=float))
+    for i0, i1 in _segments(t, changes):
+        p = params.at(float(t[i0]))
+        if p[rot] < 0:
+            raise LogImportError(
+                f"{source}: magnetometer calibration {index} is an internal one ({rot} = -1: "
+                "the board rotation SENS_BOARD_ROT applies), whose correction magcal does not "
+                "undo; log the raw sensor_mag topic instead"
+            )
+        mag[i0:i1] = mapping.px4_uncorrect(np.asarray(corrected[i0:i1], dtype=float), p, index)
+    notes = []
+    if changes.size:
+        notes.append(
+            f"CAL_MAG{index} parameters changed {changes.size} time(s); each sample was undone "
+            f"with those in force, and {int(mixed.sum())} sample(s) right after a change dropped"
+        )
+    return Undone(mag[~mixed], ~mixed, tuple(notes), np.zeros(int((~mixed).sum()), bool), "")

@@ -121,6 +121,8 @@ class AutopilotEmulator:
     misalignment_deg : hidden compass-to-IMU misalignment of the external compass (default:
                        ArduPilot 3°, PX4 0° since PX4 cannot represent one)
     path_s           : length of the simulated path, s; the vehicle then holds still
+    mag_noise        : magnetometer noise σ in raw units (default ArduPilot SIM_MAG_RND 2 mG,
+                       PX4 0.002 G); 0 gives exact fields (up to the int16 truncation)
     """
 
     def __init__(
@@ -135,6 +137,7 @@ class AutopilotEmulator:
         *,
         misalignment_deg: float | None = None,
         path_s: float = PATH_S,
+        mag_noise: float | None = None,
     ) -> None:
         if personality not in STREAMS:
             raise ValueError(f"unknown personality {personality!r}: use 'ardupilot' or 'px4'")
@@ -151,6 +154,11 @@ class AutopilotEmulator:
         self.speedup = float(speedup)
         self.param_value_loss = float(param_value_loss)
         self._store = ParamStore(personality, self._ap.specs)
+        if mag_noise is not None:
+            if personality == "ardupilot":
+                self._store.force("SIM_MAG_RND", mag_noise)
+            else:
+                self._ap.mag_noise_sigma = float(mag_noise)
         self._lock = threading.RLock()  # parameters, on-board state, compass models
         with self._lock:
             self._ap.reboot(self._store)
@@ -219,6 +227,29 @@ class AutopilotEmulator:
             raw = self._world.m_b[idx] @ A.T + c
             corrected = self._ap.correct(raw, self._store.snapshot(), compass)
         return rms_deg(heading_errors_rad(self._world.R_nb[idx], corrected))
+
+    def apply_params(self, values: dict[str, float]) -> dict[str, float]:
+        """Set parameters as if PARAM_SETs had arrived (same storage rules and on-board
+        effects, nothing sent): a back door for tests. Values are what a client means
+        (PX4 INT32 parameters as plain numbers). Returns name → stored value; raises KeyError
+        for a name the autopilot would ignore."""
+        out = {}
+        with self._lock:
+            for name, value in values.items():
+                lookup = self._store.lookup(name)
+                if lookup is None:
+                    raise KeyError(f"{self.personality} has no parameter {name!r} now")
+                if self.personality == "px4" and lookup[1] == M.MAV_PARAM_TYPE_INT32:
+                    wire = struct.pack("<i", int(value))
+                else:
+                    wire = struct.pack("<f", value)
+                stored = self._store.set_from_wire(name, wire)
+                if stored is None:
+                    raise KeyError(f"{self.personality} ignores {name} = {value!r}")
+                out[name] = stored
+                self._ap.after_params_changed(self._store)
+            self._refresh_models()
+        return out
 
     def reboot(self) -> None:
         """What a reboot does to the compass state (custom rotations rebuilt, PX4 calibration

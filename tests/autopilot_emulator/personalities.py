@@ -264,6 +264,7 @@ class PX4:
     def __init__(self, rng: np.random.Generator, compasses: int, misalignment_deg: float):
         self.field_strength = FIELD_STRENGTH_GAUSS
         self.compasses = compasses
+        self.mag_noise_sigma = PX4_MAG_NOISE_GAUSS
         self._hidden = []
         specs: list[ParamSpec] = [
             ParamSpec("MAV_SYS_ID", INT32, 1),
@@ -320,7 +321,7 @@ class PX4:
         return self.field_strength * W @ Rt, o.copy()
 
     def noise_sigma(self, params: dict[str, float]) -> float:
-        return PX4_MAG_NOISE_GAUSS
+        return self.mag_noise_sigma
 
     def truth(self, params: dict[str, float], dip_deg: float, m_n: np.ndarray) -> EmulatorTruth:
         out = []
@@ -336,7 +337,7 @@ class PX4:
                     c,
                     rotations.px4_matrix(mount) @ R_mis,
                     mis,
-                    PX4_MAG_NOISE_GAUSS,
+                    self.mag_noise_sigma,
                 )
             )
         return EmulatorTruth(self.name, self.unit, self.field_strength, dip_deg, m_n, tuple(out))

@@ -1,0 +1,347 @@
+"""Uncertainty of a calibration: the inverse Hessian of the ML cost at the estimate.
+
+For many samples the ML estimate θ̂ is close to Gaussian around the truth with covariance
+H⁻¹, H = ∂²V/∂θ² at θ̂ (the observed Fisher information; V is eq. 6's negative
+log-likelihood plus the gyroscope noise prior ``ml.py`` adds, i.e. the cost the optimiser
+minimised). Quantities derived from θ (D⁻¹, the misalignment angles, the dip in degrees)
+get their standard deviations by linearisation, σ² = J H⁻¹ Jᵀ.
+
+How H is computed, and why:
+
+* **Central differences of the exact gradient**, column i being
+  ``(∇V(θ + hᵢeᵢ) − ∇V(θ − hᵢeᵢ)) / 2hᵢ``: 2·n_θ = 68 reverse-mode passes, about a second on
+  a 10-minute session. n_θ is small, so this is cheap, and since each gradient is exact to
+  rounding, the only error is the O(h²) truncation, negligible at steps of a hundredth of a
+  standard deviation (:data:`HESSIAN_STEP_FRACTION`). Second differences of V itself would
+  need ≈ 2·n_θ² ≈ 2,300 passes and lose half the digits to cancellation (error ∝ ε/h²); an
+  exact Hessian (reverse over reverse through the filter) would need a second hand-derived
+  adjoint of the C kernel for what is here one second of run time; and BFGS's inverse-Hessian
+  approximation is only accurate along the directions the search happened to explore.
+* In the **scaled variables** z = θ / s (s: each parameter's expected σ,
+  ``ml.parameter_scales``) H's eigenvalues are of order one, so "not positive definite" and
+  "nearly singular" can be judged against a relative threshold, and a direction of
+  (near-)zero curvature is reported as *not identifiable*, with the parameters it moves.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+
+from magcal.calib import cost, evaluation, frames, native, params
+from magcal.calib.evaluation import LikelihoodProblem
+from magcal.calib.ml import Normalisation
+from magcal.errors import CalibrationError
+from magcal.io.result import CalibrationResult
+from magcal.io.session import Session
+
+#: Central-difference step, as a fraction of each parameter's expected σ. The gradient is
+#: exact, so the step only has to be small against the scale on which the cost stops being
+#: quadratic (many σ) and large against rounding: H's entries agree to < 1e-4 (relative to
+#: the largest) for fractions from 1e-3 to 1e-1 on simulated sessions.
+HESSIAN_STEP_FRACTION = 1e-2
+#: A scaled Hessian eigenvalue at or below this fraction of the largest is a direction the
+#: data do not determine (the well-determined ones are of order one in scaled variables).
+IDENTIFIABILITY_RTOL = 1e-8
+#: A derived quantity is "not identifiable" when a non-identifiable direction moves it by
+#: more than this fraction of its total sensitivity (rounding leaves ~1e-15).
+NULL_LOADING_RTOL = 1e-6
+#: Step of the linearisation of derived quantities, as a fraction of each expected σ.
+JACOBIAN_STEP_FRACTION = 1e-4
+#: Components smaller than this (unit eigenvector) are left out of a direction's text.
+DIRECTION_TEXT_MIN = 0.1
+
+#: Derived quantities, their shapes and units ("mag" = the session's magnetometer unit).
+QUANTITIES: tuple[tuple[str, tuple[int, ...], str], ...] = (
+    ("D", (3, 3), "mag"),
+    ("D_inv", (3, 3), "1/mag"),
+    ("o", (3,), "mag"),
+    ("misalignment_deg", (3,), "°"),
+    ("misalignment_angle_deg", (), "°"),
+    ("dip_deg", (), "°"),
+    ("m_n", (3,), ""),
+    ("gyro_bias", (3,), "rad/s"),
+    ("noise_std_gyr", (3,), "rad/s"),
+    ("noise_std_acc", (3,), "m/s²"),
+    ("noise_std_mag", (3,), "mag"),
+)
+
+
+# --------------------------------------------------------------------------------------------
+# Generic numerics
+
+
+def central_difference_hessian(
+    gradient: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    steps: np.ndarray,
+    progress: Callable[[int, int], None] | None = None,
+) -> np.ndarray:
+    """Symmetric Hessian (n, n) by central differences of an exact ``gradient`` (n,) → (n,).
+
+    steps    : (n,) step per coordinate, in x's units
+    progress : called as ``progress(done, total)`` after each gradient evaluation
+    Raises :class:`CalibrationError` when a gradient is not finite.
+    """
+    x = np.asarray(x, dtype=float)
+    steps = np.asarray(steps, dtype=float)
+    n = x.size
+    H = np.empty((n, n))
+    total = 2 * n
+    for i in range(n):
+        hi, lo = x.copy(), x.copy()
+        hi[i] += steps[i]
+        lo[i] -= steps[i]
+        g_hi = np.asarray(gradient(hi), dtype=float)
+        if progress:
+            progress(2 * i + 1, total)
+        g_lo = np.asarray(gradient(lo), dtype=float)
+        if progress:
+            progress(2 * i + 2, total)
+        if not (np.isfinite(g_hi).all() and np.isfinite(g_lo).all()):
+            raise CalibrationError(
+                f"Hessian: the gradient is not finite at a step of coordinate {i}: the point "
+                "is not a usable estimate (the filter breaks down next to it)"
+            )
+        # hi[i] − lo[i] rather than 2·steps[i]: the step as actually represented.
+        H[:, i] = (g_hi - g_lo) / (hi[i] - lo[i])
+    return 0.5 * (H + H.T)
+
+
+@dataclass(frozen=True)
+class HessianCovariance:
+    """The inverse of a Hessian on the subspace where it is positive definite.
+
+    cov              : (n, n), x's units²; zero curvature directions are left out (see
+                       ``null_directions``: the variance along them is unbounded)
+    null_directions  : (k, n) unit vectors in the scaled variables x / scales along which
+                       the Hessian is not positive definite (k = 0: identifiable)
+    null_eigenvalues : (k,) their scaled curvature (≤ ``rtol`` × the largest)
+    scales           : (n,) the scaling used
+    eigenvalues      : (n,) all scaled eigenvalues, ascending
+    """
+
+    cov: np.ndarray
+    null_directions: np.ndarray
+    null_eigenvalues: np.ndarray
+    scales: np.ndarray
+    eigenvalues: np.ndarray
+
+    @property
+    def identifiable(self) -> bool:
+        return self.null_directions.shape[0] == 0
+
+
+def covariance_from_hessian(
+    H: np.ndarray, scales: np.ndarray, rtol: float = IDENTIFIABILITY_RTOL
+) -> HessianCovariance:
+    """H⁻¹ (n, n) via the eigendecomposition of the scaled Hessian ``S H S``.
+
+    scales : (n,) positive, about each coordinate's σ, so that S H S is of order one.
+    """
+    scales = np.asarray(scales, dtype=float)
+    Hz = scales[:, None] * np.asarray(H, dtype=float) * scales[None, :]
+    lam, V = np.linalg.eigh(0.5 * (Hz + Hz.T))
+    good = lam > rtol * max(float(lam.max()), 0.0) if lam.max() > 0.0 else np.zeros_like(lam, bool)
+    Cz = (V[:, good] / lam[good]) @ V[:, good].T
+    return HessianCovariance(
+        cov=scales[:, None] * Cz * scales[None, :],
+        null_directions=V[:, ~good].T.copy(),
+        null_eigenvalues=lam[~good].copy(),
+        scales=scales,
+        eigenvalues=lam,
+    )
+
+
+def direction_text(direction: np.ndarray, names: list[str] | tuple[str, ...]) -> str:
+    """ "0.71·o2 − 0.70·D22" for a unit vector; components below DIRECTION_TEXT_MIN left out."""
+    v = np.asarray(direction, dtype=float)
+    v = v * np.sign(v[np.argmax(np.abs(v))])  # the largest component positive: one text
+    parts: list[str] = []
+    for i in np.argsort(-np.abs(v)):
+        if parts and abs(v[i]) < DIRECTION_TEXT_MIN:
+            break
+        term = f"{abs(v[i]):.2f}·{names[i]}"
+        parts.append(term if not parts else ("− " if v[i] < 0 else "+ ") + term)
+    return " ".join(parts)
+
+
+# --------------------------------------------------------------------------------------------
+# The calibration's quantities as functions of θ
+
+
+def derived_quantities(theta: np.ndarray, norm: Normalisation) -> dict[str, np.ndarray]:
+    """Everything :data:`QUANTITIES` lists, in the session's units, from normalised θ (34,).
+
+    misalignment_deg : the rotation of the magnetometer's axes against the body
+        (accelerometer) axes: with the left polar decomposition D = P U (P symmetric positive
+        definite: scale factors and soft iron; U a rotation), the rotation vector of Uᵀ in
+        degrees, in body axes. NaN when det D ≤ 0 (a mirrored triad has no such rotation).
+    misalignment_angle_deg : its length, the total angle.
+    """
+    p = params.unpack(theta).unscaled_magnetometer(norm.centre, norm.scale)
+    U, _ = scipy.linalg.polar(p.D, side="left")
+    if np.linalg.det(U) > 0.0:
+        misalignment = np.rad2deg(frames.quat_to_rotvec(frames.matrix_to_quat(U.T)))
+    else:
+        misalignment = np.full(3, np.nan)
+    # The angle's derivative is undefined at zero; an estimate is never exactly aligned.
+    angle = np.linalg.norm(misalignment)
+    return {
+        "D": p.D,
+        "D_inv": np.linalg.inv(p.D),
+        "o": p.o,
+        "misalignment_deg": misalignment,
+        "misalignment_angle_deg": np.array(angle),
+        "dip_deg": np.array(np.rad2deg(p.dip_rad)),
+        "m_n": p.m_n,
+        "gyro_bias": p.gyro_bias,
+        "noise_std_gyr": np.sqrt(np.diag(p.Sigma_gyr)),
+        "noise_std_acc": np.sqrt(np.diag(p.Sigma_acc)),
+        "noise_std_mag": np.sqrt(np.diag(p.Sigma_mag)),
+    }
+
+
+def _flatten(q: dict[str, np.ndarray]) -> np.ndarray:
+    return np.concatenate([np.asarray(q[name], dtype=float).ravel() for name, _, _ in QUANTITIES])
+
+
+def _unflatten(v: np.ndarray) -> dict[str, np.ndarray]:
+    out, k = {}, 0
+    for name, shape, _ in QUANTITIES:
+        size = math.prod(shape)
+        out[name] = v[k : k + size].reshape(shape)
+        k += size
+    return out
+
+
+def propagate(
+    f: Callable[[np.ndarray], np.ndarray], theta: np.ndarray, hc: HessianCovariance
+) -> tuple[np.ndarray, np.ndarray]:
+    """Values and standard deviations (inf where not identifiable) of f(θ) (m,) by
+    linearisation: σ² = diag(J cov Jᵀ), J by central differences of f."""
+    value = f(theta)
+    steps = JACOBIAN_STEP_FRACTION * hc.scales
+    J = np.empty((value.size, theta.size))
+    for i in range(theta.size):
+        hi, lo = theta.copy(), theta.copy()
+        hi[i] += steps[i]
+        lo[i] -= steps[i]
+        J[:, i] = (f(hi) - f(lo)) / (hi[i] - lo[i])
+    var = np.einsum("ij,jk,ik->i", J, hc.cov, J)
+    sigma = np.sqrt(np.maximum(var, 0.0))
+    if not hc.identifiable:
+        Jz = J * hc.scales[None, :]  # sensitivity per unit scaled variable
+        loading = np.abs(Jz @ hc.null_directions.T).max(axis=1)
+        total = np.linalg.norm(Jz, axis=1)
+        sigma = np.where(loading > NULL_LOADING_RTOL * total, np.inf, sigma)
+    return value, sigma
+
+
+# --------------------------------------------------------------------------------------------
+# A calibration's uncertainty
+
+
+@dataclass(frozen=True)
+class CalibrationUncertainty:
+    """Standard deviations of a calibration from the ML cost's curvature on a session.
+
+    values, sigma    : name → array for each of :data:`QUANTITIES` (σ = inf where the data do
+                       not determine it, NaN where undefined)
+    theta_sigma      : (34,) σ of θ in the normalised units of ``params.py``
+    null_directions  : text of each direction of θ the cost does not determine (empty: all
+                       identifiable), e.g. "0.71·o2 − 0.70·D22"
+    newton_step_sigma: size of the Newton step to the cost's minimum in standard deviations,
+                       √(gᵀ H⁻¹ g): ≪ 1 at an ML estimate; large when the point is another
+                       method's estimate
+    min_scaled_eigenvalue : the smallest eigenvalue of the scaled Hessian (order one when
+                       every parameter is well determined)
+    gradient_evaluations, seconds, n_samples
+    """
+
+    values: dict[str, np.ndarray]
+    sigma: dict[str, np.ndarray]
+    theta_sigma: np.ndarray
+    null_directions: list[str]
+    newton_step_sigma: float
+    min_scaled_eigenvalue: float
+    gradient_evaluations: int
+    seconds: float
+    n_samples: int
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def identifiable(self) -> bool:
+        return not self.null_directions
+
+
+def penalised_gradient(problem: LikelihoodProblem) -> Callable[[np.ndarray], np.ndarray]:
+    """θ ↦ ∇(V + gyroscope noise prior) (34,), exact, on ``problem``'s data."""
+    tape = native.new_tape(problem.n_samples)
+
+    def gradient(theta: np.ndarray) -> np.ndarray:
+        value, g = cost.cost_and_gradient(theta, problem.data, tape)
+        if not np.isfinite(value):
+            return np.full_like(g, np.nan)
+        return g + problem.prior_precision * (theta - problem.prior_mean)
+
+    return gradient
+
+
+def calibration_uncertainty(
+    result: CalibrationResult,
+    session: Session,
+    progress: Callable[[int, int], None] | None = None,
+) -> CalibrationUncertainty:
+    """σ of a result's quantities from the Hessian of the ML cost at its parameters on the
+    session it was fitted on (2·34 exact gradient passes; ``progress(done, total)``).
+
+    Raises ``evaluation.ModelUnavailableError`` when the result lacks the noise covariances
+    or the gyroscope bias the cost needs, and :class:`CalibrationError` when the cost is not
+    finite there.
+    """
+    t0 = time.perf_counter()
+    p = evaluation.model_params_from_result(result)
+    problem = evaluation.likelihood_problem(session, p)
+    gradient = penalised_gradient(problem)
+    g0 = gradient(problem.theta)
+    if not np.isfinite(g0).all():
+        raise CalibrationError(
+            "uncertainty: the ML cost is not finite at the result's parameters on this "
+            "session: the result does not describe this session"
+        )
+    H = central_difference_hessian(
+        gradient, problem.theta, HESSIAN_STEP_FRACTION * problem.scales, progress
+    )
+    hc = covariance_from_hessian(H, problem.scales)
+    values, sigma = propagate(
+        lambda th: _flatten(derived_quantities(th, problem.norm)), problem.theta, hc
+    )
+    theta_sigma = np.sqrt(np.maximum(np.diag(hc.cov), 0.0))
+    if not hc.identifiable:
+        null_loading = np.abs(hc.null_directions).max(axis=0) > NULL_LOADING_RTOL
+        theta_sigma = np.where(null_loading, np.inf, theta_sigma)
+    notes = []
+    if result.method != "ml":
+        notes.append(
+            f"the result comes from method {result.method!r}, not ml: these are the ML cost's "
+            "curvature at its parameters, i.e. the uncertainty an ML estimate near this point "
+            "would have, not this method's own"
+        )
+    return CalibrationUncertainty(
+        values=_unflatten(values),
+        sigma=_unflatten(sigma),
+        theta_sigma=theta_sigma,
+        null_directions=[direction_text(v, params.PARAM_NAMES) for v in hc.null_directions],
+        newton_step_sigma=float(np.sqrt(max(float(g0 @ hc.cov @ g0), 0.0))),
+        min_scaled_eigenvalue=float(hc.eigenvalues[0]),
+        gradient_evaluations=2 * params.N_PARAMS + 1,
+        seconds=time.perf_counter() - t0,
+        n_samples=problem.n_samples,
+        notes=notes,
+    )

@@ -295,6 +295,63 @@ def _subsample(n: int, limit: int) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------------------------
+# Inclination consistency: the dip angle each sample implies, before and after calibration
+
+
+def plot_dip_angles(
+    dip_raw_deg: np.ndarray,
+    dip_calibrated_deg: np.ndarray,
+    dip_estimate_deg: float,
+    path: str | os.PathLike,
+    title: str = "Dip angle per sample",
+) -> Path:
+    """Histograms of the dip angle between the field and the accelerometer's "up" at each
+    sample: raw field (red) and calibrated field (blue), with the calibration's dip.
+
+    dip_raw_deg        : (K,) degrees, from the raw magnetometer reading (no correction)
+    dip_calibrated_deg : (K,) degrees, from D⁻¹(y − o)
+    dip_estimate_deg   : the result's dip angle, degrees (dashed line)
+
+    A calibration that fits gives one angle at every orientation; each panel has its own
+    x-scale, since the two spreads differ by orders of magnitude.
+    """
+    raw = _array(dip_raw_deg, "dip_raw_deg", None)
+    cal = _array(dip_calibrated_deg, "dip_calibrated_deg", None)
+    if not np.isfinite(dip_estimate_deg):
+        raise ValueError(f"dip_estimate_deg must be finite, got {dip_estimate_deg!r}")
+
+    fig = _new_figure((9.0, 3.6))
+    panels = [
+        ("(a) raw field", raw, RAW_COLOR),
+        ("(b) calibrated field", cal, CALIBRATED_COLOR),
+    ]
+    for i, (label, values, color) in enumerate(panels):
+        ax = fig.add_subplot(1, 2, i + 1)
+        ax.hist(values, bins=60, color=color, alpha=0.8)
+        ax.axvline(dip_estimate_deg, color="0.2", linestyle="--", linewidth=1.0)
+        ax.set_xlabel("dip angle [°]")
+        ax.set_ylabel("samples")
+        ax.set_title(label, fontsize=10)
+        ax.text(
+            0.97,
+            0.97,
+            f"mean {values.mean():.4g}°\nstd {values.std():.3g}°",
+            transform=ax.transAxes,
+            horizontalalignment="right",
+            verticalalignment="top",
+            fontsize=8,
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "0.7"},
+        )
+    fig.suptitle(
+        f"{title}: {raw.size} samples at rest-like accelerations "
+        f"(dashed: the calibration's dip {dip_estimate_deg:.3f}°)",
+        fontsize=10,
+    )
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+# --------------------------------------------------------------------------------------------
 # magcal study: field norm of several calibrations (Zhao et al. Figure 1), and the heading
 # error of every method per scenario
 

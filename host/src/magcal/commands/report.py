@@ -1,0 +1,141 @@
+"""``magcal report RESULT.json SESSION.csv -o report.html [--validate OTHER.csv]``."""
+
+from __future__ import annotations
+
+import os
+import sys
+
+from magcal.calib import ellipsoid
+from magcal.errors import MagcalError
+
+#: Bytes read to tell a session CSV from a result JSON when a file fails to parse.
+SNIFF_BYTES = 64
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser(
+        "report",
+        help="write a self-contained HTML report: the calibration, its uncertainty, the "
+        "figures, and a validation on another session",
+    )
+    p.add_argument("result", help="result JSON (magcal-result/1) written by magcal calibrate")
+    p.add_argument("session", help="the session CSV the result was calibrated from")
+    p.add_argument("-o", "--output", required=True, help="HTML file to write")
+    p.add_argument(
+        "--validate",
+        metavar="OTHER.csv",
+        help="a second session, not used for the fit: norm, residuals and inclination on it",
+    )
+    p.set_defaults(run=run)
+
+
+def _looks_like(path: str) -> str | None:
+    """ "session" or "result" from a file's first bytes, None when unreadable or neither."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(SNIFF_BYTES).lstrip(b"\xef\xbb\xbf").lstrip()
+    except OSError:
+        return None
+    if head.startswith(b"# magcal-session"):
+        return "session"
+    if head.startswith(b"{"):
+        return "result"
+    return None
+
+
+def _read_inputs(args):
+    from magcal.io.result import read_result
+    from magcal.io.session import read_session
+
+    if _looks_like(args.result) == "session":
+        raise MagcalError(
+            f"{args.result} is a session CSV, not a result JSON: the order is "
+            "`magcal report RESULT.json SESSION.csv`"
+        )
+    for path, role in ((args.session, "session"), (args.validate, "validation session")):
+        if path and _looks_like(path) == "result":
+            raise MagcalError(
+                f"the {role} {path} is a result JSON, not a session CSV: the order is "
+                "`magcal report RESULT.json SESSION.csv [--validate OTHER.csv]`"
+            )
+    result = read_result(args.result)
+    # The forced calibration minimum: any session that calibrate accepts can be reported on.
+    session = read_session(args.session, min_samples=ellipsoid.MIN_SAMPLES)
+    validation = (
+        read_session(args.validate, min_samples=ellipsoid.MIN_SAMPLES) if args.validate else None
+    )
+    return result, session, validation
+
+
+def _check_output(args) -> None:
+    from magcal.report.contents import ReportError
+    from magcal.report.html import check_report_writable
+
+    out = os.path.realpath(args.output)
+    for path in (args.result, args.session, args.validate):
+        if path and os.path.realpath(path) == out:
+            raise ReportError(
+                f"writing report {args.output}: it is one of the inputs ({path}); give another name"
+            )
+    check_report_writable(args.output)
+
+
+def _progress_printer(stream=None):
+    """The Hessian's gradient passes on one line of stderr, rewritten in place on a terminal
+    (first and last pass otherwise), then one line for the figures."""
+    stream = stream or sys.stderr
+    tty = stream.isatty()
+    state = {"open": False}
+
+    def show(stage: str, done: int, total: int) -> None:
+        if stage == "hessian":
+            line = f"report: Hessian of the ML cost, gradient pass {done}/{total}"
+            if tty:
+                stream.write("\r" + line)
+                state["open"] = True
+            elif done in (1, total):
+                stream.write(line + "\n")
+        else:
+            if state["open"]:
+                stream.write("\n")
+                state["open"] = False
+            stream.write(f"report: {stage}\n")
+        stream.flush()
+
+    def done() -> None:
+        if state["open"]:
+            stream.write("\n")
+
+    show.done = done  # type: ignore[attr-defined]
+    return show
+
+
+def run(args) -> int:
+    from magcal.report.contents import build_report
+    from magcal.report.html import render_html, write_report
+
+    _check_output(args)
+    result, session, validation = _read_inputs(args)
+    progress = _progress_printer()
+    try:
+        report = build_report(
+            result,
+            session,
+            result_path=args.result,
+            session_path=args.session,
+            validation=validation,
+            validation_path=args.validate,
+            progress=progress,
+        )
+    finally:
+        progress.done()
+    write_report(args.output, render_html(report))
+    unc = report.uncertainty
+    if unc is None:
+        state = "no uncertainty (see the report's notes)"
+    elif unc.identifiable:
+        state = "all parameters identifiable"
+    else:
+        state = "NOT identifiable along " + "; ".join(unc.null_directions)
+    print(f"wrote {args.output} ({state})")
+    return 0

@@ -411,6 +411,15 @@ def ardupilot_undo_correct_field(
     return np.linalg.solve(Ms, corrected.T).T - ofs
 
 
+def ardupilot_correct_field(
+    y: np.ndarray, params: dict[str, float], compass: int = 1, naming: str = AP_NAMING_LEGACY
+) -> np.ndarray:
+    """correct_field alone, ``M·s·(y + OFS)`` on y (N, 3) mG as rotate_field left it: the
+    inverse of :func:`ardupilot_undo_correct_field`."""
+    ofs, Ms = _ap_scale_matrix(params, compass, naming)
+    return (np.atleast_2d(np.asarray(y, dtype=float)) + ofs) @ Ms.T
+
+
 def ardupilot_uncorrect(
     corrected: np.ndarray,
     params: dict[str, float],

@@ -1,0 +1,477 @@
+"""Writing a calibration to an ArduPilot or PX4 vehicle: plan, back up, write, confirm.
+
+1. **Plan** (:func:`plan_flash`, pure): the result's ``D⁻¹``, ``o`` in the autopilot's unit,
+   times the local field strength, mapped with :func:`magcal.autopilot.mapping.to_ardupilot`
+   or :func:`~magcal.autopilot.mapping.to_px4` (polar decomposition; enumerated rotation, or a
+   custom one when allowed; a rotation that cannot be represented is reported with the
+   heading error of leaving it out). Limits are checked there: nothing is written when a
+   value is refused. The writes are ordered so that no intermediate state uses half a
+   rotation: ArduPilot's CUST_ROT_ENABLE (when set to 1) and custom angles first, the
+   compass's rotation last (CUST_ROT_ENABLE when set to 0 after it).
+2. **Back up** (:func:`back_up`): every parameter the plan touches is read from the vehicle
+   and saved to a new QGroundControl ``.params`` file (with a Mission Planner ``.parm`` twin)
+   *before anything is written*. ArduPilot hides CUST_ROTn_* while CUST_ROT_ENABLE is 0: they
+   are not in the backup, and restoring CUST_ROT_ENABLE = 0 hides them again.
+3. **Write and confirm** (:func:`write_and_confirm`): PARAM_SET, then the vehicle's
+   PARAM_VALUE echo must carry the value (float32 equality; integers exact, PX4's bytewise
+   encoding decoded); a lost or different echo is retried, up to PARAM_WRITE_TRIES sends per
+   parameter. The outcome lists every parameter confirmed or not.
+
+What holds after a failure: PARAM_SET sets a whole value, so each parameter holds either its
+old value (in the backup) or the new one; the ones not confirmed are named with the last value
+the vehicle echoed (if any). ``magcal flash --restore BACKUP`` writes the backup back the same
+way (after backing up the values it replaces).
+
+Some changes take effect only after a reboot (:attr:`Plan.reboot_reasons`): ArduPilot builds
+a custom rotation's matrix when it is first used and marks CUST_ROT_ENABLE "reboot required";
+PX4's Magnetometer takes a new offset, scale or off-diagonal only when it differs from the one
+in use by more than 0.01.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from magcal.autopilot import mapping, params, rotations, vehicle, wmm
+from magcal.autopilot.connection import Autopilot
+from magcal.errors import MagcalError
+from magcal.io.result import CalibrationResult
+
+log = logging.getLogger(__name__)
+
+#: PARAM_SET sends per parameter before it is reported unconfirmed.
+PARAM_WRITE_TRIES = 10
+#: PX4 Magnetometer::set_offset/set_scale/set_offdiagonal ignore smaller changes until a reboot.
+PX4_UPDATE_THRESHOLD = 0.01
+
+
+class AutopilotFlashError(MagcalError):
+    """Writing the parameters failed; ``unconfirmed`` lists them, ``backup_path`` the backup."""
+
+    def __init__(
+        self,
+        message: str,
+        unconfirmed: tuple[Unconfirmed, ...] = (),
+        backup_path: Path | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.unconfirmed = unconfirmed
+        self.backup_path = backup_path
+
+
+@dataclass(frozen=True)
+class Unconfirmed:
+    """A parameter whose new value was not confirmed: wanted, and the last value echoed (None
+    when no echo came)."""
+
+    name: str
+    wanted: float
+    echoed: float | None
+
+
+@dataclass(frozen=True)
+class Plan:
+    """What flash will write, in order, and what it means.
+
+    writes : the parameters to set (value as the vehicle will hold it, MAV_PARAM_TYPE)
+    unchanged : parameters of the mapping the vehicle already holds (not written)
+    mapped : the mapping's output (notes, residual rotation, its heading cost)
+    field : the field strength used; unit : the autopilot's unit
+    reboot_reasons : why a reboot is needed before every value is in use (empty: none)
+    """
+
+    autopilot: str
+    compass: int
+    writes: tuple[params.ParamEntry, ...]
+    unchanged: tuple[params.ParamEntry, ...]
+    mapped: mapping.AutopilotParams
+    field: wmm.Field
+    unit: str
+    reboot_reasons: tuple[str, ...] = field(default_factory=tuple)
+
+    @property
+    def all_entries(self) -> tuple[params.ParamEntry, ...]:
+        return order_writes(self.autopilot, self.writes + self.unchanged, {})
+
+
+# ------------------------------------------------------------------------------ units
+def result_in_unit(
+    result: CalibrationResult, unit: str, flag_unit: str | None, where: str
+) -> tuple[np.ndarray, np.ndarray, str]:
+    """(D_inv, o) of ``result`` converted to the autopilot's ``unit``, and the result's unit.
+
+    The result's unit is its ``mag_unit`` (the session's ``# mag_unit:``) or ``--mag-unit``;
+    a known magnetic unit is converted (y_ap = c·y: D_inv/c, c·o), anything else refused."""
+    stored = result.extra.get("mag_unit")
+    known = wmm.canonical_unit(stored) if isinstance(stored, str) else None
+    flag = wmm.canonical_unit(flag_unit) if flag_unit else None
+    if flag_unit and flag is None:
+        raise MagcalError(f"flash: --mag-unit {flag_unit!r} is not a magnetic unit (mG, gauss, uT)")
+    if flag and known and flag != known:
+        raise MagcalError(
+            f"flash: {where} says its magnetometer unit is {stored!r} but --mag-unit is "
+            f"{flag_unit!r}; nothing was written: drop --mag-unit or give the result's unit"
+        )
+    res_unit = flag or known
+    if res_unit is None:
+        said = f"mag_unit {stored!r}" if stored is not None else "no mag_unit"
+        raise MagcalError(
+            f"flash: {where} has {said}, so the unit of its D and o is unknown; nothing was "
+            f"written: calibrate a session recorded by magcal collect --mavlink (it says "
+            f"{unit}), or pass --mag-unit"
+        )
+    c = wmm.convert(1.0, res_unit, unit)
+    D_inv = np.linalg.inv(result.D) / c
+    return D_inv, c * np.asarray(result.o, dtype=float), res_unit
+
+
+# ------------------------------------------------------------------------------ planning
+def order_writes(
+    autopilot: str, entries: tuple[params.ParamEntry, ...], current: dict[str, float]
+) -> tuple[params.ParamEntry, ...]:
+    """The order to write ``entries`` in (module docstring, step 1)."""
+
+    def rank(e: params.ParamEntry) -> int:
+        n = e.name
+        if autopilot == vehicle.ARDUPILOT:
+            if n == "CUST_ROT_ENABLE":
+                return 0 if e.value != 0 else 4
+            if n.startswith("CUST_ROT"):
+                return 1
+            if "ORIENT" in n:
+                return 3
+            return 2
+        if n.endswith(("_ROLL", "_PITCH", "_YAW")):
+            return 1
+        return 3 if n.endswith("_ROT") else 2
+
+    return tuple(sorted(entries, key=rank))
+
+
+def _type_of(name: str, types: dict[str, int]) -> int:
+    if name in types:
+        return types[name]
+    # parameters not read yet (ArduPilot's hidden CUST_ROTn_*): their declared types
+    if name == "CUST_ROT_ENABLE" or "ORIENT" in name:
+        return params.INT8
+    if name.endswith("_ROT"):
+        return params.INT32
+    return params.REAL32
+
+
+def _ardupilot_slot(cp: vehicle.CompassParams) -> tuple[int | None, bool]:
+    """(custom rotation slot to use or None, whether reusing it needs a reboot).
+
+    A slot used by AHRS_ORIENTATION or another compass is never taken; a slot nobody uses
+    is preferred (its matrix is built at first use); the slot this compass already uses is
+    reused only when the other one is taken (its angles then apply after a reboot)."""
+    v = cp.values
+    own_name = mapping.ap_param_names(cp.compass, cp.naming)["ORIENT"]
+    own = int(v.get(own_name, 0)) if cp.external else None
+    others = {int(v.get("AHRS_ORIENTATION", 0))}
+    for k in range(1, vehicle.MAX_COMPASSES + 1):
+        name = mapping.ap_param_names(k, cp.naming)["ORIENT"]
+        if k != cp.compass and name in v:
+            others.add(int(v[name]))
+    for slot in (1, 2):
+        if 100 + slot not in others and own != 100 + slot:
+            return slot, False
+    for slot in (1, 2):
+        if 100 + slot not in others:
+            return slot, True
+    return None, False
+
+
+def plan_flash(
+    result_D_inv: np.ndarray,
+    result_o: np.ndarray,
+    cp: vehicle.CompassParams,
+    fld: wmm.Field,
+    *,
+    recorded: dict[str, float] | None = None,
+    allow_custom: bool = True,
+) -> Plan:
+    """The parameters for a calibration (pure; module docstring, step 1).
+
+    result_D_inv, result_o : the result in the autopilot's unit (:func:`result_in_unit`)
+    cp : the compass parameters in force now
+    fld : the local field
+    recorded : the compass parameters in force when the session was recorded (ArduPilot:
+        the rotation the session's y went through; needed for an external compass)
+    allow_custom : ArduPilot: may write a custom rotation; PX4: may write CAL_MAGn_ROT = 100
+        with CAL_MAGn_ROLL/PITCH/YAW (only when the vehicle has those)."""
+    unit = cp.unit
+    F = fld.strength(unit)
+    incl = (
+        fld.inclination_deg if fld.inclination_deg is not None else mapping.DEFAULT_INCLINATION_DEG
+    )
+    reboot: list[str] = []
+    if cp.autopilot == vehicle.ARDUPILOT:
+        R_old = np.eye(3)
+        if cp.external:
+            if recorded is None:
+                raise MagcalError(
+                    "flash: ArduPilot rotates the session's magnetometer with the compass "
+                    "rotation in force when it was recorded (y = R_old·raw), and the result "
+                    "does not say which that was: pass --session SESSION.csv (the session the "
+                    "result was calibrated from); nothing was written"
+                )
+            R_old = mapping.ardupilot_rotation(recorded, cp.compass, cp.naming)
+        slot, reuse = _ardupilot_slot(cp)
+        custom_ok = allow_custom and "CUST_ROT_ENABLE" in cp.values and slot is not None
+        mapped = mapping.to_ardupilot(
+            result_D_inv,
+            result_o,
+            F,
+            R_old,
+            compass=cp.compass,
+            naming=cp.naming,
+            external=cp.external,
+            allow_custom=custom_ok,
+            custom_slot=slot or 1,
+            offs_max_mG=cp.values.get("COMPASS_OFFS_MAX", mapping.AP_OFFS_MAX_DEFAULT_MG),
+            inclination_deg=incl,
+        )
+        new = dict(mapped.params)
+        scale_name = mapping.ap_param_names(cp.compass, cp.naming)["SCALE"]
+        if scale_name not in cp.values:
+            if new.get(scale_name, 1.0) != 1.0:
+                raise MagcalError(
+                    f"flash: the calibration needs {scale_name} = {new[scale_name]:.3f}, which "
+                    "this firmware does not have (a diagonal outside 0.2–5 otherwise); "
+                    "nothing was written: check the field strength and the result's unit"
+                )
+            new.pop(scale_name, None)
+        notes = list(mapped.notes)
+        if allow_custom and "CUST_ROT_ENABLE" not in cp.values and cp.external:
+            notes.append("this firmware has no custom rotations (no CUST_ROT_ENABLE)")
+        if "CUST_ROT_ENABLE" in new and cp.values.get("CUST_ROT_ENABLE", 0.0) == 0.0:
+            reboot.append("ArduPilot marks CUST_ROT_ENABLE 'reboot required'")
+        if reuse and any(k.startswith(f"CUST_ROT{slot}_") for k in new):
+            reboot.append(
+                f"compass {cp.compass} already uses custom rotation {100 + slot}, whose matrix "
+                "ArduPilot rebuilds only at boot"
+            )
+        mapped = mapping.AutopilotParams(
+            new, mapped.rotation, mapped.residual_angle_deg, mapped.heading_rms_deg, tuple(notes)
+        )
+    else:
+        index = vehicle.px4_index(cp.compass)
+        if not cp.external:
+            raise MagcalError(
+                f"flash: PX4 compass {cp.compass} is internal (CAL_MAG{index}_ROT = -1): PX4 "
+                "turns it with the board rotation SENS_BOARD_ROT, which magcal does not write; "
+                "nothing was written"
+            )
+        has_custom = all(n in cp.values for n in vehicle.px4_custom_angles(index))
+        if allow_custom and not has_custom:
+            raise MagcalError(
+                f"flash: --px4-custom-rotation, but this PX4 has no CAL_MAG{index}_ROLL/PITCH/YAW "
+                "(older firmware): drop the option; nothing was written"
+            )
+        # PX4 applies Dcmf(Eulerf(SENS_BOARD_X/Y/Z_OFF)) to every magnetometer's rotation too
+        L = rotations.euler_deg_to_matrix(
+            cp.values["SENS_BOARD_X_OFF"],
+            cp.values["SENS_BOARD_Y_OFF"],
+            cp.values["SENS_BOARD_Z_OFF"],
+        )
+        mapped = mapping.to_px4(
+            L.T @ result_D_inv,
+            result_o,
+            F,
+            None,
+            index=index,
+            allow_custom=allow_custom,
+            inclination_deg=incl,
+        )
+        reboot += _px4_reboot_reasons(cp, mapped.params, index)
+    entries = []
+    unchanged = []
+    for name, value in mapped.params.items():
+        t = _type_of(name, cp.types)
+        e = params.ParamEntry(name, params.held_value(value, t, name), t)
+        if name in cp.values and params.confirmed(e.value, cp.values[name], t):
+            unchanged.append(e)
+        else:
+            entries.append(e)
+    return Plan(
+        cp.autopilot,
+        cp.compass,
+        order_writes(cp.autopilot, tuple(entries), cp.values),
+        tuple(unchanged),
+        mapped,
+        fld,
+        unit,
+        tuple(reboot),
+    )
+
+
+def _px4_reboot_reasons(cp: vehicle.CompassParams, new: dict[str, float], index: int) -> list[str]:
+    p = f"CAL_MAG{index}_"
+    out = []
+    for group in ("OFF", "SCALE", "ODIAG"):
+        names = [f"{p}{a}{group}" for a in "XYZ"]
+        old = np.array([cp.values[n] for n in names])
+        want = np.array([float(np.float32(new[n])) for n in names])
+        change = float(np.linalg.norm(want - old))
+        if 0.0 < change <= PX4_UPDATE_THRESHOLD:
+            out.append(
+                f"PX4 takes the new {p}*{group} (a change of {change:.4f}) only after a reboot "
+                f"(changes up to {PX4_UPDATE_THRESHOLD} are ignored until then)"
+            )
+    return out
+
+
+# ------------------------------------------------------------------------------ backup
+def default_backup_path(result_path: Path, autopilot: str, system: int) -> Path:
+    """``RESULT.backup-<autopilot>-sys<N>-<UTC time>.params`` next to the result, new."""
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    base = result_path.with_name(f"{result_path.stem}.backup-{autopilot}-sys{system}-{stamp}")
+    k = 1
+    while True:
+        p = Path(f"{base}{'' if k == 1 else f'-{k}'}{params.QGC_SUFFIX}")
+        if not p.exists() and not p.with_suffix(params.PARM_SUFFIX).exists():
+            return p
+        k += 1
+
+
+@dataclass(frozen=True)
+class Backup:
+    """A backup written: its files (.params first), the values saved, the names not saved
+    (hidden by the vehicle, with why)."""
+
+    paths: tuple[Path, ...]
+    saved: params.ParamFile
+    hidden: tuple[str, ...]
+
+    @property
+    def path(self) -> Path:
+        return self.paths[0]
+
+
+def back_up(
+    ap: Autopilot,
+    names: list[str],
+    path: Path,
+    *,
+    what: str,
+    known: dict[str, params.ParamEntry] | None = None,
+    twin: bool = True,
+) -> Backup:
+    """Read every parameter of ``names`` from the vehicle and save them to ``path`` (a new
+    ``.params`` file; with ``twin`` also the ``.parm`` next to it). ArduPilot's CUST_ROTn_*
+    are skipped while CUST_ROT_ENABLE is 0 (they cannot be read); any other parameter that does
+    not answer refuses the flash before anything is written.
+
+    known : values just read (not asked again)."""
+    known = known or {}
+    entries: list[params.ParamEntry] = []
+    hidden: list[str] = []
+    unreadable: list[str] = []
+    enable_off = False
+    if ap.autopilot == vehicle.ARDUPILOT and any(n.startswith("CUST_ROT") for n in names):
+        e = known.get("CUST_ROT_ENABLE") or ap.read("CUST_ROT_ENABLE")
+        enable_off = e is not None and e.value == 0.0
+    for name in names:
+        e = known.get(name) or ap.read(name)
+        if e is None:
+            if enable_off and name.startswith("CUST_ROT") and name != "CUST_ROT_ENABLE":
+                hidden.append(name)
+                continue
+            unreadable.append(name)
+            continue
+        entries.append(e)
+    if unreadable:
+        raise MagcalError(
+            f"flash: no answer for {', '.join(unreadable)} while backing up: the vehicle does "
+            "not have them or the link lost every reply; nothing was written"
+        )
+    hb = ap.heartbeat
+    stamp = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    comments = [
+        f"magcal backup: {ap.name} system {hb.system}, {what}, read {stamp} from {ap.url}",
+        "restore with: magcal flash --restore THIS_FILE --mavlink URL",
+    ]
+    if hidden:
+        comments.append(
+            f"not saved: {', '.join(hidden)} (hidden while CUST_ROT_ENABLE = 0; restoring "
+            "CUST_ROT_ENABLE = 0 hides them again)"
+        )
+    pf = params.ParamFile(tuple(entries), hb.system, hb.component, tuple(comments))
+    header = {"stack": ap.name, "vehicle": vehicle.vehicle_type_name(hb.vehicle_type)}
+    written = [params.write_new_file(path, params.render_param_file(path, pf, **header))]
+    if twin:
+        other = path.with_suffix(
+            params.PARM_SUFFIX
+            if params.file_format(path) == params.QGC_SUFFIX
+            else params.QGC_SUFFIX
+        )
+        if not other.exists():
+            written.append(
+                params.write_new_file(other, params.render_param_file(other, pf, **header))
+            )
+    return Backup(tuple(written), pf, tuple(hidden))
+
+
+# ------------------------------------------------------------------------------ writing
+Progress = Callable[[str], None]
+
+
+def write_and_confirm(
+    ap: Autopilot,
+    writes: tuple[params.ParamEntry, ...],
+    progress: Progress | None = None,
+    tries: int = PARAM_WRITE_TRIES,
+) -> tuple[Unconfirmed, ...]:
+    """PARAM_SET each entry until its echo confirms it (module docstring, step 3); returns the
+    ones not confirmed after ``tries`` sends (empty: all confirmed)."""
+    failed: list[Unconfirmed] = []
+    for k, e in enumerate(writes, start=1):
+        if e.param_type is None:
+            raise MagcalError(f"flash: no parameter type for {e.name}")
+        echoed: float | None = None
+        for attempt in range(tries):
+            echo = ap.write_once(e.name, e.value, e.param_type)
+            if echo is not None:
+                echoed = echo.value
+                if params.confirmed(e.value, echo.value, e.param_type):
+                    break
+            log.info("%s: %s not confirmed (try %d, echo %s)", ap.url, e.name, attempt + 1, echoed)
+        else:
+            failed.append(Unconfirmed(e.name, e.value, echoed))
+            if progress:
+                progress(f"{k}/{len(writes)} {e.name}: NOT confirmed after {tries} tries")
+            continue
+        if progress:
+            progress(
+                f"{k}/{len(writes)} {e.name} = {params.value_text(e.value, e.param_type)} confirmed"
+            )
+    return tuple(failed)
+
+
+def unconfirmed_text(failed: tuple[Unconfirmed, ...]) -> str:
+    parts = []
+    for u in failed:
+        got = "no echo" if u.echoed is None else f"vehicle echoed {u.echoed:.9g}"
+        parts.append(f"{u.name} (wanted {u.wanted:.9g}, {got})")
+    return ", ".join(parts)
+
+
+def restore_entries(
+    pf: params.ParamFile, current: dict[str, params.ParamEntry], autopilot: str
+) -> tuple[params.ParamEntry, ...]:
+    """A backup's entries with their types (the file's, else the vehicle's), in write order.
+    Parameters the vehicle hides now (ArduPilot CUST_ROTn_* while CUST_ROT_ENABLE is 0) keep
+    the file's type or their declared one."""
+    out = []
+    types = {n: e.param_type for n, e in current.items() if e.param_type is not None}
+    for e in pf.entries:
+        t = e.param_type if e.param_type is not None else _type_of(e.name, types)
+        out.append(params.ParamEntry(e.name, params.held_value(e.value, t, e.name), t))
+    return order_writes(autopilot, tuple(out), {})

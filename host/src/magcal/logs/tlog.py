@@ -1,0 +1,324 @@
+"""MAVLink telemetry logs (``.tlog``): what a ground station recorded from either autopilot.
+
+A tlog is a sequence of MAVLink frames, each after the 8-byte big-endian µs (Unix) time the
+ground station received it; pymavlink reads it (``mavutil.mavlink_connection`` on the
+file). The vehicle is the first HEARTBEAT that is not a ground station's (``autopilot`` not
+MAV_AUTOPILOT_INVALID, ``type`` not MAV_TYPE_GCS); only its messages are read, and its
+``autopilot`` field says which personality applies. Sample times are the vehicle's own
+(``time_usec`` / ``time_boot_ms``, since boot), not the reception times, which carry the
+link's latency; events that have no vehicle time (PARAM_VALUE, HEARTBEAT, VFR_HUD) are placed
+on the vehicle's clock by the median offset between the two clocks.
+
+- **ArduPilot** (GCS_Common.cpp ``send_raw_imu`` / ``send_scaled_imu``): RAW_IMU is IMU and
+  compass 1, SCALED_IMU2 IMU and compass 2, SCALED_IMU3 the third; acceleration in mG
+  (``accel · 1000 / GRAVITY_MSS``), rate in mrad/s, the **corrected** compass field in mG, all
+  cast to int16. The correction is undone with the PARAM_VALUEs received (the ground station
+  fetches them all when it connects, and each change comes back as PARAM_VALUE). Motor
+  compensation is not in the stream: it is zero while disarmed, and armed data are not used.
+- **PX4**: HIGHRES_IMU (``id`` = instance) carries the calibrated IMU in m/s² and rad/s as
+  floats and is used when present, else SCALED_IMU*; the magnetometer comes from SCALED_IMU
+  (compass 1), SCALED_IMU2, SCALED_IMU3, which PX4 fills with the **raw** ``sensor_mag``
+  (mG, board frame); it is converted to gauss. PX4 sends integer parameters bytewise in
+  PARAM_VALUE's float (MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_BYTEWISE); they are decoded so.
+
+The armed state comes from the vehicle's HEARTBEAT (``base_mode`` bit
+MAV_MODE_FLAG_SAFETY_ARMED) and the throttle from VFR_HUD.
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+from collections.abc import Callable
+
+import numpy as np
+from pymavlink import mavutil
+
+from magcal.logs.correction import (
+    ardupilot_recorded,
+    ardupilot_state_index,
+    px4_recorded,
+    undo_ardupilot,
+)
+from magcal.logs.streams import (
+    ImuStream,
+    LogImportError,
+    LogStreams,
+    MagStream,
+    ParamTimeline,
+    StepSignal,
+    instances_text,
+    strictly_increasing,
+)
+
+Progress = Callable[[float], None]
+
+GRAVITY_MSS = 9.80665  # ArduPilot's GRAVITY_MSS and PX4's CONSTANTS_ONE_G
+MAV_AUTOPILOT_ARDUPILOTMEGA = 3
+MAV_AUTOPILOT_PX4 = 12
+MAV_AUTOPILOT_INVALID = 8
+MAV_TYPE_GCS = 6
+MAV_MODE_FLAG_SAFETY_ARMED = 128
+#: HIGHRES_IMU fields_updated: bits 0–2 acceleration, 3–5 rate.
+HIGHRES_ACC_GYRO = 0x3F
+IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
+#: The vehicle's boot clock going back by more than this means it rebooted, s.
+REBOOT_JUMP_S = 1.0
+#: Progress is reported every this many messages.
+PROGRESS_EVERY = 2000
+#: MAV_PARAM_TYPE → struct code of the bytes in PARAM_VALUE's float (bytewise encoding).
+_BYTEWISE = {1: "<B", 2: "<b", 3: "<H", 4: "<h", 5: "<I", 6: "<i"}
+NEEDS_AP = "needs RAW_IMU (or SCALED_IMU2/3) and PARAM_VALUE messages"
+NEEDS_PX4 = "needs HIGHRES_IMU or SCALED_IMU, and SCALED_IMU for the magnetometer"
+
+
+def _instance_of(msg_type: str) -> int:
+    """1-based instance of an IMU message: RAW_IMU/SCALED_IMU 1, SCALED_IMU2 2, ..."""
+    return int(msg_type[-1]) if msg_type[-1].isdigit() else 1
+
+
+def _boot_time_s(m) -> float:
+    if hasattr(m, "time_usec"):
+        return m.time_usec * 1e-6
+    return m.time_boot_ms * 1e-3
+
+
+def _param_value(m, autopilot: int) -> float:
+    if autopilot == MAV_AUTOPILOT_PX4 and m.param_type in _BYTEWISE:
+        raw = struct.pack("<f", m.param_value)
+        code = _BYTEWISE[m.param_type]
+        return float(struct.unpack(code, raw[: struct.calcsize(code)])[0])
+    return float(m.param_value)
+
+
+def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str, list]]:
+    """(autopilot, type → [(reception s, message)]) of the vehicle's messages."""
+    name = os.path.basename(path)
+    wanted = ["HEARTBEAT", "PARAM_VALUE", "VFR_HUD", "HIGHRES_IMU", *IMU_MESSAGES]
+    try:
+        conn = mavutil.mavlink_connection(path, notimestamps=False, robust_parsing=True)
+    except OSError:
+        raise
+    except Exception as exc:
+        raise LogImportError(f"{name}: not a readable MAVLink telemetry log ({exc})") from exc
+    vehicle: tuple[int, int] | None = None
+    autopilot = MAV_AUTOPILOT_INVALID
+    seen: dict[str, list] = {k: [] for k in wanted}
+    count = 0
+    try:
+        while True:
+            m = conn.recv_match(type=wanted)
+            if m is None:
+                break
+            count += 1
+            if progress is not None and count % PROGRESS_EVERY == 0:
+                progress(conn.percent / 100.0)
+            src = (m.get_srcSystem(), m.get_srcComponent())
+            if vehicle is None:
+                if (
+                    m.get_type() == "HEARTBEAT"
+                    and m.autopilot != MAV_AUTOPILOT_INVALID
+                    and m.type != MAV_TYPE_GCS
+                ):
+                    vehicle, autopilot = src, m.autopilot
+                else:
+                    continue  # nothing is known to be the vehicle's before its heartbeat
+            if src != vehicle:
+                continue
+            seen[m.get_type()].append((m._timestamp, m))
+    finally:
+        conn.close()
+    if progress is not None:
+        progress(1.0)
+    if vehicle is None:
+        raise LogImportError(
+            f"{name} has no HEARTBEAT from a vehicle (only ground stations, or no MAVLink at "
+            "all); it cannot say which autopilot recorded the data"
+        )
+    return autopilot, seen
+
+
+def _clock_offset(seen: dict[str, list]) -> float:
+    """Median of (reception time − vehicle time) over the timed messages, s."""
+    d = [rx - _boot_time_s(m) for k in ("HIGHRES_IMU", *IMU_MESSAGES) for rx, m in seen[k]]
+    return float(np.median(d)) if d else 0.0
+
+
+def _check_no_reboot(name: str, samples: list) -> None:
+    boot = np.array([_boot_time_s(m) for _, m in samples])
+    back = np.flatnonzero(np.diff(boot) < -REBOOT_JUMP_S)
+    if back.size:
+        k = int(back[0]) + 1
+        raise LogImportError(
+            f"{name}: the vehicle's clock goes back from {boot[k - 1]:.1f} to {boot[k]:.1f} s "
+            "(it rebooted during the recording); split the log at the reboot"
+        )
+
+
+def _imu_from_scaled(name: str, msg_type: str, samples: list, instance: int) -> ImuStream:
+    _check_no_reboot(name, samples)
+    t = np.array([_boot_time_s(m) for _, m in samples])
+    acc = np.array([(m.xacc, m.yacc, m.zacc) for _, m in samples], float) * GRAVITY_MSS / 1000.0
+    gyr = np.array([(m.xgyro, m.ygyro, m.zgyro) for _, m in samples], float) / 1000.0
+    t, gyr, acc = strictly_increasing(t, gyr, acc)
+    return ImuStream(t, gyr, acc, instance, msg_type)
+
+
+def _imu_from_highres(name: str, samples: list, instance: int) -> ImuStream | None:
+    mine = [(rx, m) for rx, m in samples if getattr(m, "id", 0) == instance - 1]
+    if any(m.fields_updated for _, m in mine):
+        mine = [
+            (rx, m) for rx, m in mine if m.fields_updated & HIGHRES_ACC_GYRO == HIGHRES_ACC_GYRO
+        ]
+    if not mine:
+        return None
+    _check_no_reboot(name, mine)
+    t = np.array([m.time_usec * 1e-6 for _, m in mine])
+    acc = np.array([(m.xacc, m.yacc, m.zacc) for _, m in mine], float)
+    gyr = np.array([(m.xgyro, m.ygyro, m.zgyro) for _, m in mine], float)
+    t, gyr, acc = strictly_increasing(t, gyr, acc)
+    return ImuStream(t, gyr, acc, instance, f"HIGHRES_IMU id {instance - 1}")
+
+
+def _imu_message(instance: int) -> str:
+    return ("RAW_IMU", "SCALED_IMU2", "SCALED_IMU3")[instance - 1] if instance <= 3 else ""
+
+
+def _mag_samples(seen: dict[str, list], msg_type: str) -> list:
+    """Samples of ``msg_type`` whose magnetometer is not all zero (no such compass)."""
+    return [(rx, m) for rx, m in seen.get(msg_type, []) if (m.xmag, m.ymag, m.zmag) != (0, 0, 0)]
+
+
+def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = None) -> LogStreams:
+    """Read a MAVLink ``.tlog``; compass and imu are 1-based (see the module docstring)."""
+    name = os.path.basename(path)
+    autopilot, seen = _read_messages(path, progress)
+    offset = _clock_offset(seen)
+    records = [
+        (rx - offset, m.param_id, _param_value(m, autopilot)) for rx, m in seen["PARAM_VALUE"]
+    ]
+    params = ParamTimeline.from_records(records)
+    armed, throttle = _armed_throttle(seen, offset)
+    if autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
+        return _ardupilot(path, name, seen, params, compass, imu, armed, throttle)
+    if autopilot == MAV_AUTOPILOT_PX4:
+        return _px4(path, name, seen, params, compass, imu, armed, throttle)
+    raise LogImportError(
+        f"{name}: the vehicle's HEARTBEAT names autopilot {autopilot}; magcal reads ArduPilot "
+        f"({MAV_AUTOPILOT_ARDUPILOTMEGA}) and PX4 ({MAV_AUTOPILOT_PX4}) telemetry"
+    )
+
+
+def _armed_throttle(seen: dict[str, list], offset: float) -> tuple[StepSignal | None, ...]:
+    hb = seen["HEARTBEAT"]
+    armed = None
+    if hb:
+        t = np.array([rx - offset for rx, _ in hb])
+        v = np.array([float(m.base_mode & MAV_MODE_FLAG_SAFETY_ARMED != 0) for _, m in hb])
+        armed = StepSignal(t, v)
+    hud = seen["VFR_HUD"]
+    throttle = None
+    if hud:
+        t = np.array([rx - offset for rx, _ in hud])
+        throttle = StepSignal(t, np.array([m.throttle / 100.0 for _, m in hud]))
+    return armed, throttle
+
+
+def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
+    imu_type, mag_type = _imu_message(imu), _imu_message(compass)
+    have_imu = [i for i in (1, 2, 3) if seen[_imu_message(i)]]
+    have_mag = [i for i in (1, 2, 3) if _mag_samples(seen, _imu_message(i))]
+    missing = []
+    if not imu_type or not seen[imu_type]:
+        missing.append(
+            f"no {imu_type or 'message'} for IMU {imu} (found IMUs {instances_text(have_imu)})"
+        )
+    if not mag_type or not _mag_samples(seen, mag_type):
+        missing.append(
+            f"no magnetometer data for compass {compass} (found compasses "
+            f"{instances_text(have_mag)})"
+        )
+    if not seen["PARAM_VALUE"]:
+        missing.append("no PARAM_VALUE messages (the ground station never fetched parameters)")
+    if missing:
+        raise LogImportError(f"{name} (ArduPilot) has {' and '.join(missing)}; {NEEDS_AP}")
+    imu_stream = _imu_from_scaled(name, imu_type, seen[imu_type], imu)
+    samples = _mag_samples(seen, mag_type)
+    _check_no_reboot(name, samples)
+    t = np.array([_boot_time_s(m) for _, m in samples])
+    field = np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples], float)
+    t, field = strictly_increasing(t, field)
+    undone = undo_ardupilot(name, t, field, params, compass)
+    state = ardupilot_state_index(params.initial, compass)
+    mag_stream = MagStream(
+        t=t[undone.keep],
+        mag=undone.mag,
+        instance=compass,
+        unit="mG",
+        frame=(
+            "ArduPilot body frame: after the compass rotation in force (COMPASS_ORIENT for an "
+            "external compass, the board's for an internal one); offsets, COMPASS_SCALE and "
+            "DIA/ODI undone"
+        ),
+        source=mag_type,
+    )
+    return LogStreams(
+        path=path,
+        log_format="tlog",
+        autopilot="ArduPilot",
+        imu=imu_stream,
+        mag=mag_stream,
+        params=params,
+        param_names=ardupilot_recorded(state, params.names()),
+        armed=armed,
+        throttle=throttle,
+        notes=undone.notes,
+    )
+
+
+def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
+    mag_type = ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")[compass - 1] if compass <= 3 else ""
+    imu_stream = _imu_from_highres(name, seen["HIGHRES_IMU"], imu)
+    scaled = ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
+    if imu_stream is None and imu <= 3 and seen[scaled[imu - 1]]:
+        imu_stream = _imu_from_scaled(name, scaled[imu - 1], seen[scaled[imu - 1]], imu)
+    have_mag = [i for i, k in enumerate(scaled, 1) if _mag_samples(seen, k)]
+    missing = []
+    if imu_stream is None:
+        ids = sorted({getattr(m, "id", 0) + 1 for _, m in seen["HIGHRES_IMU"]})
+        ids += [i for i, k in enumerate(scaled, 1) if seen[k] and i not in ids]
+        missing.append(
+            f"no HIGHRES_IMU or SCALED_IMU for IMU {imu} (found IMUs {instances_text(ids)})"
+        )
+    if not mag_type or not _mag_samples(seen, mag_type):
+        missing.append(
+            f"no SCALED_IMU magnetometer data for compass {compass} (found compasses "
+            f"{instances_text(have_mag)})"
+        )
+    if missing:
+        raise LogImportError(f"{name} (PX4) has {' and '.join(missing)}; {NEEDS_PX4}")
+    assert imu_stream is not None
+    samples = _mag_samples(seen, mag_type)
+    _check_no_reboot(name, samples)
+    t = np.array([_boot_time_s(m) for _, m in samples])
+    field = np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples], float) / 1000.0
+    t, field = strictly_increasing(t, field)
+    mag_stream = MagStream(
+        t=t,
+        mag=field,
+        instance=compass,
+        unit="gauss",
+        frame="PX4 sensor frame: the raw sensor_mag field (SCALED_IMU), before any calibration",
+        source=mag_type,
+    )
+    return LogStreams(
+        path=path,
+        log_format="tlog",
+        autopilot="PX4",
+        imu=imu_stream,
+        mag=mag_stream,
+        params=params,
+        param_names=px4_recorded(compass - 1, params.names()),
+        armed=armed,
+        throttle=throttle,
+    )

@@ -98,6 +98,15 @@ def _i16(x: float) -> int:
     return int(np.clip(np.trunc(x), -32768, 32767))
 
 
+def _raw_payload(msg: mavlink.MAVLink_message) -> bytes:
+    """A received message's payload bytes as sent (PARAM_SET's float field may hold an
+    int32's bytes, which a Python float cannot always carry). From the frame: pymavlink's
+    get_payload() is offset by the MAVLink 1 header length for MAVLink 2 frames."""
+    buf = bytes(msg.get_msgbuf())
+    header = 10 if buf[0] == mavlink.PROTOCOL_MARKER_V2 else 6
+    return buf[header : header + buf[1]]
+
+
 def _attitude_ned(R_nb: np.ndarray) -> tuple[float, float, float]:
     """(roll, pitch, yaw) rad of the body (FRD) relative to NED from magcal's R_nb (n = x north,
     y west, z up): ``R_ned_b = diag(1, −1, −1) R_nb``, Euler 3-2-1."""
@@ -405,8 +414,7 @@ class AutopilotEmulator:
         name = self._param_name(
             msg._param_id_raw if hasattr(msg, "_param_id_raw") else msg.param_id
         )
-        payload = bytes(msg.get_payload() or b"")
-        value_bytes = (payload + bytes(4))[:4]  # MAVLink 2 trims trailing zero bytes
+        value_bytes = (_raw_payload(msg) + bytes(4))[:4]  # MAVLink 2 trims trailing zeros
         with self._lock:
             stored = self._store.set_from_wire(name, value_bytes)
             if stored is None:
@@ -455,21 +463,26 @@ class AutopilotEmulator:
         self._send(self._mav.statustext_encode(severity, text.encode("ascii")[:50]))
 
     def _on_command_long(self, msg: mavlink.MAVLink_message) -> None:
+        """Answer with COMMAND_ACK first; a requested message follows the ACK (as ArduPilot
+        queues it)."""
         cmd = msg.command
         result = M.MAV_RESULT_ACCEPTED
+        reply: mavlink.MAVLink_message | None = None
         if cmd == M.MAV_CMD_SET_MESSAGE_INTERVAL:
             result = self._set_interval(int(msg.param1), msg.param2)
         elif cmd == M.MAV_CMD_GET_MESSAGE_INTERVAL:
             mid = int(msg.param1)
             if mid in self._intervals_us:
                 interval = self._intervals_us[mid]
-                self._send(self._mav.message_interval_encode(mid, interval if interval > 0 else -1))
+                reply = self._mav.message_interval_encode(mid, interval if interval > 0 else -1)
             else:
                 result = M.MAV_RESULT_FAILED
         elif cmd == M.MAV_CMD_REQUEST_MESSAGE:
-            result = self._send_requested(int(msg.param1))
+            reply = self._requested(int(msg.param1))
+            if reply is None:
+                result = M.MAV_RESULT_FAILED
         elif cmd == M.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES:
-            self._send_autopilot_version()
+            reply = self._autopilot_version()
         elif cmd == M.MAV_CMD_PREFLIGHT_REBOOT_SHUTDOWN and int(msg.param1) == 1:
             self.reboot()
         else:
@@ -479,6 +492,8 @@ class AutopilotEmulator:
                 cmd, result, 0, 0, msg.get_srcSystem(), msg.get_srcComponent()
             )
         )
+        if reply is not None:
+            self._send(reply)
 
     def _set_interval(self, mid: int, interval_us: float) -> int:
         if mid not in self._intervals_us:
@@ -511,19 +526,16 @@ class AutopilotEmulator:
             for mid in group:
                 self._set_interval(mid, interval)
 
-    def _send_requested(self, mid: int) -> int:
+    def _requested(self, mid: int) -> mavlink.MAVLink_message | None:
         if mid == M.MAVLINK_MSG_ID_AUTOPILOT_VERSION:
-            self._send_autopilot_version()
-        elif mid == M.MAVLINK_MSG_ID_HEARTBEAT:
-            self._send(self._heartbeat())
-        elif mid in STREAMS[self.personality]:
-            k = int(self.sim_time_s * SIM_RATE_HZ)
-            self._send(self._stream_message(mid, k))
-        else:
-            return M.MAV_RESULT_FAILED
-        return M.MAV_RESULT_ACCEPTED
+            return self._autopilot_version()
+        if mid == M.MAVLINK_MSG_ID_HEARTBEAT:
+            return self._heartbeat()
+        if mid in STREAMS[self.personality]:
+            return self._stream_message(mid, int(self.sim_time_s * SIM_RATE_HZ))
+        return None
 
-    def _send_autopilot_version(self) -> None:
+    def _autopilot_version(self) -> mavlink.MAVLink_message:
         major, minor, patch = VERSIONS[self.personality]
         sw = (major << 24) | (minor << 16) | (patch << 8) | M.FIRMWARE_VERSION_TYPE_OFFICIAL
         caps = M.MAV_PROTOCOL_CAPABILITY_MAVLINK2 | M.MAV_PROTOCOL_CAPABILITY_SET_ATTITUDE_TARGET
@@ -532,10 +544,8 @@ class AutopilotEmulator:
             if self.personality == "px4"
             else M.MAV_PROTOCOL_CAPABILITY_PARAM_ENCODE_C_CAST
         )
-        self._send(
-            self._mav.autopilot_version_encode(
-                caps, sw, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x4D41474341_4C0001
-            )
+        return self._mav.autopilot_version_encode(
+            caps, sw, 0, 0, 0, [0] * 8, [0] * 8, [0] * 8, 0, 0, 0x4D41474341_4C0001
         )
 
     # -- streams ------------------------------------------------------------------------------

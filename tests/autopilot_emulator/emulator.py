@@ -92,10 +92,10 @@ def free_udp_port(host: str = HOST) -> int:
         return int(s.getsockname()[1])
 
 
-def _i16(x: float) -> int:
+def _i16(values: np.ndarray) -> list[int]:
     """C's float → int16_t conversion as the autopilots' message packing does it: truncation
     toward zero (clipped to the range, where C would be undefined)."""
-    return int(np.clip(np.trunc(x), -32768, 32767))
+    return [max(-32768, min(32767, int(v))) for v in np.asarray(values, dtype=float).tolist()]
 
 
 def _raw_payload(msg: mavlink.MAVLink_message) -> bytes:
@@ -559,37 +559,45 @@ class AutopilotEmulator:
         )
 
     def _send_due(self, now_us: int) -> None:
-        budget = MAX_MESSAGES_PER_TICK
-        for mid, interval in self._intervals_us.items():
-            if interval <= 0:
-                continue
-            while self._next_due_us[mid] <= now_us and budget > 0:
-                due = self._next_due_us[mid]
-                if mid == M.MAVLINK_MSG_ID_HEARTBEAT:
-                    self._send(self._heartbeat())
-                else:
-                    # the latest sample at or before the due time
-                    self._send(self._stream_message(mid, due * int(SIM_RATE_HZ) // 1_000_000))
-                self._next_due_us[mid] = due + interval
-                budget -= 1
+        """Send what is due up to now_us, earliest first across all streams (so that a lag
+        delays every stream alike), at most MAX_MESSAGES_PER_TICK."""
+        for _ in range(MAX_MESSAGES_PER_TICK):
+            due, mid = min(
+                ((d, m) for m, d in self._next_due_us.items() if self._intervals_us[m] > 0),
+                default=(now_us + 1, -1),
+            )
+            if due > now_us:
+                return
+            if mid == M.MAVLINK_MSG_ID_HEARTBEAT:
+                self._send(self._heartbeat())
+            else:
+                # the latest sample at or before the due time
+                self._send(self._stream_message(mid, due * int(SIM_RATE_HZ) // 1_000_000))
+            self._next_due_us[mid] = due + self._intervals_us[mid]
 
     def _refresh_models(self) -> None:
+        """Recompute each compass's model and its raw and corrected fields over the path
+        (after any change of the parameters or the on-board state; caller holds the lock)."""
         params = self._store.snapshot()
-        self._models = [
-            (*self._ap.compass_model(params, n), self._ap.noise_sigma(params))
-            for n in range(1, personalities.MAX_COMPASSES + 1)
-        ]
+        self._models, self._raw, self._corrected = [], [], []
+        for n in range(1, personalities.MAX_COMPASSES + 1):
+            A, c = self._ap.compass_model(params, n)
+            sigma = self._ap.noise_sigma(params)
+            raw = self._world.m_b @ A.T + c + sigma * self._world.mag_noise[n - 1]
+            self._models.append((A, c, sigma))
+            self._raw.append(raw)
+            self._corrected.append(self._ap.correct(raw, params, n))
 
-    def _raw_field(self, n: int, k: int) -> np.ndarray:
-        """Raw sensor-frame field (3,) of compass n at sample k, raw units, with noise."""
-        A, c, sigma = self._models[n - 1]
-        noise = self._world.mag_noise[n - 1, k % len(self._world)]
-        return A @ self._world.field_body(k) + c + sigma * noise
-
-    def _corrected_field(self, n: int, k: int) -> np.ndarray:
+    def _fields(self, n: int, k: int) -> tuple[np.ndarray, np.ndarray]:
+        """(raw sensor-frame field, field corrected on board) (3,) each of compass n at
+        sample k, raw units, with noise."""
         with self._lock:
-            raw = self._raw_field(n, k)
-            return self._ap.correct(raw, self._store.snapshot(), n)[0]
+            if k < len(self._world):
+                return self._raw[n - 1][k], self._corrected[n - 1][k]
+            A, c, sigma = self._models[n - 1]  # holding still after the path
+            noise = self._world.mag_noise[n - 1, k % len(self._world)]
+            raw = A @ self._world.field_body(k) + c + sigma * noise
+            return raw, self._ap.correct(raw, self._store.snapshot(), n)[0]
 
     def _stream_message(self, mid: int, k: int) -> mavlink.MAVLink_message:
         t_us = k * 1_000_000 // int(SIM_RATE_HZ)
@@ -600,7 +608,7 @@ class AutopilotEmulator:
             return self._mav.attitude_encode(t_ms, roll, pitch, yaw, *gyro)
         if mid == M.MAVLINK_MSG_ID_HIGHRES_IMU:  # PX4 only
             acc, gyro = self._world.imu(k, 0)
-            mag = self._corrected_field(1, k)
+            _, mag = self._fields(1, k)
             return self._mav.highres_imu_encode(
                 t_us, *acc, *gyro, *mag, 1013.25, 0.0, 0.0, 25.0, 0x1FF, 0
             )
@@ -615,13 +623,12 @@ class AutopilotEmulator:
         if n > self._ap.compasses:
             mag_mG = np.zeros(3)
         elif self.personality == "px4":  # sensor_mag: raw sensor frame, gauss × 1000
-            with self._lock:
-                mag_mG = self._raw_field(n, k) * 1000.0
+            mag_mG = self._fields(n, k)[0] * 1000.0
         else:  # compass.get_field(): corrected, body frame, mG
-            mag_mG = self._corrected_field(n, k)
-        a = [_i16(v * 1000.0 / GRAVITY_MSS) for v in acc]
-        g = [_i16(v * 1000.0) for v in gyro]
-        m = [_i16(v) for v in mag_mG]
+            mag_mG = self._fields(n, k)[1]
+        a = _i16(acc * 1000.0 / GRAVITY_MSS)
+        g = _i16(gyro * 1000.0)
+        m = _i16(mag_mG)
         if mid == M.MAVLINK_MSG_ID_RAW_IMU:
             return self._mav.raw_imu_encode(t_us, *a, *g, *m, 0, IMU_TEMPERATURE_CDEG)
         encode = {

@@ -21,6 +21,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--motion", default="tumble", choices=("tumble", "yaw-only", "small"))
     ap.add_argument("--param-value-loss", type=float, default=0.0)
     ap.add_argument("--misalignment-deg", type=float, default=None)
+    ap.add_argument(
+        "--duration", type=float, default=None, help="stop after this many wall seconds"
+    )
     args = ap.parse_args(argv)
     emu = AutopilotEmulator(
         args.personality,
@@ -42,10 +45,12 @@ def main(argv: list[str] | None = None) -> int:
             f"heading error now {emu.heading_error_deg(n):.2f} deg",
             file=sys.stderr,
         )
+    deadline = None if args.duration is None else time.monotonic() + args.duration
     with emu:
         try:
-            while True:
-                time.sleep(1.0)
+            while deadline is None or time.monotonic() < deadline:
+                left = 1.0 if deadline is None else deadline - time.monotonic()
+                time.sleep(min(1.0, max(0.0, left)))
                 emu.check()
                 print(
                     f"\rsim {emu.sim_time_s:8.1f} s  heading error "

@@ -25,6 +25,7 @@ import socket
 import struct
 import threading
 import time
+import zlib
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -386,9 +387,12 @@ class AutopilotEmulator:
         for _ in range(min(PARAMS_PER_TICK, len(self._param_queue))):
             name, index = self._param_queue.pop(0)
             if name == "_HASH_CHECK":
-                count = len(self._store.visible_names())
+                names = self._store.visible_names()
+                crc = 0  # like param_hash_check(): a CRC32 over the names and values
+                for n in names:
+                    crc = zlib.crc32(n.encode() + self._store.wire_value(n)[0], crc)
                 self._send_param_value(
-                    name, struct.pack("<I", 0x5A17C0DE), M.MAV_PARAM_TYPE_UINT32, count, -1
+                    name, struct.pack("<I", crc), M.MAV_PARAM_TYPE_UINT32, len(names), -1
                 )
             else:
                 self._send_param(name, index)

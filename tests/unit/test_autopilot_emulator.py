@@ -6,6 +6,9 @@ against the wall clock. Timeouts are generous and only bound a failure.
 """
 
 import struct
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,12 +17,14 @@ from pymavlink import mavutil
 
 from magcal.autopilot import mapping, rotations
 from tests.autopilot_emulator import AutopilotEmulator, EmulatorError
+from tests.autopilot_emulator.emulator import free_udp_port
 from tests.autopilot_emulator.world import heading_errors_rad, rms_deg
 
 TIMEOUT_S = 20.0
 PATH_S = 30.0  # short paths keep construction fast
 SPEEDUP = 10.0
 M = mavutil.mavlink
+REPO = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(params=["ardupilot", "px4"])
@@ -232,13 +237,47 @@ def test_set_message_interval_sets_the_rate_in_simulated_time(personality):
             while not times or times[-1] - times[0] < 2.0:
                 times.append(getattr(_recv(link, [kind]), time_field) / per_s)
             counts.append((len(times) - 1) / (times[-1] - times[0]))
+        link.mav.command_long_send(1, 1, M.MAV_CMD_GET_MESSAGE_INTERVAL, 0, mid, 0, 0, 0, 0, 0, 0)
+        interval = _recv(link, ["MESSAGE_INTERVAL"])
         ack = _command(link, M.MAV_CMD_SET_MESSAGE_INTERVAL, mid, -1)
         after_off = _recv_until_heartbeats(link, [kind])
         unknown = _command(link, M.MAV_CMD_SET_MESSAGE_INTERVAL, 9999, 1e5)
         link.close()
     assert counts == [pytest.approx(50.0, rel=1e-6), pytest.approx(10.0, rel=1e-6)]
+    assert (interval.message_id, interval.interval_us) == (mid, 100_000)
     assert ack.result == M.MAV_RESULT_ACCEPTED and after_off == []
     assert unknown.result == M.MAV_RESULT_FAILED
+
+
+def test_ardupilot_request_data_stream_starts_the_raw_sensor_group():
+    with _emulator("ardupilot", compasses=3) as emu:
+        link, _ = _connect(emu)
+        link.mav.request_data_stream_send(1, 1, M.MAV_DATA_STREAM_RAW_SENSORS, 20, 1)
+        times = {"RAW_IMU": [], "SCALED_IMU2": [], "SCALED_IMU3": []}
+        while min(len(t) for t in times.values()) < 21:
+            msg = _recv(link, list(times))
+            stamp = msg.time_usec * 1e-6 if msg.get_type() == "RAW_IMU" else msg.time_boot_ms * 1e-3
+            times[msg.get_type()].append(stamp)
+        link.mav.request_data_stream_send(1, 1, M.MAV_DATA_STREAM_ALL, 0, 0)
+        _recv(link, ["HEARTBEAT"])  # anything in flight before the stop has arrived
+        after_stop = _recv_until_heartbeats(link, list(times))
+        link.close()
+    for t in times.values():
+        assert np.diff(t[:21]) == pytest.approx(np.full(20, 0.05), abs=1e-9)
+    assert after_stop == []
+
+
+def test_the_vehicle_holds_still_after_the_path():
+    emu = _emulator("px4", path_s=3.0, mag_noise=0.0)
+    n = len(emu._world)
+    late = [emu._stream_message(M.MAVLINK_MSG_ID_HIGHRES_IMU, k) for k in (n + 10, 5 * n + 3)]
+    last = emu._stream_message(M.MAVLINK_MSG_ID_HIGHRES_IMU, n - 1)
+    for msg in late:
+        assert np.linalg.norm([msg.xgyro, msg.ygyro, msg.zgyro]) < 0.05  # bias + noise
+        assert np.linalg.norm([msg.xacc, msg.yacc, msg.zacc]) == pytest.approx(9.81, abs=0.1)
+        np.testing.assert_allclose(
+            [msg.xmag, msg.ymag, msg.zmag], [last.xmag, last.ymag, last.zmag], rtol=1e-6
+        )
 
 
 def test_streams_carry_the_field_where_each_autopilot_corrects_it(personality):
@@ -386,3 +425,20 @@ def test_stop_is_clean_and_bad_arguments_are_refused():
         AutopilotEmulator("px4", param_value_loss=1.5)
     with pytest.raises(KeyError, match="CUST_ROT1_ROLL"):
         _emulator("ardupilot").apply_params({"CUST_ROT1_ROLL": 1.0})  # hidden: not enabled
+
+
+def test_command_line_runs_an_emulator():
+    port = free_udp_port()
+    link = mavutil.mavlink_connection(f"udpin:127.0.0.1:{port}", source_system=255)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "tests.autopilot_emulator", "--personality", "px4",
+         "--port", str(port), "--seed", "1", "--duration", "30"],
+        cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )  # fmt: skip
+    try:
+        hb = link.recv_match(type="HEARTBEAT", blocking=True, timeout=TIMEOUT_S)
+    finally:
+        proc.terminate()
+        proc.wait(timeout=TIMEOUT_S)
+        link.close()
+    assert hb is not None and hb.autopilot == M.MAV_AUTOPILOT_PX4

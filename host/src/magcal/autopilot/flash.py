@@ -290,7 +290,6 @@ def plan_flash(
             allow_custom=allow_custom,
             inclination_deg=incl,
         )
-        reboot += _px4_reboot_reasons(cp, mapped.params, index)
     entries = []
     unchanged = []
     for name, value in mapped.params.items():
@@ -300,10 +299,13 @@ def plan_flash(
             unchanged.append(e)
         else:
             entries.append(e)
+    writes = order_writes(cp.autopilot, tuple(entries), cp.values)
+    if cp.autopilot == vehicle.PX4:
+        reboot += px4_reboot_reasons(cp.values, writes, vehicle.px4_index(cp.compass))
     return Plan(
         cp.autopilot,
         cp.compass,
-        order_writes(cp.autopilot, tuple(entries), cp.values),
+        writes,
         tuple(unchanged),
         mapped,
         fld,
@@ -312,18 +314,35 @@ def plan_flash(
     )
 
 
-def _px4_reboot_reasons(cp: vehicle.CompassParams, new: dict[str, float], index: int) -> list[str]:
+def px4_reboot_reasons(
+    in_force: dict[str, float], writes: tuple[params.ParamEntry, ...], index: int
+) -> list[str]:
+    """Why PX4 would not use every new value before a reboot (pure).
+
+    PX4's Magnetometer::ParametersUpdate (each parameter change) takes an offset, scale or
+    off-diagonal vector from the parameters only when it differs from the one in use by more
+    than PX4_UPDATE_THRESHOLD (set_offset/set_scale/set_offdiagonal; newer releases use 0.005
+    for offsets). Written one at a time, the vectors pass through intermediate states; this
+    replays the writes in order, assuming the vehicle acts on each (the worst case), and also
+    flags a whole change within the threshold (an update that sees all writes at once)."""
     p = f"CAL_MAG{index}_"
+    stored = dict(in_force)
+    groups = {g: [f"{p}{a}{g}" for a in "XYZ"] for g in ("OFF", "SCALE", "ODIAG")}
+    in_use = {g: np.array([in_force[n] for n in names]) for g, names in groups.items()}
+    for e in writes:
+        stored[e.name] = e.value
+        for g, names in groups.items():
+            candidate = np.array([stored[n] for n in names])
+            if np.linalg.norm(candidate - in_use[g]) > PX4_UPDATE_THRESHOLD:
+                in_use[g] = candidate
     out = []
-    for group in ("OFF", "SCALE", "ODIAG"):
-        names = [f"{p}{a}{group}" for a in "XYZ"]
-        old = np.array([cp.values[n] for n in names])
-        want = np.array([float(np.float32(new[n])) for n in names])
-        change = float(np.linalg.norm(want - old))
-        if 0.0 < change <= PX4_UPDATE_THRESHOLD:
+    for g, names in groups.items():
+        final = np.array([stored[n] for n in names])
+        whole = float(np.linalg.norm(final - np.array([in_force[n] for n in names])))
+        if np.any(in_use[g] != final) or 0.0 < whole <= PX4_UPDATE_THRESHOLD:
             out.append(
-                f"PX4 takes the new {p}*{group} (a change of {change:.4f}) only after a reboot "
-                f"(changes up to {PX4_UPDATE_THRESHOLD} are ignored until then)"
+                f"PX4 ignores a change of {p}*{g} up to {PX4_UPDATE_THRESHOLD} until a reboot, "
+                "and the values written one by one leave the last of them unused"
             )
     return out
 

@@ -188,6 +188,17 @@ def ardupilot_optional(compass: int, naming: str) -> list[str]:
     return [n["SCALE"], dev_id, "COMPASS_OFFS_MAX", "CUST_ROT_ENABLE", "AHRS_ORIENTATION", *others]
 
 
+def compass_param_names(autopilot: str, compass: int, naming: str = "") -> list[str]:
+    """The parameters that belong to one compass alone (not shared with others)."""
+    if autopilot == ARDUPILOT:
+        n = mapping.ap_param_names(compass, naming)
+        dev_id = "COMPASS_DEV_ID" if compass == 1 else f"COMPASS_DEV_ID{compass}"
+        return [*ardupilot_required(compass, naming), n["SCALE"], dev_id]
+    index = px4_index(compass)
+    p = f"CAL_MAG{index}_"
+    return [*px4_required(index)[:10], p + "ID", *px4_custom_angles(index)]
+
+
 def ardupilot_custom_angles(slot: int) -> list[str]:
     return [f"CUST_ROT{slot}_{a}" for a in ("ROLL", "PITCH", "YAW")]
 

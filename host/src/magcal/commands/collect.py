@@ -1,4 +1,7 @@
-"""``magcal collect --port URL -o SESSION.csv``: record a calibration session from the device.
+"""``magcal collect --port URL -o SESSION.csv``: record a calibration session from the device;
+``--mavlink URL [--compass N]``: from an ArduPilot or PX4 autopilot
+(:mod:`magcal.autopilot.collect`: the magnetometer in the autopilot's unit, mG or gauss, with
+the on-board correction undone; the compass parameters in force in the metadata).
 
 Stops at a coverage target of field directions (default 90 %), ``--duration`` or
 ``--max-samples``, whichever comes first, or Ctrl-C. Progress goes to stderr: one line
@@ -12,7 +15,7 @@ import argparse
 import sys
 
 from magcal.calib import observability
-from magcal.commands.common import add_link_arguments, open_device, positive
+from magcal.commands.common import add_link_arguments, check_link_options, open_device, positive
 from magcal.device.collect import CollectError, CollectProgress, CollectResult, collect
 from magcal.errors import MagcalError
 from magcal.io.session import check_writable, write_session
@@ -48,6 +51,12 @@ def add_parser(sub) -> None:
         f"enough to calibrate); default {DEFAULT_COVERAGE_PCT:g}, 'off' to disable",
     )
     p.add_argument("--max-samples", type=positive(int), metavar="N", help="stop after N samples")
+    p.add_argument(
+        "--rate",
+        type=positive(float),
+        metavar="HZ",
+        help="with --mavlink: the IMU message rate to ask for (default 50)",
+    )
     p.set_defaults(run=run)
 
 
@@ -81,7 +90,8 @@ def progress_printer(stream=None):
     return show
 
 
-def _write(path: str, result: CollectResult, out) -> None:
+def write_collected(path: str, result: CollectResult, out) -> None:
+    """Write the session and say what it holds."""
     write_session(path, result.session)
     print(
         f"wrote {path} ({result.samples} samples, {result.elapsed_s:.1f} s, dropped "
@@ -93,6 +103,15 @@ def _write(path: str, result: CollectResult, out) -> None:
 def run(args, out=None) -> int:
     from magcal.cli import EXIT_INTERRUPTED
 
+    check_link_options(args, ("rate",))
+    if args.mavlink:
+        from magcal.commands import autopilot
+
+        if args.rate is None:
+            from magcal.autopilot.collect import DEFAULT_RATE_HZ
+
+            args.rate = DEFAULT_RATE_HZ
+        return autopilot.run_collect(args, out)
     out = out or sys.stdout
     if args.duration is None and args.coverage is None and args.max_samples is None:
         raise MagcalError("collect: --coverage off needs --duration or --max-samples")
@@ -125,7 +144,7 @@ def run(args, out=None) -> int:
             f"collect on {args.port}: no samples were received, nothing written; check that "
             "the device is acquiring"
         )
-    _write(args.output, result, out)
+    write_collected(args.output, result, out)
     if result.interrupted:
         print(
             f"magcal collect: interrupted; the partial session is in {args.output}", file=sys.stderr

@@ -13,14 +13,59 @@ from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 
 
 def add_link_arguments(p: argparse.ArgumentParser) -> None:
-    """``--port URL`` (required for now; ``--mavlink`` comes with the autopilot issue)."""
-    p.add_argument(
+    """``--port URL`` (a device running magcal's firmware) or ``--mavlink URL`` (an ArduPilot
+    or PX4 autopilot), exactly one (argparse says so when neither or both are given), and
+    ``--compass N`` for the autopilot's compass."""
+    link = p.add_mutually_exclusive_group(required=True)
+    link.add_argument(
         "--port",
-        required=True,
         metavar="URL",
-        help="the device: a serial device or pseudo-terminal path, or socket://host:port "
-        "(anything pyserial's serial_for_url accepts)",
+        help="a device running magcal's firmware: a serial device or pseudo-terminal path, or "
+        "socket://host:port (anything pyserial's serial_for_url accepts)",
     )
+    link.add_argument(
+        "--mavlink",
+        metavar="URL",
+        help="an ArduPilot or PX4 autopilot: udpin:0.0.0.0:14550 (listen), udpout:HOST:PORT, "
+        "tcp:HOST:5760, or a serial device with its baud rate, /dev/ttyACM0,115200 (anything "
+        "pymavlink's mavlink_connection accepts)",
+    )
+    p.add_argument(
+        "--compass",
+        type=compass_number,
+        metavar="N",
+        help="with --mavlink: the compass, 1-based as ArduPilot counts (COMPASS_OFS_X is 1, "
+        "COMPASS_OFS2_X is 2); PX4's CAL_MAG{N-1}. Default 1 (info: all)",
+    )
+
+
+def compass_number(text: str) -> int:
+    """An argparse type: a compass number 1, 2 or 3."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a compass number (1, 2 or 3)") from None
+    if not 1 <= v <= 3:
+        raise argparse.ArgumentTypeError(f"{text}: give 1, 2 or 3")
+    return v
+
+
+def check_link_options(args: argparse.Namespace, mavlink_only: tuple[str, ...] = ()) -> None:
+    """Refuse options that belong to the other kind of link: ``--compass`` and the names in
+    ``mavlink_only`` (attributes set to something other than None/False) need --mavlink."""
+    if getattr(args, "mavlink", None):
+        return
+    used = ["--compass"] if getattr(args, "compass", None) is not None else []
+    used += [
+        "--" + name.replace("_", "-")
+        for name in mavlink_only
+        if getattr(args, name, None) not in (None, False)
+    ]
+    if used:
+        raise MagcalError(
+            f"{', '.join(used)} {'is' if len(used) == 1 else 'are'} for an autopilot: use "
+            "--mavlink URL instead of --port"
+        )
 
 
 def positive(kind):

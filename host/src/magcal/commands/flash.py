@@ -18,6 +18,12 @@ set; it reads the device's description (hello, info) and writes nothing, not eve
 Units: the result's ``D`` and ``o`` are in the session's magnetometer unit, the device
 corrects raw counts. The unit comes from ``--mag-unit`` or the result's optional ``mag_unit``
 key; the size of one count from the device (info's exact magnetometer count scale).
+
+``magcal flash RESULT.json --mavlink URL [--compass N] (--location LAT,LON[,ALT_KM] | --field
+VALUE+UNIT)``: ArduPilot or PX4 compass parameters (:mod:`magcal.autopilot.flash`: mapping,
+limits, a backup of every parameter touched first, each write confirmed by the vehicle's
+echo); ``--dry-run`` writes the parameter file only, ``--param-file`` exports ``.parm``
+(Mission Planner) or ``.params`` (QGroundControl), ``--restore BACKUP`` writes a backup back.
 """
 
 from __future__ import annotations
@@ -30,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.commands.common import add_link_arguments, open_device, scale_text
+from magcal.commands.common import add_link_arguments, check_link_options, open_device, scale_text
 from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, DeviceInfo, Scale
 from magcal.device.flash import (
@@ -53,6 +59,7 @@ MAG_UNIT_TESLA: dict[str, Fraction | None] = {
     "uT": Fraction(1, 10**6),
     "T": Fraction(1),
     "gauss": Fraction(1, 10**4),
+    "mG": Fraction(1, 10**7),
     "counts": None,
 }
 #: Other spellings of the units above (as a session's ``# mag_unit:`` may write them).
@@ -102,6 +109,49 @@ def add_parser(sub) -> None:
         "--force",
         action="store_true",
         help="with --restore: write a backup that was taken from another device",
+    )
+    ap = p.add_argument_group("with --mavlink (ArduPilot, PX4)")
+    ap.add_argument(
+        "--location",
+        metavar="LAT,LON[,ALT_KM]",
+        help="where the vehicle flies (degrees north, east; km): the field strength comes from "
+        "the World Magnetic Model",
+    )
+    ap.add_argument("--date", metavar="YYYY-MM-DD", help="the model's date (default today)")
+    ap.add_argument(
+        "--field",
+        metavar="VALUE",
+        help="the local field strength with its unit instead of --location: 48.5uT, 485mG, "
+        "0.485gauss",
+    )
+    ap.add_argument(
+        "--session",
+        metavar="SESSION.csv",
+        help="the session the result was calibrated from: its compass parameters at recording "
+        "time (ArduPilot needs the rotation that was in force)",
+    )
+    ap.add_argument(
+        "--param-file",
+        metavar="PATH",
+        help="also export the parameters: .parm (Mission Planner, MAVProxy) or .params "
+        "(QGroundControl); with --dry-run the default is RESULT.<autopilot>.parm/.params",
+    )
+    ap.add_argument(
+        "--no-custom-rotation",
+        action="store_true",
+        help="ArduPilot: do not write a custom rotation (CUST_ROTn_*); the misalignment is then "
+        "left out and its heading error reported",
+    )
+    ap.add_argument(
+        "--px4-custom-rotation",
+        action="store_true",
+        help="PX4: write CAL_MAGn_ROT = 100 with CAL_MAGn_ROLL/PITCH/YAW when the misalignment "
+        "is not an enumerated rotation (newer PX4 only; off by default)",
+    )
+    ap.add_argument(
+        "--reboot",
+        action="store_true",
+        help="reboot the vehicle after writing when some value takes effect only at boot",
     )
     p.set_defaults(run=run)
 
@@ -308,7 +358,24 @@ def _finish(result: FlashResult, first: DeviceClient) -> int:
     return 0
 
 
+MAVLINK_ONLY = (
+    "location",
+    "date",
+    "field",
+    "session",
+    "param_file",
+    "no_custom_rotation",
+    "px4_custom_rotation",
+    "reboot",
+)
+
+
 def run(args) -> int:
+    check_link_options(args, MAVLINK_ONLY)
+    if args.mavlink:
+        from magcal.commands import autopilot
+
+        return autopilot.run_flash(args)
     try:
         return _run(args)
     except FlashCommandError:

@@ -1,20 +1,33 @@
-"""``magcal info --port URL``: what the device says about itself."""
+"""``magcal info --port URL``: what the device says about itself; ``--mavlink URL``: the
+autopilot, its firmware and each compass with its parameters in force."""
 
 from __future__ import annotations
 
 import sys
 
-from magcal.commands.common import add_link_arguments, open_device, scale_text
+from magcal.commands.common import (
+    add_link_arguments,
+    check_link_options,
+    open_device,
+    scale_text,
+)
 from magcal.device.collect import SI_UNIT_TEXT as SI_UNIT
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("info", help="show the device's firmware, protocol and sensors")
+    p = sub.add_parser(
+        "info", help="show the device's (or autopilot's) firmware, sensors and compass parameters"
+    )
     add_link_arguments(p)
     p.set_defaults(run=run)
 
 
 def run(args, out=None) -> int:
+    check_link_options(args)
+    if args.mavlink:
+        from magcal.commands import autopilot
+
+        return autopilot.run_info(args, out)
     out = out or sys.stdout
     with open_device(args.port) as dev:
         i = dev.info

@@ -4,13 +4,18 @@ Reports the spread of the corrected field's norm and, from a raw stream (or ``--
 heading consistency (see :mod:`magcal.device.verify`). Exits 2 with a message when the device
 has no active parameter set (E_NO_PARAMS), 1 when the device's output disagrees with the set
 it reports or the norm spread exceeds ``--max-spread``.
+
+``--mavlink URL [--compass N]``: the field the autopilot corrects with its parameters in force
+(:mod:`magcal.autopilot.verify`): norm spread and heading consistency of its own stream, and
+with ``--session`` the parameters in force applied to a session recorded by ``magcal collect
+--mavlink``.
 """
 
 from __future__ import annotations
 
 import sys
 
-from magcal.commands.common import add_link_arguments, open_device, positive
+from magcal.commands.common import add_link_arguments, check_link_options, open_device, positive
 from magcal.device.verify import HeadingConsistency, verify
 from magcal.io.session import read_session
 
@@ -45,10 +50,16 @@ def add_parser(sub) -> None:
         metavar="PCT",
         help=f"fail when the norm's std/mean exceeds PCT %% (default {DEFAULT_MAX_SPREAD_PCT:g})",
     )
+    p.add_argument(
+        "--rate",
+        type=positive(float),
+        metavar="HZ",
+        help="with --mavlink: the IMU message rate to ask for (default 50)",
+    )
     p.set_defaults(run=run)
 
 
-def _heading_lines(h: HeadingConsistency, where: str) -> list[str]:
+def heading_lines(h: HeadingConsistency, where: str) -> list[str]:
     return [
         f"heading    {where}: RMS {h.rms_deg:.2f}°, max {h.max_deg:.2f}° (tilt-compensated vs "
         f"gyro-propagated over {h.windows} windows of {h.window_s:g} s, {h.n} samples)",
@@ -57,6 +68,15 @@ def _heading_lines(h: HeadingConsistency, where: str) -> list[str]:
 
 
 def run(args, out=None) -> int:
+    check_link_options(args, ("rate",))
+    if args.mavlink:
+        from magcal.commands import autopilot
+
+        if args.rate is None:
+            from magcal.autopilot.verify import DEFAULT_RATE_HZ
+
+            args.rate = DEFAULT_RATE_HZ
+        return autopilot.run_verify(args, out)
     out = out or sys.stdout
     session = read_session(args.session) if args.session else None
     with open_device(args.port) as dev:
@@ -78,12 +98,12 @@ def run(args, out=None) -> int:
         f"emulation of the active set (within 1 LSB); dropped {r.dropped}",
     ]
     if r.heading is not None:
-        lines += _heading_lines(r.heading, "raw stream")
+        lines += heading_lines(r.heading, "raw stream")
     else:
         lines.append(f"heading    {r.heading_note}")
     if args.session:
         if r.session_heading is not None:
-            lines += _heading_lines(r.session_heading, args.session)
+            lines += heading_lines(r.session_heading, args.session)
         else:
             lines.append(f"heading    {args.session}: not measurable (no sample with |acc| ≈ g)")
     for line in lines:

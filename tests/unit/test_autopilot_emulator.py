@@ -17,7 +17,7 @@ from pymavlink import mavutil
 
 from magcal.autopilot import mapping, rotations
 from tests.autopilot_emulator import AutopilotEmulator, EmulatorError
-from tests.autopilot_emulator.emulator import free_udp_port
+from tests.autopilot_emulator.emulator import _attitude_ned, free_udp_port
 from tests.autopilot_emulator.world import heading_errors_rad, rms_deg
 
 TIMEOUT_S = 20.0
@@ -265,6 +265,15 @@ def test_ardupilot_request_data_stream_starts_the_raw_sensor_group():
     for t in times.values():
         assert np.diff(t[:21]) == pytest.approx(np.full(20, 0.05), abs=1e-9)
     assert after_stop == []
+
+
+def test_attitude_is_relative_to_ned():
+    # body FRD level, nose north: R_nb maps x→north, y (right)→east = −west, z (down)→−up
+    assert _attitude_ned(np.diag([1.0, -1.0, -1.0])) == pytest.approx((0.0, 0.0, 0.0))
+    east = np.array([[0.0, -1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, -1.0]])  # nose east
+    assert _attitude_ned(east) == pytest.approx((0.0, 0.0, np.pi / 2))
+    nose_up = np.array([[0.0, 0.0, 1.0], [0.0, -1.0, 0.0], [1.0, 0.0, 0.0]])  # x up, z north
+    assert _attitude_ned(nose_up) == pytest.approx((0.0, np.pi / 2, 0.0))
 
 
 def test_the_vehicle_holds_still_after_the_path():

@@ -131,6 +131,7 @@ def write_bin(
     omit: tuple[str, ...] = (),
     legacy: bool = False,
     second_imu: bool = False,
+    unlogged: list[tuple[float, str, float]] = (),
 ) -> dict:
     """Write ``day`` as a DataFlash log; return what was logged, for the tests.
 
@@ -140,6 +141,8 @@ def write_bin(
     omit      : message names not to write ("IMU", "MAG", "PARM", "ARM")
     legacy    : the pre-4.0 layout (IMU/IMU2, MAG/MAG2 without an instance column)
     second_imu: also log a second IMU (instance 1) with the gyro signs flipped
+    unlogged  : parameter changes applied without a PARM record (as in-flight offset learning
+                does): the MAG offsets logged show them
 
     Returns {"mag_index": indices of day samples with a MAG record, "logged": (K, 3) int16
     field logged, "motor": (K, 3) motor offsets applied (float32), "params_at": the
@@ -178,7 +181,7 @@ def write_bin(
             add(int(t_us[i]), "ARM", int(day.armed[i]), 0, 0, 0)
     if "IMU" not in omit:
         for k in range(day.t.size):
-            g, a = day.gyr[k], day.acc[k]
+            g, a = day.gyr_point[k], day.acc[k]
             imu = (g[0], g[1], g[2], a[0], a[1], a[2], 0, 0, 25.0, 1, 1, 1000, 1000)
             if legacy:
                 add(int(t_us[k]), "IMU", *imu)
@@ -190,7 +193,7 @@ def write_bin(
                     add(int(t_us[k]), "IMU", 1, *flipped)
 
     mag_index = np.arange(0, day.t.size, mag_every)
-    in_force = param_timeline(params, list(changes), day.t[mag_index])
+    in_force = param_timeline(params, list(changes) + list(unlogged), day.t[mag_index])
     logged, motors = [], []
     for k, p in zip(mag_index, in_force, strict=True):
         field, motor = ardupilot_corrected(day.mag[k], p, day.throttle[k])

@@ -33,7 +33,10 @@ class BenchDay:
     """What the log generators write, at the IMU rate.
 
     t        : (N,) s, boot time, multiples of 1 µs
-    gyr, acc : (N, 3) rad/s, m/s² (noisy, gyro with bias)
+    gyr, acc : (N, 3) rad/s, m/s² (noisy, gyro with bias); as in the simulator, ``gyr[k]`` is
+               the mean rate over [t_k, t_k+1] and ``acc[k]`` the specific force at t_k
+    gyr_point: (N, 3) rad/s, the rate *at* t_k, (gyr[k−1] + gyr[k]) / 2: what a log that
+               stamps instantaneous samples (ArduPilot IMU, RAW_IMU) holds
     mag      : (N, 3) mG, the raw field (see the module docstring)
     sensor   : the true magnetometer model (D, o in mG)
     q_nb     : (N, 4) true attitude
@@ -45,6 +48,7 @@ class BenchDay:
     t: np.ndarray
     gyr: np.ndarray
     acc: np.ndarray
+    gyr_point: np.ndarray
     mag: np.ndarray
     sensor: model.SensorTruth
     q_nb: np.ndarray
@@ -127,6 +131,7 @@ def bench_day(
         t=t,
         gyr=gyr,
         acc=acc,
+        gyr_point=np.concatenate([gyr[:1], 0.5 * (gyr[:-1] + gyr[1:])]),
         mag=mag,
         sensor=sensor,
         q_nb=q,

@@ -122,7 +122,7 @@ def write_ardupilot_tlog(
     for k, p in zip(index, in_force, strict=True):
         field, _ = ardupilot_corrected(day.mag[k], p, day.throttle[k])
         acc = _int16(np.float32(day.acc[k]) * np.float32(1000.0) / np.float32(GRAVITY_MSS))
-        gyr = _int16(np.float32(day.gyr[k]) * np.float32(1000.0))
+        gyr = _int16(np.float32(day.gyr_point[k]) * np.float32(1000.0))
         if "RAW_IMU" not in omit:
             msg = mavlink.MAVLink_raw_imu_message(
                 int(round(day.t[k] * 1e6)), *acc, *gyr, *_int16(field), 0, 2500
@@ -158,7 +158,7 @@ def write_px4_tlog(
     raw_gauss = day.mag / 1000.0
     corrected = mapping.px4_correct(raw_gauss, params, 0)
     for k in imu_index:
-        a, g, m = day.acc[k], day.gyr[k], corrected[k]
+        a, g, m = day.acc[k], day.gyr_point[k], corrected[k]
         msg = mavlink.MAVLink_highres_imu_message(
             int(round(day.t[k] * 1e6)), *a, *g, *m, 1013.0, 0.0, 0.0, 25.0, 0x1FF, 0
         )
@@ -166,7 +166,7 @@ def write_px4_tlog(
     mag_index = np.arange(0, day.t.size, mag_every)
     for k in mag_index:
         acc = _int16(day.acc[k] * 1000.0 / GRAVITY_MSS)
-        gyr = _int16(day.gyr[k] * 1000.0)
+        gyr = _int16(day.gyr_point[k] * 1000.0)
         msg = mavlink.MAVLink_scaled_imu_message(
             int(round(day.t[k] * 1e3)), *acc, *gyr, *_int16(raw_gauss[k] * 1000.0), 2500
         )

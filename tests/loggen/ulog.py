@@ -142,10 +142,12 @@ def write_ulog(
         records.append((stamp, len(records), _message("D", payload)))
 
     if "sensor_combined" in ids:
+        # PX4 stamps the averages over [t − dt, t] at t: the simulator's gyr[k] is the mean
+        # over [t_k, t_k+1], stamped t_k+1, with the accelerometer averaged over the same
+        acc_mean = np.concatenate([0.5 * (day.acc[:-1] + day.acc[1:]), day.acc[-1:]])
         for k in range(day.t.size):
-            # the averages over [t − dt, t] are centred on the simulated sample time
-            stamp = int(t_us[k]) + dt_us // 2
-            data("sensor_combined", stamp, *day.gyr[k], dt_us, 0, *day.acc[k], dt_us, 0, 0, 0, 0)
+            stamp = int(t_us[k]) + dt_us
+            data("sensor_combined", stamp, *day.gyr[k], dt_us, 0, *acc_mean[k], dt_us, 0, 0, 0, 0)
     mag_index = np.arange(0, day.t.size, mag_every)
     raw_gauss = day.mag / 1000.0
     device = int(params["CAL_MAG0_ID"])

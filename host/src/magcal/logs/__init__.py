@@ -126,20 +126,13 @@ def import_log(
     else:
         armed = streams.armed.at(rows.t) > 0.5 if streams.armed is not None else None
         throttle = streams.throttle.at(rows.t) if streams.throttle is not None else None
-        found = find_hand_rotation(
-            rows.t,
-            rows.gyr,
-            rows.acc,
-            armed=armed,
-            throttle=throttle,
-            unusable=rows.gap | rows.suspect,
-            config=options.stretch,
-        )
+        inputs = (rows.t, rows.gyr, rows.acc, armed, throttle, rows.gap | rows.suspect)
+        found = find_hand_rotation(*inputs, config=options.stretch)
         if not found:
             raise LogImportError(
                 f"{os.path.basename(path)}: no stretch where the vehicle was turned by hand: "
-                f"{explain_none(rows.t, rows.gyr, armed, options.stretch)}; pass --start and "
-                "--end (log time, s) to choose the range"
+                f"{explain_none(*inputs, config=options.stretch)}; pass --start and --end "
+                "(log time, s) to choose the range"
             )
         stretch, others = found[0], tuple(found[1:])
         sel = cut(rows, stretch.from_s, stretch.to_s, streams)

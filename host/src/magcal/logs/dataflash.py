@@ -12,7 +12,9 @@ Message definitions, as in ArduPilot's sources (read with the code search tool):
   **corrected** field ``get_field(i)`` in mG (units ``G`` with multiplier ``C`` = 1e-3), the
   offsets and motor offsets in use, each cast to ``int16_t``; ``S`` is the µs time (uint32,
   wraps after 71 minutes) at which the field was published. ``I`` counts compasses in
-  priority order. Older logs name the motor offsets MOfsX/Y/Z, and have MAG2, MAG3.
+  priority order. The int16 casts truncate; the importer adds back the half unit they remove
+  on average (:func:`~magcal.logs.streams.untruncate`). Older logs name the motor offsets
+  MOfsX/Y/Z, and have MAG2, MAG3.
 - ``PARM``: ``TimeUS,Name,Value[,Default]``, every parameter when the log opens and each
   change as it happens.
 - ``ARM`` (``ArmState``) or ``EV`` (Id 10 armed, 11 disarmed): the armed state.
@@ -42,6 +44,7 @@ from magcal.logs.streams import (
     StepSignal,
     instances_text,
     strictly_increasing,
+    untruncate,
 )
 
 Progress = Callable[[float], None]
@@ -232,11 +235,11 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         if unhealthy.any():
             notes.append(f"{int(unhealthy.sum())} MAG sample(s) marked unhealthy were dropped")
     t_us = _mag_sample_times(mcol)
-    field = _vec(mcol, "MagX", "MagY", "MagZ")
+    field = untruncate(_vec(mcol, "MagX", "MagY", "MagZ"))
     motor = None
     for names in (("MOX", "MOY", "MOZ"), ("MOfsX", "MOfsY", "MOfsZ")):
         if all(n in mcol for n in names):
-            motor = _vec(mcol, *names)
+            motor = untruncate(_vec(mcol, *names))
     offsets = _vec(mcol, "OfsX", "OfsY", "OfsZ") if "OfsX" in mcol else None
     # The field of one sensor reading is logged at every compass read until the next
     # arrives: the same S twice is the same sample.

@@ -173,6 +173,21 @@ def strictly_increasing(t: np.ndarray, *arrays: np.ndarray) -> tuple[np.ndarray,
     return (t[keep],) + tuple(np.asarray(a)[order][keep] for a in arrays)
 
 
+def untruncate(v: np.ndarray) -> np.ndarray:
+    """The mean value behind C's cast of a float to an integer (truncation towards zero).
+
+    ArduPilot logs and streams its compass field as ``(int16_t)field``, so a logged n ≠ 0
+    came from (n, n + 1) or (n − 1, n): its mean is n ± ½. Left as it is, the truncation
+    pulls every component half a unit towards zero, a bias that moves the fitted ellipsoid:
+    in three simulated DataFlash logs (500 mG field, 2.5 mG noise) it raised the
+    known-attitude heading-error floor from 0.024–0.042° to 0.043–0.10°; with the half unit
+    added back the floor is that of the unrounded data. A logged 0 came from (−1, 1): its
+    mean is 0.
+    """
+    v = np.asarray(v, dtype=float)
+    return v + 0.5 * np.sign(v)
+
+
 def instances_text(instances: list[int] | set[int]) -> str:
     """ "1, 2" or "none" for an error message."""
     return ", ".join(str(i) for i in sorted(instances)) or "none"

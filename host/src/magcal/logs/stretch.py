@@ -10,9 +10,10 @@ alone (plus the armed state and throttle when the log has them):
    ``min_rate_rad_s``. Turning a vehicle by hand runs at 0.5–3 rad/s; a vehicle at rest
    or being carried reads a few hundredths.
 2. **Not flying.** Samples while armed or above ``max_throttle`` are out (a vehicle can
-   rotate in flight, and its motors disturb the compass); so are samples whose specific
-   force, averaged over ``smooth_s``, is further than ``max_acc_dev_m_s2`` from g: a hand
-   cannot sustain such accelerations, a vehicle in a turn or a climb does.
+   rotate in flight, and its motors disturb the compass); so are samples where the specific
+   force's norm departs from g by more than ``max_acc_rms_m_s2`` RMS over ``smooth_s``: a
+   hand moves a vehicle with about 1 m/s² (some 0.6 m/s² along gravity), a vehicle in a
+   turn, a climb or a launch with several.
 3. **Stretches.** Runs of rotating, not-flying samples, joined across pauses shorter than
    ``max_gap_s`` (a person changes grip) in which the vehicle did not fly; runs shorter than
    ``min_duration_s`` are dropped.
@@ -20,8 +21,10 @@ alone (plus the armed state and throttle when the log has them):
    covered in the body frame (the accelerometer direction averaged over a quarter second,
    in 100 equal-area cells, :mod:`magcal.device.coverage`): a calibration needs the vehicle
    tilted every way, and flight, even when armed state and throttle are missing, keeps the
-   specific force near the body's vertical. The best is the one with the most coverage;
-   stretches within ``coverage_tie`` of it count as equal and the longest wins.
+   specific force near the body's vertical. Stretches below ``min_tilt_coverage`` are not a
+   hand rotation (a flight, a turn on a table) and are dropped. The best is the one with the
+   most coverage; stretches within ``coverage_tie`` of it count as equal and the longest
+   wins.
 5. **Margin.** The chosen stretch is widened by ``margin_s`` on both sides as far as the
    vehicle was not flying, so that the calibration also sees the rest before and after (it
    measures the gyroscope bias there).
@@ -31,6 +34,7 @@ The function is pure (arrays in, a list out) and does not read files.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -46,12 +50,13 @@ class StretchConfig:
 
     smooth_s: float = 1.0
     min_rate_rad_s: float = 0.3
-    max_acc_dev_m_s2: float = 3.0
+    max_acc_rms_m_s2: float = 2.5
     max_throttle: float = 0.05
     max_gap_s: float = 3.0
     min_duration_s: float = 5.0
     gravity_smooth_s: float = 0.25
     coverage_tie: float = 0.05
+    min_tilt_coverage: float = 0.1
     margin_s: float = 2.0
 
 
@@ -119,8 +124,8 @@ def find_hand_rotation(
     dt = float(np.median(np.diff(t)))
     w = max(1, int(round(config.smooth_s / dt)))
     rate = _moving_average(np.linalg.norm(gyr, axis=1), w)
-    acc_norm = _moving_average(np.linalg.norm(acc, axis=1), w)
-    flying = np.abs(acc_norm - STANDARD_GRAVITY_M_S2) > config.max_acc_dev_m_s2
+    dev = np.linalg.norm(acc, axis=1) - STANDARD_GRAVITY_M_S2
+    flying = np.sqrt(_moving_average(dev * dev, w)) > config.max_acc_rms_m_s2
     if armed is not None:
         flying |= np.asarray(armed, dtype=bool)
     if throttle is not None:
@@ -150,6 +155,9 @@ def find_hand_rotation(
         if t[b - 1] - t[a] < config.min_duration_s:
             continue
         counts = coverage.cell_counts(cells, up[a:b])
+        tilt = coverage.coverage_fraction(counts)
+        if tilt < config.min_tilt_coverage:
+            continue
         lo, hi = _widen(t, flying, a, b, config.margin_s)
         stretches.append(
             Stretch(
@@ -157,7 +165,7 @@ def find_hand_rotation(
                 end_s=float(t[b - 1]),
                 from_s=float(t[lo]),
                 to_s=float(t[hi - 1]),
-                tilt_coverage=coverage.coverage_fraction(counts),
+                tilt_coverage=tilt,
                 mean_rate_rad_s=float(np.mean(rate[a:b])),
             )
         )
@@ -196,12 +204,25 @@ def describe(stretch: Stretch) -> str:
 def explain_none(
     t: np.ndarray,
     gyr: np.ndarray,
-    armed: np.ndarray | None,
+    acc: np.ndarray,
+    armed: np.ndarray | None = None,
+    throttle: np.ndarray | None = None,
+    unusable: np.ndarray | None = None,
     config: StretchConfig = StretchConfig(),
 ) -> str:
-    """Why :func:`find_hand_rotation` found nothing, for the error message."""
-    if t.size < 2:
+    """Why :func:`find_hand_rotation` found nothing (same arguments), for the error message."""
+    if np.asarray(t).size < 2:
         return "the log has fewer than two samples"
+    untilted = dataclasses.replace(config, min_tilt_coverage=0.0)
+    rotations = find_hand_rotation(t, gyr, acc, armed, throttle, unusable, untilted)
+    if rotations:
+        r = max(rotations, key=lambda s: s.tilt_coverage)
+        return (
+            f"the vehicle turned at {r.start_s:.1f}–{r.end_s:.1f} s but the gravity direction "
+            f"covered only {100 * r.tilt_coverage:.0f} % of directions in its frame (a hand "
+            f"rotation covers more than {100 * config.min_tilt_coverage:.0f} %: a flight or a "
+            "turn on a table is not enough)"
+        )
     dt = float(np.median(np.diff(t)))
     rate = _moving_average(np.linalg.norm(gyr, axis=1), max(1, int(round(config.smooth_s / dt))))
     fast = rate >= config.min_rate_rad_s
@@ -209,8 +230,8 @@ def explain_none(
     text = (
         f"the angular rate (averaged over {config.smooth_s:g} s) exceeded "
         f"{config.min_rate_rad_s:g} rad/s for at most {longest:.1f} s at a time "
-        f"(needs {config.min_duration_s:g} s)"
+        f"(needs {config.min_duration_s:g} s while disarmed)"
     )
-    if armed is not None and fast.any() and np.all(np.asarray(armed, bool)[fast]):
-        text += ", and only while armed"
+    if longest >= config.min_duration_s:
+        text += "; the long ones were while armed, under throttle, or accelerating"
     return text

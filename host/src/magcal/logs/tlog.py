@@ -11,10 +11,12 @@ on the vehicle's clock by the median offset between the two clocks.
 
 - **ArduPilot** (GCS_Common.cpp ``send_raw_imu`` / ``send_scaled_imu``): RAW_IMU is IMU and
   compass 1, SCALED_IMU2 IMU and compass 2, SCALED_IMU3 the third; acceleration in mG
-  (``accel · 1000 / GRAVITY_MSS``), rate in mrad/s, the **corrected** compass field in mG, all
-  cast to int16. The correction is undone with the PARAM_VALUEs received (the ground station
-  fetches them all when it connects, and each change comes back as PARAM_VALUE). Motor
-  compensation is not in the stream: it is zero while disarmed, and armed data are not used.
+  (``accel · 1000 / GRAVITY_MSS``), rate in mrad/s, the **corrected** compass field in mG,
+  all cast to int16 (truncated: the half unit is added back,
+  :func:`~magcal.logs.streams.untruncate`). The correction is undone with the PARAM_VALUEs
+  received (the ground station fetches them all when it connects, and each change comes back
+  as PARAM_VALUE). Motor compensation is not in the stream: it is zero while disarmed, and
+  armed data are not used.
 - **PX4**: HIGHRES_IMU (``id`` = instance) carries the calibrated IMU in m/s² and rad/s as
   floats and is used when present, else SCALED_IMU*; the magnetometer comes from SCALED_IMU
   (compass 1), SCALED_IMU2, SCALED_IMU3, which PX4 fills with the **raw** ``sensor_mag``
@@ -49,6 +51,7 @@ from magcal.logs.streams import (
     StepSignal,
     instances_text,
     strictly_increasing,
+    untruncate,
 )
 
 Progress = Callable[[float], None]
@@ -158,8 +161,8 @@ def _check_no_reboot(name: str, samples: list) -> None:
 def _imu_from_scaled(name: str, msg_type: str, samples: list, instance: int) -> ImuStream:
     _check_no_reboot(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
-    acc = np.array([(m.xacc, m.yacc, m.zacc) for _, m in samples], float) * GRAVITY_MSS / 1000.0
-    gyr = np.array([(m.xgyro, m.ygyro, m.zgyro) for _, m in samples], float) / 1000.0
+    acc = untruncate([(m.xacc, m.yacc, m.zacc) for _, m in samples]) * GRAVITY_MSS / 1000.0
+    gyr = untruncate([(m.xgyro, m.ygyro, m.zgyro) for _, m in samples]) / 1000.0
     t, gyr, acc = strictly_increasing(t, gyr, acc)
     return ImuStream(t, gyr, acc, instance, msg_type)
 
@@ -246,7 +249,7 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
     samples = _mag_samples(seen, mag_type)
     _check_no_reboot(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
-    field = np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples], float)
+    field = untruncate([(m.xmag, m.ymag, m.zmag) for _, m in samples])
     t, field = strictly_increasing(t, field)
     undone = undo_ardupilot(name, t, field, params, compass)
     state = ardupilot_state_index(params.initial, compass)
@@ -301,7 +304,7 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
     samples = _mag_samples(seen, mag_type)
     _check_no_reboot(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
-    field = np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples], float) / 1000.0
+    field = untruncate([(m.xmag, m.ymag, m.zmag) for _, m in samples]) / 1000.0
     t, field = strictly_increasing(t, field)
     mag_stream = MagStream(
         t=t,

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib import ekf, observability, quality
+from magcal.calib import ckf, ekf, observability, quality, twostep
 from magcal.calib.ellipsoid import fit_ellipsoid_sdp
 from magcal.calib.initial import InitialEstimate, initial_estimate
 from magcal.calib.ml import MLEstimate, filter_data_for, maximum_likelihood, normalisation_for
@@ -22,7 +22,18 @@ from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
 
-METHODS = ("ml", "init")
+METHODS = ("ml", "init", "ckf", "two-step")
+#: Methods that fit the ellipsoid from the field norm alone, sample by sample (Zhao et al.'s
+#: CKF) or in batch (Alonso & Shuster's TWO-STEP), instead of Algorithm 1's SDP; the
+#: misalignment, the field's dip and the gyro bias then come from Algorithm 1's own steps
+#: 1a and 1c, so the result is a full D, o like "init". Each returns (EllipsoidFit, the
+#: result file's record of the run).
+ATTITUDE_FREE = {
+    "ckf": ckf.calibration_ellipsoid,
+    "two-step": twostep.calibration_ellipsoid,
+}
+#: The result's key for each attitude-free method's record of its run.
+ATTITUDE_FREE_KEYS = {"ckf": "ckf", "two-step": "two_step"}
 
 NOISY_ELLIPSOID_WARNING = (
     "the ellipsoid fit reached the edge of positive definiteness although the data cover "
@@ -79,7 +90,9 @@ def calibrate(
     options: OptimizeOptions = OptimizeOptions(),
     progress: Callable[[int, float, float], None] | None = None,
 ) -> Calibration:
-    """Calibrate a session with ``method`` ("ml" or "init")."""
+    """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
+    or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see
+    :data:`ATTITUDE_FREE`)."""
     if method not in METHODS:
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     seconds = {}
@@ -92,10 +105,16 @@ def calibrate(
     # warning. When the data do cover the sphere, degeneracy comes from noise, not from
     # too little rotation: say that instead of the fit's own advice to rotate more.
     t0 = time.perf_counter()
-    fit = fit_ellipsoid_sdp(session.mag, force=True)
-    seconds["ellipsoid"] = time.perf_counter() - t0
-    if report.ok and fit.warnings:
-        fit = dataclasses.replace(fit, warnings=(NOISY_ELLIPSOID_WARNING,))
+    method_record = None
+    if method in ATTITUDE_FREE:
+        # These report degenerate data themselves; --force has already passed the checks.
+        fit, method_record = ATTITUDE_FREE[method](session.mag, force=force)
+        seconds[method] = time.perf_counter() - t0
+    else:
+        fit = fit_ellipsoid_sdp(session.mag, force=True)
+        seconds["ellipsoid"] = time.perf_counter() - t0
+        if report.ok and fit.warnings:
+            fit = dataclasses.replace(fit, warnings=(NOISY_ELLIPSOID_WARNING,))
 
     init = initial_estimate(session, fit)
     seconds.update(init.seconds)
@@ -115,6 +134,8 @@ def calibrate(
             "total_rotation_rad": report.total_rotation_rad,
         },
     }
+    if method_record is not None:
+        extra[ATTITUDE_FREE_KEYS[method]] = method_record
     est = None
     if method == "ml":
         t0 = time.perf_counter()

@@ -93,10 +93,23 @@ def _run_simulate(args) -> int:
     return 0
 
 
+#: ``calibrate --method`` choices, as ``magcal.calib.pipeline.METHODS`` (not imported here: the
+#: parser is built for every command, and the pipeline loads the numerical stack).
+CALIBRATION_METHODS = ("ml", "init", "ckf", "two-step")
+
+
 def _add_calibrate(sub) -> None:
     p = sub.add_parser("calibrate", help="calibrate a session (Kok & Schön Algorithm 1)")
     p.add_argument("session", help="session CSV (magcal-session: 1)")
-    p.add_argument("--method", default="ml", choices=["ml", "init"])
+    p.add_argument(
+        "--method",
+        default="ml",
+        choices=CALIBRATION_METHODS,
+        help="ml: maximum likelihood, Kok & Schön's Algorithm 1 (default); init: its initial "
+        "estimate (step 1) only; ckf: Zhao et al.'s cubature Kalman filter, sample by sample; "
+        "two-step: Alonso & Shuster's TWO-STEP. ckf and two-step fit the ellipsoid from the "
+        "field norm alone and take the misalignment from init's alignment step",
+    )
     p.add_argument("-o", "--output", help="result JSON to write")
     p.add_argument("--plot", metavar="DIR", help="write the paper's figures as PNG here")
     p.add_argument(

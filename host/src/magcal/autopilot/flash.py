@@ -47,6 +47,9 @@ log = logging.getLogger(__name__)
 
 #: PARAM_SET sends per parameter before it is reported unconfirmed.
 PARAM_WRITE_TRIES = 10
+#: After this many parameters in a row without a single echo the link is taken for dead and
+#: the remaining parameters are not sent (they keep their old values).
+DEAD_LINK_PARAMS = 3
 #: PX4 Magnetometer::set_offset/set_scale/set_offdiagonal ignore smaller changes until a reboot.
 PX4_UPDATE_THRESHOLD = 0.01
 
@@ -67,12 +70,14 @@ class AutopilotFlashError(MagcalError):
 
 @dataclass(frozen=True)
 class Unconfirmed:
-    """A parameter whose new value was not confirmed: wanted, and the last value echoed (None
-    when no echo came)."""
+    """A parameter whose new value was not confirmed: wanted, the last value echoed (None when
+    no echo came), and whether it was sent at all (not after the link was taken for dead:
+    then it certainly holds its old value)."""
 
     name: str
     wanted: float
     echoed: float | None
+    sent: bool = True
 
 
 @dataclass(frozen=True)
@@ -449,11 +454,16 @@ def write_and_confirm(
     tries: int = PARAM_WRITE_TRIES,
 ) -> tuple[Unconfirmed, ...]:
     """PARAM_SET each entry until its echo confirms it (module docstring, step 3); returns the
-    ones not confirmed after ``tries`` sends (empty: all confirmed)."""
+    ones not confirmed after ``tries`` sends (empty: all confirmed). After DEAD_LINK_PARAMS
+    parameters in a row without any echo the rest are not sent."""
     failed: list[Unconfirmed] = []
+    silent = 0
     for k, e in enumerate(writes, start=1):
         if e.param_type is None:
             raise MagcalError(f"flash: no parameter type for {e.name}")
+        if silent >= DEAD_LINK_PARAMS:
+            failed.append(Unconfirmed(e.name, e.value, None, sent=False))
+            continue
         echoed: float | None = None
         for attempt in range(tries):
             echo = ap.write_once(e.name, e.value, e.param_type)
@@ -463,23 +473,33 @@ def write_and_confirm(
                     break
             log.info("%s: %s not confirmed (try %d, echo %s)", ap.url, e.name, attempt + 1, echoed)
         else:
+            silent = silent + 1 if echoed is None else 0
             failed.append(Unconfirmed(e.name, e.value, echoed))
             if progress:
                 progress(f"{k}/{len(writes)} {e.name}: NOT confirmed after {tries} tries")
             continue
+        silent = 0
         if progress:
-            progress(
-                f"{k}/{len(writes)} {e.name} = {params.value_text(e.value, e.param_type)} confirmed"
-            )
+            text = params.value_text(e.value, e.param_type)
+            progress(f"{k}/{len(writes)} {e.name} = {text} confirmed")
     return tuple(failed)
 
 
 def unconfirmed_text(failed: tuple[Unconfirmed, ...]) -> str:
+    """The unconfirmed parameters and what is known of each, for an error message."""
+    sent = [u for u in failed if u.sent]
     parts = []
-    for u in failed:
+    for u in sent:
         got = "no echo" if u.echoed is None else f"vehicle echoed {u.echoed:.9g}"
         parts.append(f"{u.name} (wanted {u.wanted:.9g}, {got})")
-    return ", ".join(parts)
+    text = ", ".join(parts)
+    unsent = [u.name for u in failed if not u.sent]
+    if unsent:
+        text += (
+            f"; not sent after {DEAD_LINK_PARAMS} parameters in a row got no answer (they hold "
+            f"their old values): {', '.join(unsent)}"
+        )
+    return text
 
 
 def restore_entries(

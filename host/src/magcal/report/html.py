@@ -425,13 +425,23 @@ def _evaluation_table(ev: SessionEvaluation) -> str:
     return out
 
 
+def png_size(png: bytes) -> tuple[int, int]:
+    """(width, height) in pixels from a PNG's IHDR chunk."""
+    if png[:8] != b"\x89PNG\r\n\x1a\n" or png[12:16] != b"IHDR":
+        raise ValueError("not a PNG file")
+    return int.from_bytes(png[16:20], "big"), int.from_bytes(png[20:24], "big")
+
+
 def _figures(figs: list[Figure]) -> str:
     out = ['<div class="figs">']
     for f in figs:
         wide = ' class="wide"' if f.wide else ""
         data = base64.b64encode(f.png).decode("ascii")
+        # width/height give the browser the aspect ratio before (or without) decoding: the
+        # layout does not jump, and a broken image keeps its place.
+        w, h = png_size(f.png)
         out.append(
-            f'<figure{wide}><img alt="{_e(f.title)}" '
+            f'<figure{wide}><img alt="{_e(f.title)}" width="{w}" height="{h}" '
             f'src="data:image/png;base64,{data}"><figcaption><b>{_e(f.title)}.</b> '
             f"{_e(f.caption)}</figcaption></figure>"
         )

@@ -12,6 +12,14 @@ Ctrl-C. It returns a :class:`CollectResult` holding a :class:`~magcal.io.session
   firmware, firmware_build, protocol_version, port, each sensor's name and exact count scale,
   units, samples, dropped, device_dropped, coverage, stopped (why it stopped).
 
+Live estimate: the magnetometer stream also runs through a
+:class:`~magcal.calib.live.LiveCalibration` (Zhao et al.'s CKF on block means of about 100 Hz),
+whose state goes with every progress report: the calibrated field's norm spread and, once
+the estimate has converged and the coverage reached the target (90 % without one), "ok to
+stop" (:meth:`~magcal.calib.live.LiveState.text`, shown before the coverage hint). It never
+stops the collection by itself and never loses a sample: should it fail, collection goes on
+without it (logged).
+
 Dropped samples: the stream's seq is the acquisition counter (+1 per sample modulo 2^32), so
 every sample lost on the way (the device's transmit queue, the link, the host's queue) shows
 as a seq gap. The device's own count (stream_stop's ``dropped``) also includes samples lost
@@ -33,6 +41,7 @@ from datetime import datetime, timezone
 
 import numpy as np
 
+from magcal.calib.live import OK_COVERAGE, LiveCalibration, LiveState
 from magcal.device.client import (
     DeviceClient,
     DeviceInfo,
@@ -81,7 +90,8 @@ class CollectProgress:
     rate_hz: float  # samples per second over the last RATE_WINDOW_SAMPLES
     dropped: int  # seq gaps so far
     coverage: float  # 0..1
-    hint: str
+    hint: str  # what to do next: the live estimate's state, then the coverage hint
+    live: LiveState | None = None  # None before the first report or if the estimate failed
 
 
 @dataclass(frozen=True)
@@ -90,7 +100,8 @@ class CollectResult:
     stopped : "coverage", "duration", "samples", "interrupted" or "error";
     dropped : max(seq gaps, device_dropped); gaps : samples missing between received seqs;
     device_dropped : stream_stop's count (-1 when the stream could not be stopped);
-    out_of_order : samples skipped because their time did not increase."""
+    out_of_order : samples skipped because their time did not increase;
+    live : the live estimate's last state (None if it failed)."""
 
     session: Session | None
     samples: int
@@ -101,6 +112,7 @@ class CollectResult:
     out_of_order: int
     coverage: CoverageState
     elapsed_s: float
+    live: LiveState | None = None
 
     @property
     def interrupted(self) -> bool:
@@ -189,6 +201,54 @@ class _Recorder:
         return len(self.seq)
 
 
+class _Live:
+    """The live estimate, fenced: a failure of the estimate must not end a collection."""
+
+    def __init__(self, sample_rate_hz: float, ok_coverage: float) -> None:
+        self.calibration: LiveCalibration | None = LiveCalibration(
+            sample_rate_hz, ok_coverage=ok_coverage
+        )
+
+    def add(self, mag: np.ndarray) -> None:
+        if self.calibration is not None:
+            try:
+                self.calibration.add(mag)
+            except (ValueError, ArithmeticError, MagcalError) as exc:
+                self._fail(exc)
+
+    def state(self, coverage: float) -> LiveState | None:
+        if self.calibration is not None:
+            try:
+                return self.calibration.state(coverage)
+            except (ValueError, ArithmeticError, MagcalError) as exc:
+                self._fail(exc)
+        return None
+
+    def _fail(self, exc: BaseException) -> None:
+        log.warning("collect: the live estimate failed (%s); collecting without it", exc)
+        self.calibration = None
+
+
+def live_summary(live: LiveState) -> str:
+    """The live estimate at the end, for the session's metadata."""
+    change = "n/a" if live.norm_change is None else f"{100 * live.norm_change:.3f} %"
+    return (
+        f"CKF norm spread {100 * live.norm_spread:.3f} %, uncertainty "
+        f"{100 * live.norm_std:.3f} %, change over the last seconds {change}, "
+        f"{'converged' if live.converged else 'not converged'}"
+    )
+
+
+def progress_hint(coverage: CoverageState, live: LiveState | None) -> str:
+    """The progress line's advice: "ok to stop: ..." alone once it is, else the live
+    estimate's state followed by the coverage hint."""
+    if live is None:
+        return coverage.hint
+    if live.ok_to_stop:
+        return live.text()
+    return f"{live.text()}; {coverage.hint}"
+
+
 def collect(
     client: DeviceClient,
     info: DeviceInfo,
@@ -215,6 +275,7 @@ def collect(
         raise MagcalError("collect: give a stop condition (duration, coverage or sample count)")
     rec = _Recorder()
     tracker = CoverageTracker(min_extent=COVERAGE_MIN_EXTENT_UT)
+    live = _Live(info.sample_rate_hz, coverage_target or OK_COVERAGE)
     mag_sensor = info.sensor("mag")
     start = clock()
     last_sample = start
@@ -257,9 +318,9 @@ def collect(
             now = clock()
             if now >= next_report:
                 next_report = now + PROGRESS_INTERVAL_S
-                state = _feed_coverage(rec, tracker, mag_sensor)
+                state = _feed_coverage(rec, tracker, mag_sensor, live)
                 if progress is not None:
-                    progress(_progress(rec, state, now - start, rate_times))
+                    progress(_progress(rec, state, live, now - start, rate_times))
                 if (
                     coverage_target is not None
                     and state.coverage >= coverage_target
@@ -274,11 +335,12 @@ def collect(
         error = exc
     # Stopped on the way out whatever happened, also after a Ctrl-C during stream_start.
     device_dropped = _stop_stream(client, rec, max_samples)
-    state = _feed_coverage(rec, tracker, mag_sensor, force=True)
+    state = _feed_coverage(rec, tracker, mag_sensor, live, force=True)
     elapsed = clock() - start
+    live_state = live.state(state.coverage)
     if progress is not None and len(rec):
-        progress(_progress(rec, state, elapsed, rate_times))
-    result = _result(rec, info, client, stopped, device_dropped, state, elapsed)
+        progress(_progress(rec, state, live, elapsed, rate_times, live_state))
+    result = _result(rec, info, client, stopped, device_dropped, state, elapsed, live_state)
     if error is not None:
         raise CollectError(
             f"collect on {client.url}: stopped by an error after {len(rec)} samples: {error}",
@@ -314,24 +376,42 @@ def _drain_queued(client: DeviceClient, rec: _Recorder, max_samples: int | None)
 
 
 def _feed_coverage(
-    rec: _Recorder, tracker: CoverageTracker, mag: SensorInfo, force: bool = False
+    rec: _Recorder, tracker: CoverageTracker, mag: SensorInfo, live: _Live, force: bool = False
 ) -> CoverageState:
+    """The samples not yet seen, in µT, to the coverage tracker and the live estimate."""
     new = rec.mag[rec.fed_to_coverage :]
     if new:
-        tracker.add(counts_to_session_units(mag, np.array(new)))
+        ut = counts_to_session_units(mag, np.array(new))
+        tracker.add(ut)
+        live.add(ut)
         rec.fed_to_coverage = len(rec.mag)
     return tracker.state(force=force)
 
 
 def _progress(
-    rec: _Recorder, state: CoverageState, elapsed: float, times: list[float]
+    rec: _Recorder,
+    state: CoverageState,
+    live: _Live,
+    elapsed: float,
+    times: list[float],
+    live_state: LiveState | None = None,
 ) -> CollectProgress:
     rate = (
         (len(times) - 1) / (times[-1] - times[0])
         if len(times) > 1 and times[-1] > times[0]
         else 0.0
     )
-    return CollectProgress(len(rec), elapsed, rate, rec.gaps, state.coverage, state.hint)
+    if live_state is None:
+        live_state = live.state(state.coverage)
+    return CollectProgress(
+        len(rec),
+        elapsed,
+        rate,
+        rec.gaps,
+        state.coverage,
+        progress_hint(state, live_state),
+        live_state,
+    )
 
 
 def _result(
@@ -342,6 +422,7 @@ def _result(
     device_dropped: int,
     state: CoverageState,
     elapsed: float,
+    live: LiveState | None,
 ) -> CollectResult:
     dropped = max(rec.gaps, device_dropped)
     session = None
@@ -361,6 +442,8 @@ def _result(
         )
         if rec.out_of_order:
             meta["out_of_order_skipped"] = str(rec.out_of_order)
+        if live is not None and live.started:
+            meta["live_estimate"] = live_summary(live)
         t = np.array(rec.t_us, dtype=np.int64)
         session = session_from_arrays(
             t.astype(np.float64) / 1e6,
@@ -379,4 +462,5 @@ def _result(
         out_of_order=rec.out_of_order,
         coverage=state,
         elapsed_s=elapsed,
+        live=live,
     )

@@ -137,16 +137,23 @@ def wmm_field(lat_deg: float, lon_deg: float, alt_km: float, day: dt.date) -> Fi
 
     lat_deg, lon_deg : geodetic degrees (north, east positive); alt_km : height, km.
     FieldError when the date lies outside the models pygeomag ships."""
+    return wmm_field_at(lat_deg, lon_deg, alt_km, decimal_year(day), day.isoformat())
+
+
+def wmm_field_at(
+    lat_deg: float, lon_deg: float, alt_km: float, year: float, when: str = ""
+) -> Field:
+    """:func:`wmm_field` at a decimal year (2027.5); ``when`` names the date in messages."""
     from pygeomag import GeoMag
 
-    year = decimal_year(day)
+    when = when or f"{year:.3f}"
     try:
-        model = GeoMag(base_year=day.year)
+        model = GeoMag(base_year=int(year))
         r = model.calculate(glat=lat_deg, glon=lon_deg, alt=alt_km, time=year)
     except ValueError as exc:
         raise FieldError(
-            f"World Magnetic Model for {day.isoformat()}: {exc}: give --date within the "
-            "models' years (2010–2029) or the field with --field"
+            f"World Magnetic Model for {when}: {exc}: give --date within the models' years "
+            "(2010–2029) or the field with --field"
         ) from exc
     if not math.isfinite(r.f) or r.f <= 0:
         raise FieldError(f"World Magnetic Model at {lat_deg}, {lon_deg}: no field ({r.f})")
@@ -155,5 +162,5 @@ def wmm_field(lat_deg: float, lon_deg: float, alt_km: float, day: dt.date) -> Fi
         float(r.f),
         float(r.i),
         float(r.d),
-        f"World Magnetic Model {model.model} at {where} on {day.isoformat()}",
+        f"World Magnetic Model {model.model} at {where} on {when}",
     )

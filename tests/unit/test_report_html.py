@@ -17,7 +17,7 @@ from magcal.calib.pipeline import calibrate
 from magcal.cli import EXIT_ERROR, main
 from magcal.io.result import read_result, write_result
 from magcal.io.session import read_session, session_from_arrays, write_session
-from magcal.report import contents, html
+from magcal.report import contents, html, plots
 from magcal.sim.scenarios import preset, simulate
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -268,3 +268,15 @@ def test_value_pm_rounds_to_two_significant_digits_of_sigma():
     assert html.value_pm(0.5, None) == "0.5"
     assert html.value_pm(0.5, float("inf")) == "0.5 ± (not identifiable)"
     assert html.value_pm(float("nan"), 0.1) == "—"
+
+
+def test_plot_dip_angles_writes_a_png_and_refuses_a_non_finite_estimate(tmp_path):
+    rng = np.random.default_rng(0)
+    raw, cal = rng.uniform(-60, 80, 500), 71.6 + 0.3 * rng.normal(size=500)
+    out = plots.plot_dip_angles(raw, cal, 71.6, tmp_path / "dip.png")
+    assert out.read_bytes()[:8] == PNG_MAGIC
+    assert html.png_size(out.read_bytes()) == (1080, 432)  # 9 × 3.6 in at plots.DPI
+    with pytest.raises(ValueError, match="dip_estimate_deg must be finite"):
+        plots.plot_dip_angles(raw, cal, float("nan"), tmp_path / "bad.png")
+    with pytest.raises(ValueError, match="non-finite"):
+        plots.plot_dip_angles(np.array([np.nan]), cal, 71.6, tmp_path / "bad.png")

@@ -190,6 +190,14 @@ def _summary(report: Report) -> str:
                     "magnetometer vs body axes",
                 )
             )
+    if fit.dip_calibrated is not None and fit.dip_raw is not None:
+        kpis.append(
+            _kpi(
+                "Inclination spread",
+                f"{fit.dip_calibrated['std']:.3g}°",
+                f"dip std per sample (raw {fit.dip_raw['std']:.3g}°)",
+            )
+        )
     if fit.innovations is not None:
         s = fit.innovations.std
         kpis.append(

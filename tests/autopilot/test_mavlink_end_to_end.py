@@ -194,3 +194,26 @@ def test_flash_without_echoes_fails_naming_backup_and_each_value_is_old_or_new(
         saved = ap_params.read_param_file(backup).as_dict()
         assert all(np.float32(v) == np.float32(old[n]) for n, v in saved.items())
         json.loads(open(result).read())  # the result file is untouched
+
+
+def test_ctrl_c_during_collect_writes_the_partial_session(tmp_path, monkeypatch):
+    import magcal.commands.collect as collect_command
+
+    def interrupting_printer():
+        pressed = []
+
+        def show(p):  # Ctrl-C once, after 300 samples
+            if p.samples >= 300 and not pressed:
+                pressed.append(p.samples)
+                raise KeyboardInterrupt
+
+        show.done = lambda: None
+        return show
+
+    monkeypatch.setattr(collect_command, "progress_printer", interrupting_printer)
+    out = tmp_path / "partial.csv"
+    with AutopilotEmulator(personality="px4", seed=4, speedup=SPEEDUP) as emu:
+        assert cli.main(["collect", "--mavlink", emu.url, "-o", str(out)]) == cli.EXIT_INTERRUPTED
+    session = read_session(out)
+    assert len(session) >= 300 and session.meta["stopped"] == "interrupted"
+    assert np.all(np.diff(session.t) > 0)

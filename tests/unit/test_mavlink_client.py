@@ -146,3 +146,21 @@ def test_flash_without_a_field_strength_is_refused_before_any_link(tmp_path, cap
     assert "give --location LAT,LON[,ALT_KM]" in capsys.readouterr().err
     assert cli.main([*argv, "--field", "485"]) == cli.EXIT_ERROR
     assert "with its unit" in capsys.readouterr().err
+
+
+def test_old_ardupilot_that_refuses_message_intervals_gets_request_data_stream():
+    from types import SimpleNamespace
+
+    from magcal.autopilot.collect import start_stream
+
+    calls = []
+    client = SimpleNamespace(
+        set_message_interval=lambda mid, us: calls.append(("interval", mid)) or M.MAV_RESULT_DENIED,
+        request_data_stream=lambda sid, hz, start=True: calls.append(("stream", sid, hz)),
+    )
+    ap = SimpleNamespace(client=client, autopilot=vehicle.ARDUPILOT, url="x")
+    assert start_stream(ap, "RAW_IMU", 50.0) == "REQUEST_DATA_STREAM"
+    assert calls == [("interval", 27), ("stream", M.MAV_DATA_STREAM_RAW_SENSORS, 50)]
+    px4 = SimpleNamespace(client=client, autopilot=vehicle.PX4, url="x")
+    with pytest.raises(vehicle.AutopilotError, match="answered MAV_RESULT 2 to MAV_CMD_SET_MESS"):
+        start_stream(px4, "SCALED_IMU", 50.0)

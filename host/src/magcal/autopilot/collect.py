@@ -86,8 +86,9 @@ def stop_stream(ap: Autopilot, message: str, how: str) -> None:
             ap.client.request_data_stream(MAV_DATA_STREAM_RAW_SENSORS, 0, start=False)
         else:
             ap.client.set_message_interval(vehicle.MESSAGE_IDS[message], 0)
-    except (MagcalError, OSError) as exc:
-        log.warning("%s: could not restore the default rate of %s (%s)", ap.url, message, exc)
+    except (MagcalError, OSError, KeyboardInterrupt) as exc:
+        # also a second Ctrl-C: what was collected is still written
+        log.warning("%s: could not restore the default rate of %s (%r)", ap.url, message, exc)
 
 
 class _Recorder:

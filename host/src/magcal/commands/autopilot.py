@@ -210,8 +210,8 @@ def _recorded(args, result, cp) -> dict[str, float] | None:
     where = ""
     if args.session:
         meta, where = read_session(args.session).meta, args.session
-    elif isinstance(args_result_meta := result.extra.get("session_meta"), dict):
-        meta, where = {str(k): str(v) for k, v in args_result_meta.items()}, args.result
+    elif isinstance(result_meta := result.extra.get("session_meta"), dict):
+        meta, where = {str(k): str(v) for k, v in result_meta.items()}, args.result
     if meta is None:
         return None
     if meta.get("autopilot") not in (None, cp.autopilot) or meta.get("compass") not in (
@@ -231,7 +231,12 @@ def _recorded(args, result, cp) -> dict[str, float] | None:
             "nothing was written"
         )
     recorded = vehicle.params_from_meta(meta)
-    return recorded or None
+    if not recorded:
+        raise MagcalError(
+            f"flash: {where} holds no compass parameters (no 'param.NAME' metadata): it was not "
+            "recorded by magcal collect --mavlink; nothing was written"
+        )
+    return recorded
 
 
 def _print_plan(plan, cp, out) -> None:

@@ -80,7 +80,7 @@ h3 { font-size: 16px; margin: 22px 0 8px; color: #2c3e57; }
 .subtitle { color: #5b6675; margin: 0 0 20px; font-size: 14px; }
 .summary { border: 1px solid #c7d4e4; background: #f4f8fc; border-radius: 8px;
   padding: 16px 20px; }
-.kpis { display: grid; grid-template-columns: repeat(4, 1fr); gap: 12px 20px; }
+.kpis { display: grid; grid-template-columns: repeat(5, 1fr); gap: 14px 18px; }
 .kpi .label { font-size: 12px; color: #5b6675; text-transform: uppercase;
   letter-spacing: 0.03em; }
 .kpi .value { font-size: 19px; font-weight: 600; white-space: nowrap; }
@@ -173,7 +173,7 @@ def _summary(report: Report) -> str:
             _kpi(
                 "Validation norm spread",
                 f"{_percent(val.spread_before)} → {_percent(val.spread_after)}",
-                f"{val.n_samples} samples not used for the fit",
+                f"{val.n_samples} samples not in the fit",
                 "good" if val.spread_after < val.spread_before else "poor",
             )
         )
@@ -204,7 +204,7 @@ def _summary(report: Report) -> str:
             _kpi(
                 "Innovations std",
                 f"{s:.3f}",
-                "normalised; 1 when the model fits",
+                "1 when the model fits",
                 "good" if 0.8 < s < 1.25 else "poor",
             )
         )

@@ -116,7 +116,7 @@ def test_sigma_is_finite_and_positive_for_every_quantity_and_the_estimate_is_the
     session, _, cal = mems
     u = uncertainty.calibration_uncertainty(cal.result, session)
     assert u.identifiable and u.null_directions == []
-    for name, _, _ in uncertainty.QUANTITIES:
+    for name, _ in uncertainty.QUANTITIES:
         sigma = u.sigma[name]
         if name == "m_n":
             sigma = sigma[[0, 2]]  # m_n's y component is 0 for every dip

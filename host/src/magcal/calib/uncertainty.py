@@ -60,19 +60,19 @@ JACOBIAN_STEP_FRACTION = 1e-4
 #: Components smaller than this (unit eigenvector) are left out of a direction's text.
 DIRECTION_TEXT_MIN = 0.1
 
-#: Derived quantities, their shapes and units ("mag" = the session's magnetometer unit).
-QUANTITIES: tuple[tuple[str, tuple[int, ...], str], ...] = (
-    ("D", (3, 3), "mag"),
-    ("D_inv", (3, 3), "1/mag"),
-    ("o", (3,), "mag"),
-    ("misalignment_deg", (3,), "°"),
-    ("misalignment_angle_deg", (), "°"),
-    ("dip_deg", (), "°"),
-    ("m_n", (3,), ""),
-    ("gyro_bias", (3,), "rad/s"),
-    ("noise_std_gyr", (3,), "rad/s"),
-    ("noise_std_acc", (3,), "m/s²"),
-    ("noise_std_mag", (3,), "mag"),
+#: Derived quantities and their shapes (units: see :func:`derived_quantities`).
+QUANTITIES: tuple[tuple[str, tuple[int, ...]], ...] = (
+    ("D", (3, 3)),
+    ("D_inv", (3, 3)),
+    ("o", (3,)),
+    ("misalignment_deg", (3,)),
+    ("misalignment_angle_deg", ()),
+    ("dip_deg", ()),
+    ("m_n", (3,)),
+    ("gyro_bias", (3,)),
+    ("noise_std_gyr", (3,)),
+    ("noise_std_acc", (3,)),
+    ("noise_std_mag", (3,)),
 )
 
 
@@ -180,7 +180,12 @@ def direction_text(direction: np.ndarray, names: list[str] | tuple[str, ...]) ->
 
 
 def derived_quantities(theta: np.ndarray, norm: Normalisation) -> dict[str, np.ndarray]:
-    """Everything :data:`QUANTITIES` lists, in the session's units, from normalised θ (34,).
+    """Everything :data:`QUANTITIES` lists, from normalised θ (34,).
+
+    D, o, noise_std_mag : the session's magnetometer unit (D per unit field); D_inv its
+        inverse; dip_deg and the misalignment in degrees; m_n unitless; gyro_bias and
+        noise_std_gyr rad/s; noise_std_acc m/s² (the standard deviations per axis: the
+        square roots of the noise covariances' diagonals).
 
     misalignment_deg : the rotation of the magnetometer's axes against the body
         (accelerometer) axes: with the left polar decomposition D = P U (P symmetric positive
@@ -212,12 +217,12 @@ def derived_quantities(theta: np.ndarray, norm: Normalisation) -> dict[str, np.n
 
 
 def _flatten(q: dict[str, np.ndarray]) -> np.ndarray:
-    return np.concatenate([np.asarray(q[name], dtype=float).ravel() for name, _, _ in QUANTITIES])
+    return np.concatenate([np.asarray(q[name], dtype=float).ravel() for name, _ in QUANTITIES])
 
 
 def _unflatten(v: np.ndarray) -> dict[str, np.ndarray]:
     out, k = {}, 0
-    for name, shape, _ in QUANTITIES:
+    for name, shape in QUANTITIES:
         size = math.prod(shape)
         out[name] = v[k : k + size].reshape(shape)
         k += size

@@ -18,7 +18,7 @@ import numpy as np
 
 from magcal.calib import evaluation, quality, uncertainty
 from magcal.calib.uncertainty import CalibrationUncertainty
-from magcal.errors import MagcalError
+from magcal.errors import CalibrationError, MagcalError
 from magcal.io.result import CalibrationResult, apply_correction
 from magcal.io.session import Session
 from magcal.report import plots
@@ -320,6 +320,8 @@ def build_report(
         )
     except evaluation.ModelUnavailableError as exc:
         notes.append(f"no uncertainty and no innovations: {exc}")
+    except CalibrationError as exc:  # the filter breaks down at or next to the result
+        notes.append(f"no uncertainty: {exc}")
     if progress:
         progress("drawing the figures", 0, 1)
     fit = evaluate_session(result, session, session_path, "fit session")

@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
+import io
 import json
+import sys
 
 import numpy as np
 import pytest
 
-from magcal.calib import quality
+from magcal.autopilot import flash, vehicle, wmm
+from magcal.calib import frames, quality
 from magcal.cli import main
 from magcal.io.session import read_session
 from tests.loggen.dataflash import write_bin
@@ -26,16 +29,32 @@ def log(day, tmp_path_factory):
     return str(path)
 
 
-def test_import_then_calibrate_recovers_the_simulated_calibration(day, log, tmp_path, capsys):
-    session_path, result_path = tmp_path / "s.csv", tmp_path / "r.json"
-    assert main(["import", log, "-o", str(session_path)]) == 0
-    captured = capsys.readouterr()
-    assert f"wrote {session_path}" in captured.out
-    assert "reading flight.bin: 100 %" in captured.err
-    assert "ArduPilot DataFlash log: IMU 1 at 200.0 Hz, compass 1 at 50.0 Hz (mG)" in captured.err
-    assert "found hand rotation" in captured.err and "importing" in captured.err
+@pytest.fixture(scope="module")
+def imported(log, tmp_path_factory):
+    """`magcal import` then `magcal calibrate`: (session path, result path, import stderr)."""
+    d = tmp_path_factory.mktemp("imported")
+    session_path, result_path = d / "s.csv", d / "r.json"
+    capture = pytest.MonkeyPatch()
+    err = io.StringIO()
+    capture.setattr(sys, "stderr", err)
+    try:
+        assert main(["import", log, "-o", str(session_path)]) == 0
+        import_err = err.getvalue()
+        assert main(["calibrate", str(session_path), "-o", str(result_path)]) == 0
+    finally:
+        capture.undo()
+    return session_path, result_path, import_err
 
-    assert main(["calibrate", str(session_path), "-o", str(result_path)]) == 0
+
+def test_import_reports_progress_and_the_stretch(imported):
+    err = imported[2]
+    assert "reading flight.bin: 100 %" in err
+    assert "ArduPilot DataFlash log: IMU 1 at 200.0 Hz, compass 1 at 50.0 Hz (mG)" in err
+    assert "found hand rotation" in err and "importing" in err
+
+
+def test_import_then_calibrate_recovers_the_simulated_calibration(day, imported):
+    session_path, result_path, _ = imported
     result = json.loads(result_path.read_text())
     D, o = np.array(result["D"]), np.array(result["o"])
     s = day.sensor
@@ -48,6 +67,36 @@ def test_import_then_calibrate_recovers_the_simulated_calibration(day, log, tmp_
     # measured: floor 0.024°, ML 0.031° (seed 0); the README's MEMS ratio is 1.16
     assert ml < 0.1 and ml < 2.0 * floor
     assert np.allclose(o, s.o, atol=1.0)  # mG
+
+
+def test_the_session_maps_onto_ardupilot_parameters_like_a_collected_one(day, imported):
+    """flash reads the compass parameters in force from the session (param.NAME lines, as
+    `magcal collect` writes them): the plan it makes from the imported session's calibration,
+    applied by the autopilot's own correction, gives the true field direction."""
+    session_path, result_path, _ = imported
+    session = read_session(session_path)
+    result = json.loads(result_path.read_text())
+    recorded = vehicle.params_from_meta(session.meta)
+    assert recorded["COMPASS_ORIENT"] == 6 and recorded["COMPASS_OFS_X"] == -40.5
+    assert session.meta["autopilot"] == vehicle.ARDUPILOT and session.meta["compass"] == "1"
+    assert session.meta["compass_external"] == "1"
+    values = dict(recorded, CUST_ROT_ENABLE=0.0)
+    cp = vehicle.CompassParams(vehicle.ARDUPILOT, 1, values, {}, naming="legacy")
+    field = wmm.Field(50_000.0, None, None, "test")  # 500 mG
+    plan = flash.plan_flash(
+        np.array(result["D_inv"]), np.array(result["o"]), cp, field, recorded=recorded
+    )
+    new = dict(values) | {e.name: e.value for e in plan.writes}
+    assert new["COMPASS_ORIENT"] == 101  # ORIENT 6 (yaw 270°) and a few degrees more
+    after = vehicle.CompassParams(vehicle.ARDUPILOT, 1, new, {}, naming="legacy")
+    # noise-free readings at the session's true attitudes
+    k = np.searchsorted(day.t, session.t - 1e-7)
+    m_b = np.einsum("kji,j->ki", frames.quat_to_matrix(day.q_nb[k]), day.sensor.m_n)
+    B = vehicle.onboard_correction(m_b @ day.sensor.D.T + day.sensor.o, after, recorded)
+    cos = np.sum(B * m_b, axis=1) / np.linalg.norm(B, axis=1)
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    assert np.sqrt(np.mean(angle**2)) < 0.05  # measured 0.014°
+    assert np.linalg.norm(B, axis=1).mean() == pytest.approx(500.0, rel=1e-3)
 
 
 def test_start_and_end_on_the_command_line(log, tmp_path, capsys):

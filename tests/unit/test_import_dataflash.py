@@ -2,12 +2,10 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
-from magcal.autopilot import mapping
+from magcal.autopilot import mapping, vehicle
 from magcal.logs import ImportOptions, LogImportError, dataflash, import_log
 from magcal.logs.correction import MIXED_WINDOW_S
 from tests.loggen.dataflash import COMPASS_PARAMS, ardupilot_corrected, write_bin
@@ -74,7 +72,7 @@ def test_the_raw_field_is_recovered(day, log):
     # is zero-mean: std of a mean of uniform ±½ mG errors over ~2700 samples ≈ 0.006 mG
     rest = ~day.armed[k]
     assert np.all(np.abs(np.mean(streams.mag.mag[rest] - day.mag[k][rest], axis=0)) < 0.03)
-    assert streams.mag.unit == "mG" and streams.autopilot == "ArduPilot"
+    assert streams.mag.unit == "mG" and streams.autopilot == vehicle.ARDUPILOT
 
 
 def test_the_imu_is_read_exactly(day, log):
@@ -113,16 +111,17 @@ def test_start_and_end_override_the_detector(log):
 def test_metadata_says_where_the_data_came_from(log):
     meta = import_log(log[0]).session.meta
     assert meta["mag_unit"] == "mG"
-    assert meta["autopilot"] == "ArduPilot" and meta["compass"] == "1" and meta["imu"] == "1"
+    assert meta["autopilot"] == "ardupilot" and meta["compass"] == "1" and meta["imu"] == "1"
     assert meta["log_file"] == "day.bin" and meta["log_format"] == "DataFlash"
     assert meta["source"].startswith("day.bin (ArduPilot DataFlash log), compass 1 (MAG[0])")
-    params = json.loads(meta["autopilot_params"])
-    assert params["COMPASS_OFS_X"] == pytest.approx(-40.5)
-    assert params["COMPASS_DIA_Y"] == pytest.approx(0.96, abs=1e-7)
-    assert params["COMPASS_ORIENT"] == 6.0
-    assert "body frame" in meta["mag_frame"]
+    # the compass parameters in force, as `magcal collect` records them (float32 texts)
+    assert meta["param.COMPASS_OFS_X"] == "-40.5" and meta["param.COMPASS_DIA_Y"] == "0.96"
+    assert meta["param.COMPASS_ORIENT"] == "6" and meta["param.COMPASS_DEV_ID"] == "97539"
+    assert meta["compass_external"] == "1"
+    assert not any(k.startswith("param.COMPASS_MOT") for k in meta)  # not part of the set
+    assert "y = R_old·raw" in meta["mag_frame"]
     assert "50.0 Hz" in meta["resampling"] and "200.0 Hz" in meta["resampling"]
-    assert "autopilot_params_changed" not in meta
+    assert "params_changed" not in meta
 
 
 @pytest.mark.parametrize(
@@ -171,8 +170,8 @@ def test_a_parameter_change_mid_log_is_honoured(day, tmp_path):
     assert np.all(np.abs(streams.mag.mag - day.mag[k]) <= bound)
     assert any("changed 2 time(s)" in n for n in streams.notes)
     meta = import_log(str(path)).session.meta
-    assert "COMPASS_OFS_X" in meta["autopilot_params_changed"]
-    assert json.loads(meta["autopilot_params"])["COMPASS_OFS_X"] == pytest.approx(-30.25)
+    assert "COMPASS_OFS_X" in meta["params_changed"]
+    assert meta["param.COMPASS_OFS_X"] == "-30.25"
 
 
 def test_offsets_changed_without_a_record_are_refused_where_they_apply(day, tmp_path):

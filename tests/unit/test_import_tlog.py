@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
@@ -72,7 +70,7 @@ def _heading_rms_deg(day, result, unit_scale=1.0):
 
 def test_ardupilot_telemetry_is_undone_with_the_parameters_received(day, ap_log, ap_result):
     streams = ap_result.streams
-    assert streams.autopilot == "ArduPilot" and streams.log_format == "tlog"
+    assert streams.autopilot == "ardupilot" and streams.log_format == "tlog"
     assert streams.imu.source == "RAW_IMU" and streams.mag.source == "RAW_IMU"
     k = _index(day, streams.mag.t)
     # the GCS heartbeat of system 255 did not make it the vehicle; nothing but the first
@@ -100,8 +98,8 @@ def test_ardupilot_telemetry_imports_and_calibrates(day, ap_result):
     assert abs(result.stretch.end_s - day.hand[1]) <= 1.0
     meta = result.session.meta
     assert meta["log_format"] == "tlog" and meta["mag_unit"] == "mG"
-    assert json.loads(meta["autopilot_params"])["COMPASS_OFS_Y"] == 70.0
-    assert "COMPASS_OFS_Y" in meta["autopilot_params_changed"]
+    assert meta["param.COMPASS_OFS_Y"] == "70"
+    assert "COMPASS_OFS_Y" in meta["params_changed"]
     cal = calibrate(result.session, "ml")
     # measured 0.064° (seed 2); 1 mG and 1 mrad/s resolution, 50 Hz
     assert _heading_rms_deg(day, cal.result) < 0.1
@@ -120,7 +118,7 @@ def test_ardupilot_telemetry_without_parameters_or_compass(short_logs):
 
 def test_px4_telemetry_gives_the_raw_field_in_gauss(day, px4_result):
     streams = px4_result.streams
-    assert streams.autopilot == "PX4" and streams.mag.unit == "gauss"
+    assert streams.autopilot == "px4" and streams.mag.unit == "gauss"
     assert streams.imu.source == "HIGHRES_IMU id 0"
     k = _index(day, streams.mag.t)
     # SCALED_IMU carries whole mG (truncated, half added back; a whole one for a logged 0)

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pytest
 
@@ -47,7 +45,7 @@ def _index(day, t):
 
 def test_sensor_mag_is_the_raw_field(day, raw_result):
     streams = raw_result.streams
-    assert streams.autopilot == "PX4" and streams.log_format == "ULog"
+    assert streams.autopilot == "px4" and streams.log_format == "ULog"
     assert streams.mag.source == "sensor_mag[0]" and streams.mag.unit == "gauss"
     k = _index(day, streams.mag.t)
     assert np.array_equal(streams.mag.mag, (day.mag[k] / 1000.0).astype(np.float32))
@@ -68,8 +66,9 @@ def test_the_stretch_is_found_and_calibrates(day, raw_result):
     assert abs(raw_result.stretch.start_s - day.hand[0]) <= 1.0
     assert abs(raw_result.stretch.end_s - day.hand[1]) <= 1.0
     meta = raw_result.session.meta
-    assert meta["mag_unit"] == "gauss" and meta["autopilot"] == "PX4"
-    assert json.loads(meta["autopilot_params"])["CAL_MAG0_XOFF"] == pytest.approx(0.05)
+    assert meta["mag_unit"] == "gauss" and meta["autopilot"] == "px4"
+    assert meta["param.CAL_MAG0_XOFF"] == "0.05" and meta["param.CAL_MAG0_ID"] == "396825"
+    assert meta["compass_external"] == "1"
     cal = calibrate(raw_result.session, "ml")
     s = day.sensor
     r = cal.result

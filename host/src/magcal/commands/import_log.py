@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import sys
 
+from magcal.autopilot.vehicle import AUTOPILOT_NAMES
 from magcal.calib import observability
 from magcal.commands.common import positive
 from magcal.io.session import check_writable, write_session
@@ -86,8 +87,9 @@ def run(args, out=None, err=None) -> int:
     finally:
         progress.done()
     streams, rows = result.streams, result.rows
+    who = AUTOPILOT_NAMES[streams.autopilot]
     print(
-        f"{streams.autopilot} {streams.log_format} log: IMU {streams.imu.instance} at "
+        f"{who} {streams.log_format} log: IMU {streams.imu.instance} at "
         f"{rows.imu_rate_hz:.1f} Hz, compass {streams.mag.instance} at {rows.mag_rate_hz:.1f} Hz "
         f"({streams.mag.unit}), {rows.t[0]:.1f}–{rows.t[-1]:.1f} s",
         file=err,

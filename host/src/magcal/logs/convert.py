@@ -26,12 +26,12 @@ over them is refused.
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass
 
 import numpy as np
 
+from magcal.autopilot import mapping, params, vehicle
 from magcal.io.session import Session, session_from_arrays
 from magcal.logs.streams import ImuStream, LogImportError, LogStreams, MagStream
 
@@ -145,43 +145,71 @@ def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.nda
     return sel
 
 
+def _param_text(value: float) -> str:
+    """A parameter for the metadata: integers exactly (device ids exceed float32's 2**24),
+    others as the shortest text of their float32 (what the autopilot holds)."""
+    if float(value).is_integer() and abs(value) < 2**53:
+        return str(int(value))
+    return params.value_text(value, None)
+
+
+def compass_external(streams: LogStreams, in_force: dict[str, float]) -> str | None:
+    """ "1" external, "0" internal, None unknown: ArduPilot COMPASS_EXTERNn ≠ 0, PX4
+    CAL_MAGn_ROT ≥ 0 (−1 marks an internal magnetometer)."""
+    if streams.autopilot == vehicle.ARDUPILOT:
+        name = mapping.ap_external_name(streams.param_compass, streams.naming or "legacy")
+        value = in_force.get(name)
+        return None if value is None else ("1" if value != 0 else "0")
+    value = in_force.get(f"CAL_MAG{streams.param_compass}_ROT")
+    return None if value is None else ("1" if value >= 0 else "0")
+
+
 def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, str]:
-    """The session's metadata: the contract's ``source`` and ``mag_unit``, plus new optional
-    keys that say where the data came from and which parameters were in force (so that a
-    later ``flash`` can check it writes to the same setup)."""
+    """The session's metadata: the contract's ``source`` and ``mag_unit``, and the keys
+    ``magcal collect`` writes over MAVLink (``autopilot``, ``compass``, ``compass_external``,
+    ``mag_frame``, ``param.NAME`` for each compass parameter in force at the end of the
+    range), so that ``flash`` and ``verify`` treat an imported session like a collected one;
+    plus where in which log it came from."""
     name = os.path.basename(streams.path)
     t0, t1 = float(rows.t[sel][0]), float(rows.t[sel][-1])
-    params_end = streams.params.at(t1)
-    recorded = {n: params_end[n] for n in streams.param_names if n in params_end}
+    in_force = streams.params.at(t1)
+    recorded = {n: in_force[n] for n in streams.param_names if n in in_force}
     changed = sorted(
         {n for when, n, _ in streams.params.changes if t0 <= when <= t1 and n in recorded}
     )
     meta = {
         "source": (
-            f"{name} ({streams.autopilot} {streams.log_format} log), compass "
-            f"{streams.mag.instance} ({streams.mag.source}), IMU {streams.imu.instance} "
-            f"({streams.imu.source}), {t0:.3f}–{t1:.3f} s"
+            f"{name} ({vehicle.AUTOPILOT_NAMES[streams.autopilot]} {streams.log_format} log), "
+            f"compass {streams.mag.instance} ({streams.mag.source}), IMU "
+            f"{streams.imu.instance} ({streams.imu.source}), {t0:.3f}–{t1:.3f} s"
         ),
-        "mag_unit": streams.mag.unit,
         "autopilot": streams.autopilot,
-        "log_file": name,
-        "log_format": streams.log_format,
         "compass": str(streams.mag.instance),
         "imu": str(streams.imu.instance),
+        "log_file": name,
+        "log_format": streams.log_format,
         "log_start_s": f"{t0:.6f}",
         "log_end_s": f"{t1:.6f}",
+        "gyr_unit": "rad/s",
+        "acc_unit": "m/s^2",
+        "mag_unit": streams.mag.unit,
         "mag_frame": streams.mag.frame,
         "resampling": (
             f"rows at the magnetometer's samples ({rows.mag_rate_hz:.1f} Hz); gyroscope averaged "
             f"over each row's interval, accelerometer interpolated (IMU {rows.imu_rate_hz:.1f} Hz)"
         ),
-        "autopilot_params": json.dumps(recorded, sort_keys=True),
     }
+    external = compass_external(streams, in_force)
+    if external is not None:
+        meta["compass_external"] = external
+    if streams.naming and streams.naming != mapping.AP_NAMING_LEGACY:
+        meta["param_naming"] = streams.naming
     if changed:
-        meta["autopilot_params_changed"] = (
-            f"{', '.join(changed)} changed within this range; autopilot_params holds the values "
+        meta["params_changed"] = (
+            f"{', '.join(changed)} changed within this range; the param. lines hold the values "
             "at its end"
         )
+    meta |= {vehicle.SESSION_PARAM_PREFIX + n: _param_text(v) for n, v in recorded.items()}
     return meta
 
 

@@ -6,12 +6,13 @@ ArduPilot logs (DataFlash ``MAG``) and streams (``RAW_IMU``, ``SCALED_IMU2/3``) 
 (whole mG, truncated towards zero); ``AP_Compass_Backend::accumulate_sample`` makes that field
 as ``rotate_field`` (board and ``COMPASS_ORIENTn`` rotation) then ``correct_field``:
 ``mag = M · s · (mag + OFS) + motor_offset`` (checked at commit 20172681; the motor
-offset is added *after* the matrix there). Here only ``correct_field`` is undone: the
-result stays in the frame ``rotate_field`` gave it, ``y = R_old · raw`` in the words of
-:mod:`magcal.autopilot.mapping`, which is what :func:`~magcal.autopilot.mapping.to_ardupilot`
-takes (with ``R_old`` the rotation in force). That frame is also the only one that can be
-recovered for an internal compass, whose rotation (``AHRS_ORIENTATION`` and the board's own)
-is not in the compass parameters.
+offset is added *after* the matrix there). Here only ``correct_field`` is undone
+(:func:`magcal.autopilot.mapping.ardupilot_undo_correct_field`, after subtracting the logged
+motor offset): the result stays in the frame ``rotate_field`` gave it, ``y = R_old · raw``,
+which is what :func:`~magcal.autopilot.mapping.to_ardupilot` takes (with ``R_old`` the
+rotation in force) and what ``magcal collect`` records. That frame is also the only one that
+can be recovered for an internal compass, whose rotation (``AHRS_ORIENTATION`` and the
+board's own) is not in the compass parameters.
 
 PX4's ``vehicle_magnetometer`` topic is ``Rot · S · (raw − off)``; undoing it gives the raw
 sensor-frame field (``Rot0 = I`` for :func:`~magcal.autopilot.mapping.to_px4`).
@@ -28,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.autopilot import mapping
+from magcal.autopilot import mapping, vehicle
 from magcal.logs.streams import LogImportError, ParamTimeline
 
 #: Samples this long after a compass-parameter change are dropped, s: ArduPilot averages the
@@ -39,9 +40,8 @@ MIXED_WINDOW_S = 0.5
 #: more than this means the offsets in use were not the parameters the log recorded.
 LOGGED_OFFSET_TOLERANCE_MG = 1.0 + 1e-6
 
-# The parameter names are mapping.py's: one place for them (its helpers are private, so a
-# rename there shows up here as an import error, not as silently wrong names).
-ardupilot_param_names = mapping._ap_names
+# PX4's CAL_MAGn_* names are mapping.py's (one place for them; it exports no public alias
+# yet, so a rename there shows up here as an import error, not as silently wrong names).
 px4_param_names = mapping._px4_names
 
 
@@ -54,6 +54,9 @@ class Undone:
     notes          : remarks for the user
     suspect        : (K,) bool, samples whose logged offsets contradict the parameters
     suspect_reason : why such a sample cannot be used (for the error if one is imported)
+    param_compass  : the parameter set used (ArduPilot: 1-based compass of COMPASS_OFSn_X;
+                     PX4: n of CAL_MAGn_*)
+    naming         : ArduPilot's parameter naming (mapping.AP_NAMING_*); PX4: ""
     """
 
     mag: np.ndarray
@@ -61,33 +64,48 @@ class Undone:
     notes: tuple[str, ...]
     suspect: np.ndarray
     suspect_reason: str
+    param_compass: int
+    naming: str = ""
 
 
-def ardupilot_required(compass: int) -> list[str]:
+#: The session's ``mag_frame`` for PX4's raw field (as ``magcal collect`` describes it).
+PX4_RAW_FRAME = "PX4 sensor_mag: raw sensor frame (driver's rotation), before CAL_MAGn_* (Rot0 = I)"
+
+
+def ardupilot_frame(motor: bool) -> str:
+    """The session's ``mag_frame`` for ArduPilot data (as ``magcal collect`` describes it)."""
+    undone = "OFS, DIA/ODI/SCALE and motor compensation" if motor else "OFS and DIA/ODI/SCALE"
+    return (
+        "ArduPilot rotate_field output, y = R_old·raw (the rotation in force: COMPASS_ORIENT "
+        "for an external compass, AHRS_ORIENTATION and the board's rotation for an internal "
+        f"one), corrected field with {undone} undone"
+    )
+
+
+def ardupilot_naming(names: set[str]) -> str:
+    """The log's ArduPilot parameter naming: per-instance (COMPASS1_OFS_X) when only that is
+    there, else the legacy one (COMPASS_OFS_X, COMPASS_OFS2_X)."""
+    if "COMPASS1_OFS_X" in names and "COMPASS_OFS_X" not in names:
+        return mapping.AP_NAMING_PER_INSTANCE
+    return mapping.AP_NAMING_LEGACY
+
+
+def ardupilot_required(compass: int, naming: str = mapping.AP_NAMING_LEGACY) -> list[str]:
     """The parameters whose values ``correct_field`` needs for ``compass`` (1-based state
-    index: COMPASS_OFS_X for 1, COMPASS_OFS2_X for 2, ...). COMPASS_SCALEn is optional
-    (older firmware has none: no scaling)."""
-    n = ardupilot_param_names(compass)
+    index). COMPASS_SCALEn is optional (older firmware has none: no scaling)."""
+    n = mapping.ap_param_names(compass, naming)
     return [n[f"{k}_{a}"] for k in ("OFS", "DIA", "ODI") for a in "XYZ"]
 
 
-def ardupilot_recorded(compass: int, names: set[str]) -> tuple[str, ...]:
-    """The compass parameters to record in a session (those the log has), for ``flash``."""
-    n = ardupilot_param_names(compass)
-    k = "" if compass == 1 else str(compass)
-    wanted = list(n.values()) + [
-        f"COMPASS_EXTERN{k}" if compass > 1 else "COMPASS_EXTERNAL",
-        f"COMPASS_DEV_ID{k}",
-        f"COMPASS_MOT{k}_X",
-        f"COMPASS_MOT{k}_Y",
-        f"COMPASS_MOT{k}_Z",
-        "COMPASS_MOTCT",
-        "COMPASS_OFFS_MAX",
-        "AHRS_ORIENTATION",
-        "CUST_ROT_ENABLE",
-    ]
-    wanted += [f"CUST_ROT{s}_{a}" for s in (1, 2) for a in ("ROLL", "PITCH", "YAW")]
-    return tuple(name for name in wanted if name in names)
+def ardupilot_recorded(compass: int, naming: str, names: set[str]) -> tuple[str, ...]:
+    """The compass parameters a session records (those the log has): the same set
+    ``magcal collect`` records, which ``flash`` and ``verify`` read back."""
+    wanted = vehicle.ardupilot_required(compass, naming) + vehicle.ardupilot_optional(
+        compass, naming
+    )
+    for slot in (1, 2):
+        wanted += vehicle.ardupilot_custom_angles(slot)
+    return tuple(dict.fromkeys(n for n in wanted if n in names))
 
 
 def ardupilot_state_index(params: dict[str, float], instance: int) -> int:
@@ -142,8 +160,9 @@ def undo_ardupilot(
                      where they contradict the parameters are marked ``suspect``
     returns        : the field after rotate_field, before correct_field, mG
     """
+    naming = ardupilot_naming(params.names())
     state = ardupilot_state_index(params.at(float(t[0]) if t.size else 0.0), instance)
-    required = ardupilot_required(state)
+    required = ardupilot_required(state, naming)
     missing = [n for n in required if n not in params.names()]
     if missing:
         raise LogImportError(
@@ -152,7 +171,7 @@ def undo_ardupilot(
             "(ArduPilot writes PARM messages when a log opens; a ground station fetches "
             "PARAM_VALUE when it connects)"
         )
-    names = ardupilot_param_names(state)
+    names = mapping.ap_param_names(state, naming)
     watched = set(required) | {names["SCALE"]}
     changes = params.change_times(watched)
     mixed = _mixed(t, changes)
@@ -167,13 +186,12 @@ def undo_ardupilot(
     for i0, i1 in _segments(t, changes):
         p = params.at(float(t[i0]))
         p.setdefault(names["SCALE"], 0.0)  # no COMPASS_SCALE (older firmware): no scaling
-        p[names["ORIENT"]] = 0.0  # undo correct_field only: keep rotate_field's frame
         field = np.asarray(corrected[i0:i1], dtype=float)
         if motor is not None:
             field = field - motor[i0:i1]
         if logged_offsets is not None:
             suspect[i0:i1] = _offsets_disagree(logged_offsets[i0:i1], p, names)
-        mag[i0:i1] = mapping.ardupilot_uncorrect(field, p, state)
+        mag[i0:i1] = mapping.ardupilot_undo_correct_field(field, p, state, naming)
     if changes.size:
         notes.append(
             f"compass parameters changed {changes.size} time(s) in the log; each sample was "
@@ -185,7 +203,7 @@ def undo_ardupilot(
         "force (the logged OfsX/Y/Z differ): they changed without a parameter record "
         "(in-flight learning, COMPASS_LEARN), so the correction cannot be undone there"
     )
-    return Undone(mag[~mixed], ~mixed, tuple(notes), suspect[~mixed], reason)
+    return Undone(mag[~mixed], ~mixed, tuple(notes), suspect[~mixed], reason, state, naming)
 
 
 def _offsets_disagree(logged: np.ndarray, p: dict[str, float], names: dict[str, str]) -> np.ndarray:
@@ -205,10 +223,11 @@ def px4_required(index: int) -> list[str]:
 
 
 def px4_recorded(index: int, names: set[str]) -> tuple[str, ...]:
-    """The CAL_MAGn_* parameters to record in a session (those the log has)."""
-    n = px4_param_names(index)
-    wanted = list(n.values()) + [f"CAL_MAG{index}_ID", f"CAL_MAG{index}_PRIO", "SENS_BOARD_ROT"]
-    return tuple(name for name in wanted if name in names)
+    """The CAL_MAGn_* parameters a session records (those the log has), as ``magcal
+    collect`` records them."""
+    wanted = vehicle.px4_required(index) + vehicle.px4_custom_angles(index)
+    wanted += [f"CAL_MAG{index}_ID", f"CAL_MAG{index}_PRIO", "SENS_BOARD_ROT"]
+    return tuple(dict.fromkeys(n for n in wanted if n in names))
 
 
 def px4_calibration_index(params: dict[str, float], device_id: int) -> int | None:
@@ -253,4 +272,5 @@ def undo_px4(
             f"CAL_MAG{index} parameters changed {changes.size} time(s); each sample was undone "
             f"with those in force, and {int(mixed.sum())} sample(s) right after a change dropped"
         )
-    return Undone(mag[~mixed], ~mixed, tuple(notes), np.zeros(int((~mixed).sum()), bool), "")
+    keep = ~mixed
+    return Undone(mag[keep], keep, tuple(notes), np.zeros(int(keep.sum()), bool), "", index)

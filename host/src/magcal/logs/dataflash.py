@@ -34,7 +34,8 @@ from collections.abc import Callable
 import numpy as np
 from pymavlink import DFReader
 
-from magcal.logs.correction import ardupilot_recorded, ardupilot_state_index, undo_ardupilot
+from magcal.autopilot import vehicle
+from magcal.logs.correction import ardupilot_frame, ardupilot_recorded, undo_ardupilot
 from magcal.logs.streams import (
     ImuStream,
     LogImportError,
@@ -249,17 +250,12 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     motor = arrays.pop(0) if motor is not None else None
     offsets = arrays.pop(0) if offsets is not None else None
     undone = undo_ardupilot(name, t_mag, field, params, compass, motor, offsets)
-    state = ardupilot_state_index(params.initial, compass)
     mag_stream = MagStream(
         t=t_mag[undone.keep],
         mag=undone.mag,
         instance=compass,
-        unit="mG",
-        frame=(
-            "ArduPilot body frame: after the compass rotation in force (COMPASS_ORIENT for an "
-            "external compass, the board's for an internal one); offsets, COMPASS_SCALE, "
-            "DIA/ODI and motor compensation undone"
-        ),
+        unit=vehicle.MAG_UNIT[vehicle.ARDUPILOT],
+        frame=ardupilot_frame(motor is not None),
         source=f"MAG[{compass - 1}]",
         suspect=undone.suspect,
         suspect_reason=undone.suspect_reason,
@@ -267,11 +263,13 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     return LogStreams(
         path=path,
         log_format="DataFlash",
-        autopilot="ArduPilot",
+        autopilot=vehicle.ARDUPILOT,
         imu=imu_stream,
         mag=mag_stream,
         params=params,
-        param_names=ardupilot_recorded(state, params.names()),
+        param_names=ardupilot_recorded(undone.param_compass, undone.naming, params.names()),
+        param_compass=undone.param_compass,
+        naming=undone.naming,
         armed=armed,
         notes=tuple(notes) + undone.notes,
     )

@@ -139,11 +139,14 @@ class LogStreams:
 
     path       : the log file
     log_format : "DataFlash", "tlog" or "ULog"
-    autopilot  : "ArduPilot" or "PX4"
+    autopilot  : magcal.autopilot.vehicle.ARDUPILOT or .PX4 ("ardupilot", "px4")
     imu, mag   : the chosen IMU and magnetometer
     params     : the autopilot parameters over time (compass ones at least, when logged)
     param_names: the names of the parameters that describe the chosen compass's on-board
                  correction (recorded in the session for a later ``flash``)
+    param_compass: which parameter set that is (ArduPilot: the 1-based n of COMPASS_OFSn_X;
+                 PX4: the n of CAL_MAGn_*)
+    naming     : ArduPilot's parameter naming (magcal.autopilot.mapping.AP_NAMING_*); PX4 ""
     armed      : 1.0 while armed (motors may spin), else 0.0; None when the log does not say
     throttle   : 0..1; None when the log does not say
     notes      : remarks for the user (e.g. samples dropped and why)
@@ -156,6 +159,8 @@ class LogStreams:
     mag: MagStream
     params: ParamTimeline
     param_names: tuple[str, ...] = ()
+    param_compass: int = 1
+    naming: str = ""
     armed: StepSignal | None = None
     throttle: StepSignal | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)

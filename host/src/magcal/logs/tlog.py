@@ -36,9 +36,11 @@ from collections.abc import Callable
 import numpy as np
 from pymavlink import mavutil
 
+from magcal.autopilot import vehicle
 from magcal.logs.correction import (
+    PX4_RAW_FRAME,
+    ardupilot_frame,
     ardupilot_recorded,
-    ardupilot_state_index,
     px4_recorded,
     undo_ardupilot,
 )
@@ -56,7 +58,6 @@ from magcal.logs.streams import (
 
 Progress = Callable[[float], None]
 
-GRAVITY_MSS = 9.80665  # ArduPilot's GRAVITY_MSS and PX4's CONSTANTS_ONE_G
 MAV_AUTOPILOT_ARDUPILOTMEGA = 3
 MAV_AUTOPILOT_PX4 = 12
 MAV_AUTOPILOT_INVALID = 8
@@ -161,8 +162,8 @@ def _check_no_reboot(name: str, samples: list) -> None:
 def _imu_from_scaled(name: str, msg_type: str, samples: list, instance: int) -> ImuStream:
     _check_no_reboot(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
-    acc = untruncate([(m.xacc, m.yacc, m.zacc) for _, m in samples]) * GRAVITY_MSS / 1000.0
-    gyr = untruncate([(m.xgyro, m.ygyro, m.zgyro) for _, m in samples]) / 1000.0
+    acc = vehicle.acc_mg_to_si(untruncate([(m.xacc, m.yacc, m.zacc) for _, m in samples]))
+    gyr = vehicle.gyro_mrad_to_si(untruncate([(m.xgyro, m.ygyro, m.zgyro) for _, m in samples]))
     t, gyr, acc = strictly_increasing(t, gyr, acc)
     return ImuStream(t, gyr, acc, instance, msg_type)
 
@@ -252,27 +253,24 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
     field = untruncate([(m.xmag, m.ymag, m.zmag) for _, m in samples])
     t, field = strictly_increasing(t, field)
     undone = undo_ardupilot(name, t, field, params, compass)
-    state = ardupilot_state_index(params.initial, compass)
     mag_stream = MagStream(
         t=t[undone.keep],
         mag=undone.mag,
         instance=compass,
-        unit="mG",
-        frame=(
-            "ArduPilot body frame: after the compass rotation in force (COMPASS_ORIENT for an "
-            "external compass, the board's for an internal one); offsets, COMPASS_SCALE and "
-            "DIA/ODI undone"
-        ),
+        unit=vehicle.MAG_UNIT[vehicle.ARDUPILOT],
+        frame=ardupilot_frame(motor=False),
         source=mag_type,
     )
     return LogStreams(
         path=path,
         log_format="tlog",
-        autopilot="ArduPilot",
+        autopilot=vehicle.ARDUPILOT,
         imu=imu_stream,
         mag=mag_stream,
         params=params,
-        param_names=ardupilot_recorded(state, params.names()),
+        param_names=ardupilot_recorded(undone.param_compass, undone.naming, params.names()),
+        param_compass=undone.param_compass,
+        naming=undone.naming,
         armed=armed,
         throttle=throttle,
         notes=undone.notes,
@@ -304,24 +302,26 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
     samples = _mag_samples(seen, mag_type)
     _check_no_reboot(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
-    field = untruncate([(m.xmag, m.ymag, m.zmag) for _, m in samples]) / 1000.0
+    wire = untruncate([(m.xmag, m.ymag, m.zmag) for _, m in samples])
+    field = vehicle.mag_wire_to_unit(wire, vehicle.PX4)
     t, field = strictly_increasing(t, field)
     mag_stream = MagStream(
         t=t,
         mag=field,
         instance=compass,
-        unit="gauss",
-        frame="PX4 sensor frame: the raw sensor_mag field (SCALED_IMU), before any calibration",
+        unit=vehicle.MAG_UNIT[vehicle.PX4],
+        frame=PX4_RAW_FRAME,
         source=mag_type,
     )
     return LogStreams(
         path=path,
         log_format="tlog",
-        autopilot="PX4",
+        autopilot=vehicle.PX4,
         imu=imu_stream,
         mag=mag_stream,
         params=params,
         param_names=px4_recorded(compass - 1, params.names()),
+        param_compass=compass - 1,
         armed=armed,
         throttle=throttle,
     )

@@ -31,7 +31,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from magcal.logs.correction import px4_calibration_index, px4_recorded, undo_px4
+from magcal.autopilot import vehicle
+from magcal.logs.correction import PX4_RAW_FRAME, px4_calibration_index, px4_recorded, undo_px4
 from magcal.logs.streams import (
     ImuStream,
     LogImportError,
@@ -207,11 +208,12 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     return LogStreams(
         path=path,
         log_format="ULog",
-        autopilot="PX4",
+        autopilot=vehicle.PX4,
         imu=imu_stream,
         mag=mag_stream,
         params=params,
         param_names=px4_recorded(index, params.names()),
+        param_compass=index,
         armed=_armed(ulog),
         notes=notes,
     )
@@ -234,8 +236,8 @@ def _raw_mag(data: dict[str, np.ndarray], compass: int) -> MagStream:
         t=t,
         mag=field,
         instance=compass,
-        unit="gauss",
-        frame="PX4 sensor frame: the raw sensor_mag field, before any calibration",
+        unit=vehicle.MAG_UNIT[vehicle.PX4],
+        frame=PX4_RAW_FRAME,
         source=f"sensor_mag[{compass - 1}]",
     )
 
@@ -259,8 +261,8 @@ def _undone_mag(
         t=t[undone.keep],
         mag=undone.mag,
         instance=compass,
-        unit="gauss",
-        frame=f"PX4 sensor frame: vehicle_magnetometer with CAL_MAG{index}_* undone",
+        unit=vehicle.MAG_UNIT[vehicle.PX4],
+        frame=f"PX4 raw sensor frame: vehicle_magnetometer with CAL_MAG{index}_* undone (Rot0 = I)",
         source=f"vehicle_magnetometer[{compass - 1}]",
     )
     return stream, undone.notes

@@ -48,7 +48,8 @@ Filter (eq. 15–18): cubature points ``x̂ ± √n S e_j`` (n = 9, 2n = 18 poin
   (:data:`PRIOR_STD_A` etc.), runs through the reservoir in a fixed pseudo-random order (which
   breaks the correlation), and then takes every sample as it comes. A sample that arrives
   before the start is used only through the reservoir. Alternatively a :class:`CkfPrior`
-  (centre, radius, noise) starts the filter at once.
+  (an ellipsoid or a sphere, and the noise) starts the filter at once. For a whole session
+  that ends before the start, :func:`run_ckf` runs the filter in a pseudo-random order.
 * **Noise level.** ``σ`` is estimated from second differences of the samples seen before the
   start (:func:`~magcal.calib.attitude_free.noise_std_from_differences`) unless given, floored
   at :data:`MIN_NOISE_FRACTION` of the field (noise-free data).
@@ -114,36 +115,59 @@ _PAIR_J = np.array([0, 1, 2, 1, 2, 2])
 _PAIR_WEIGHT = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CkfPrior:
-    """A starting point for :class:`CubatureCalibrator`: the sphere ``‖y − centre‖ = radius``
-    and the noise level.
+    """A starting point for :class:`CubatureCalibrator`: the ellipsoid
+    ``(y − b)ᵀ A (y − b) = 1`` and the noise level (the prior spread around it is
+    :data:`PRIOR_STD_A` etc., in the coordinates where it is a unit sphere).
 
-    centre    : (3,) float, raw units
-    radius    : float > 0, raw units (the field magnitude in the session's unit)
+    A         : (3, 3) float, symmetric positive definite, (raw units)⁻²
+    b         : (3,) float, raw units
     noise_std : float ≥ 0, raw units, σ of each axis' white noise
     """
 
-    centre: np.ndarray
-    radius: float
+    A: np.ndarray
+    b: np.ndarray
     noise_std: float
+
+    def __post_init__(self) -> None:
+        A = np.asarray(self.A, dtype=float)
+        b = np.asarray(self.b, dtype=float)
+        if A.shape != (3, 3) or b.shape != (3,):
+            raise ValueError(f"ckf prior: A must be (3, 3) and b (3,), got {A.shape}, {b.shape}")
+        ok = np.all(np.isfinite(A)) and np.all(np.isfinite(b)) and np.allclose(A, A.T)
+        if not ok or np.linalg.eigvalsh(0.5 * (A + A.T))[0] <= 0.0:
+            raise ValueError("ckf prior: A must be finite, symmetric and positive definite")
+        if not (np.isfinite(self.noise_std) and self.noise_std >= 0.0):
+            raise ValueError(f"ckf prior: noise_std must be finite and ≥ 0, got {self.noise_std}")
+
+    @classmethod
+    def sphere(cls, centre: np.ndarray, radius: float, noise_std: float) -> CkfPrior:
+        """The sphere ``‖y − centre‖ = radius`` (raw units)."""
+        if not (np.isfinite(radius) and radius > 0.0):
+            raise ValueError(f"ckf prior: the radius must be finite and > 0, got {radius!r}")
+        return cls(np.eye(3) / radius**2, np.asarray(centre, dtype=float), noise_std)
 
     @classmethod
     def from_readings(cls, mag: np.ndarray) -> CkfPrior:
-        """Sphere by Kåsa's fit when the readings span three dimensions, else their mean and
-        RMS distance from it; noise from second differences. mag : (N, 3) raw units."""
+        """The readings' algebraic ellipsoid when it is a real one, else Kåsa's sphere when
+        they span three dimensions, else their mean and RMS distance from it; the noise from
+        second differences. mag : (N, 3) raw units."""
         mag = attitude_free.check_readings(mag, "ckf")
+        sigma = attitude_free.noise_std_from_differences(mag)
+        ellipsoid = algebraic_ellipsoid(mag)
+        if ellipsoid is not None:
+            return cls(ellipsoid[0], ellipsoid[1], sigma)
         sphere = kasa_sphere(mag)
         if sphere is None:
             centre = mag.mean(axis=0)
-            radius = float(np.sqrt(np.mean(np.sum((mag - centre) ** 2, axis=1))))
-            sphere = (centre, radius)
+            sphere = (centre, float(np.sqrt(np.mean(np.sum((mag - centre) ** 2, axis=1)))))
         if not sphere[1] > 0.0:
             raise InsufficientDataError(
                 "ckf: all magnetometer samples are identical: check that the magnetometer is "
                 "working and rotate the sensor through all orientations"
             )
-        return cls(sphere[0], sphere[1], attitude_free.noise_std_from_differences(mag))
+        return cls.sphere(sphere[0], sphere[1], sigma)
 
 
 def kasa_sphere(y: np.ndarray) -> tuple[np.ndarray, float] | None:
@@ -332,7 +356,7 @@ class CubatureCalibrator:
     """Zhao et al.'s CKF, one magnetometer sample at a time (see the module docstring).
 
     ``ckf = CubatureCalibrator()`` starts from the first samples (once they span enough
-    directions); ``CubatureCalibrator(CkfPrior(centre, radius, noise_std))`` at once.
+    directions); ``CubatureCalibrator(CkfPrior.sphere(centre, radius, noise_std))`` at once.
     ``noise_std`` (raw units) overrides the estimate from second differences.
 
     ``ckf.update(y)`` takes one reading (3,) in raw units and returns the current
@@ -364,11 +388,8 @@ class CubatureCalibrator:
         self._n_diffs = 0
         self._prev = np.zeros((2, 3))
         if prior is not None:
-            radius, centre = float(prior.radius), np.asarray(prior.centre, dtype=float)
-            if not (np.isfinite(radius) and radius > 0.0) or not np.all(np.isfinite(centre)):
-                raise ValueError(f"ckf: a prior needs a finite centre and radius > 0, got {prior}")
             sigma = prior.noise_std if noise_std is None else noise_std
-            self._start(np.eye(3) / radius**2, centre, float(sigma))
+            self._start(np.asarray(prior.A, dtype=float), np.asarray(prior.b), float(sigma))
 
     # ------------------------------------------------------------------ public
     @property
@@ -509,40 +530,49 @@ class CkfFit:
     """A whole session through the filter.
 
     estimate    : the final :class:`CkfEstimate`
-    start_index : the sample at which the filter started (0 with a prior)
-    forced      : True when the readings never spanned enough directions and the filter was
-                  started from a sphere fitted to all of them (``force``)
+    order       : "time": as recorded, started from the first samples (as live);
+                  "shuffled": the readings never spanned enough directions in time for that
+                  start, so the filter ran once through all of them in a fixed pseudo-random
+                  order from their algebraic ellipsoid (:meth:`CkfPrior.from_readings`)
+    start_index : with "time", the sample at which the filter started
     """
 
     estimate: CkfEstimate
-    start_index: int
-    forced: bool
+    order: str
+    start_index: int | None
 
 
 def run_ckf(mag: np.ndarray, *, force: bool = False) -> CkfFit:
-    """Feed every reading of a session through :class:`CubatureCalibrator`, as a live
-    recording would (default start from the first samples).
+    """A session's readings through :class:`CubatureCalibrator`, one at a time.
 
-    mag : (N, 3) float, raw units. With ``force``, a session whose readings never span
-    enough directions is run again from a prior fitted to all of them
-    (:meth:`CkfPrior.from_readings`); without, it raises InsufficientDataError.
+    mag : (N, 3) float, raw units.
+
+    First in time order as a live recording would (start from the first samples: see the
+    module docstring). A session too short for that start (the field directions never span a
+    hemisphere before it ends) is run once in a fixed pseudo-random order instead: that is
+    the filter without the time correlation, as in Zhao et al.'s own simulation of random
+    attitudes. Raises InsufficientDataError when the readings do not span three dimensions
+    well above their noise (rest, a plane: too little rotation), unless ``force``.
     """
     mag = attitude_free.check_readings(mag, "ckf")
     ckf = CubatureCalibrator()
     ckf.update_many(mag)
     if ckf.started:
-        return CkfFit(ckf.estimate, ckf.start_sample, False)
-    if not force:
+        return CkfFit(ckf.estimate, "time", ckf.start_sample)
+    prior = CkfPrior.from_readings(mag)
+    spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(mag, rowvar=False))[0], 0.0))
+    if not force and (
+        kasa_sphere(mag) is None or spread < START_MIN_SPREAD_OVER_NOISE * prior.noise_std
+    ):
         raise InsufficientDataError(
-            f"ckf: the {mag.shape[0]} readings never spanned enough field directions for the "
-            "filter to start (smallest/largest spread of directions "
-            f"< {START_MIN_DIRECTION_SPREAD:g}, or readings within "
-            f"{START_MIN_SPREAD_OVER_NOISE:g} σ of noise): rotate the sensor through all "
-            "orientations (tilt it nose up/down and roll it over, not only yaw)"
+            f"ckf: the {mag.shape[0]} readings do not span three dimensions well above their "
+            "noise, so no ellipsoid can be fitted: rotate the sensor through all orientations "
+            "(tilt it nose up/down and roll it over, not only yaw)"
         )
-    ckf = CubatureCalibrator(CkfPrior.from_readings(mag))
-    ckf.update_many(mag)
-    return CkfFit(ckf.estimate, 0, True)
+    ckf = CubatureCalibrator(prior)
+    order = np.random.default_rng(SHUFFLE_SEED).permutation(mag.shape[0])
+    ckf.update_many(mag[order])
+    return CkfFit(ckf.estimate, "shuffled", None)
 
 
 def calibration_ellipsoid(mag: np.ndarray, *, force: bool = False) -> tuple[EllipsoidFit, dict]:
@@ -551,19 +581,20 @@ def calibration_ellipsoid(mag: np.ndarray, *, force: bool = False) -> tuple[Elli
     run = run_ckf(mag, force=force)
     e = run.estimate
     notes = ()
-    if run.forced:
+    if run.order == "shuffled":
         notes = (
-            "ckf: the readings never spanned enough field directions for the filter to start "
-            "from its first samples; forced, it started from a sphere fitted to all of them, "
-            "so the estimate is poorly determined: rotate the sensor through all orientations",
+            "ckf: the field directions did not span a hemisphere early enough for the filter "
+            "to start in time order as it does live; it ran through the session in a "
+            "pseudo-random order instead. Live, this recording would have shown no estimate: "
+            "rotate through more orientations sooner",
         )
     fit = attitude_free.ellipsoid_fit_from(e.A, e.b, mag, "ckf", notes)
     details = {
         "A": e.A.tolist(),
         "b": e.b.tolist(),
         "state_std": np.sqrt(np.diag(e.P)).tolist(),
+        "order": run.order,
         "start_sample": run.start_index,
-        "forced_start": run.forced,
         "noise_std": e.noise_std,
     }
     return fit, details

@@ -79,7 +79,10 @@ def add_parser(sub) -> None:
         help="write a calibration result to the device (backup first, every step read back)",
         description="Convert RESULT.json to the device's parameter format, save the device's "
         "current set to a backup file, write, read back bit for bit, commit, reset and "
-        "confirm the new set is active. --restore BACKUP writes a backup back.",
+        "confirm the new set is active. --restore BACKUP writes a backup back. With --mavlink: "
+        "map it to ArduPilot or PX4 compass parameters (field strength from --location or "
+        "--field), back up the values in force, write each and confirm it from the vehicle's "
+        "echo.",
     )
     p.add_argument("result", nargs="?", help="calibration result JSON (magcal-result/1)")
     add_link_arguments(p)

@@ -257,7 +257,7 @@ def test_a_non_identifiable_direction_is_flagged_on_the_page(files):
     )
     text = html.render_html(flagged)
     assert "NOT identifiable" in text and "0.71·o1 − 0.70·D11" in text
-    assert f"{report.result.o[1]:.6g} ± (not identifiable)" in text
+    assert f"{report.result.o[1]:.6g} ± ∞" in text and "± ∞ marks what the data" in text
     assert "NOT identifiable" not in html.render_html(report)
 
 
@@ -266,7 +266,7 @@ def test_value_pm_rounds_to_two_significant_digits_of_sigma():
     assert html.value_pm(-48.123456, 0.0567) == "-48.123 ± 0.057"
     assert html.value_pm(1234.5, 12.3) == "1234 ± 12"
     assert html.value_pm(0.5, None) == "0.5"
-    assert html.value_pm(0.5, float("inf")) == "0.5 ± (not identifiable)"
+    assert html.value_pm(0.5, float("inf")) == "0.5 ± ∞"
     assert html.value_pm(float("nan"), 0.1) == "—"
 
 

@@ -44,13 +44,13 @@ def check_report_writable(path: str | os.PathLike) -> None:
 
 def value_pm(value: float, sigma: float | None) -> str:
     """ "0.98765 ± 0.00014": σ to two significant digits, the value to the same decimals.
-    σ = inf reads "not identifiable"; no σ (None or NaN) gives the value alone."""
+    σ = inf (not identifiable) reads "± ∞"; no σ (None or NaN) gives the value alone."""
     if not math.isfinite(value):
         return "—"
     if sigma is None or math.isnan(sigma):
         return f"{value:.6g}"
     if math.isinf(sigma):
-        return f"{value:.6g} ± (not identifiable)"
+        return f"{value:.6g} ± ∞"
     if sigma <= 0.0:
         return f"{value:.6g} ± 0"
     decimals = min(15, max(0, 1 - math.floor(math.log10(sigma))))
@@ -80,10 +80,10 @@ h3 { font-size: 16px; margin: 22px 0 8px; color: #2c3e57; }
 .subtitle { color: #5b6675; margin: 0 0 20px; font-size: 14px; }
 .summary { border: 1px solid #c7d4e4; background: #f4f8fc; border-radius: 8px;
   padding: 16px 20px; }
-.kpis { display: grid; grid-template-columns: repeat(5, 1fr); gap: 14px 18px; }
+.kpis { display: grid; grid-template-columns: repeat(5, minmax(0, 1fr)); gap: 14px 18px; }
 .kpi .label { font-size: 12px; color: #5b6675; text-transform: uppercase;
   letter-spacing: 0.03em; }
-.kpi .value { font-size: 19px; font-weight: 600; white-space: nowrap; }
+.kpi .value { font-size: 19px; font-weight: 600; }
 .kpi .detail { font-size: 12px; color: #5b6675; }
 .good { color: #1b7a3d; } .poor { color: #b3261e; }
 .box { border-radius: 6px; padding: 10px 14px; margin: 12px 0 0; }
@@ -248,12 +248,20 @@ def _calibration(report: Report) -> str:
     r, unc = report.result, report.uncertainty
     unit = r.extra.get("mag_unit") or "the session's magnetometer unit"
     axes = ("x", "y", "z")
+    if unc is None:
+        sigma_text = "Values are ± one standard deviation where available (see the notes)."
+    elif unc.identifiable:
+        sigma_text = "Values are ± one standard deviation."
+    else:
+        sigma_text = (
+            "Values are ± one standard deviation; ± ∞ marks what the data do not determine "
+            "(see the summary)."
+        )
     out = [
         "<h2>Calibration</h2>",
         "<p>Model <code>y = D R<sub>bn</sub> m<sup>n</sup> + o</code>; correction "
         "<code>m<sup>b</sup> = D<sup>−1</sup>(y − o)</code>: a unit field in the body frame "
-        f"(the accelerometer's axes). D and o are in <b>{_e(unit)}</b>. Values are ± one "
-        f"standard deviation{'' if unc else ' where available (see the notes)'}.</p>",
+        f"(the accelerometer's axes). D and o are in <b>{_e(unit)}</b>. {sigma_text}</p>",
         '<div class="grid2"><div><h3>D (magnetometer units per unit field)</h3>',
         _matrix(r.D, _sigma(report, "D")),
         "</div><div><h3>D<sup>−1</sup>, the correction matrix</h3>",

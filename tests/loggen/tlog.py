@@ -103,8 +103,12 @@ def write_ardupilot_tlog(
     every: int = 4,
     omit: tuple[str, ...] = (),
     seed: int = 0,
+    mag_hold: int = 1,
 ) -> dict:
     """ArduPilot telemetry (see the module docstring); RAW_IMU every ``every`` samples.
+
+    mag_hold : the compass updates once per this many RAW_IMU messages; in between the
+               stream repeats its last reading (as a stream faster than the compass does)
 
     Returns {"index": day samples sent, "params_at": parameters in force at each}.
     """
@@ -119,8 +123,9 @@ def write_ardupilot_tlog(
             log.add(time, msg)
     index = np.arange(0, day.t.size, every)
     in_force = param_timeline(params, list(changes), day.t[index])
-    for k, p in zip(index, in_force, strict=True):
-        field, _ = ardupilot_corrected(day.mag[k], p, day.throttle[k])
+    for n, (k, p) in enumerate(zip(index, in_force, strict=True)):
+        if n % mag_hold == 0:
+            field, _ = ardupilot_corrected(day.mag[k], p, day.throttle[k])
         acc = _int16(np.float32(day.acc[k]) * np.float32(1000.0) / np.float32(GRAVITY_MSS))
         gyr = _int16(np.float32(day.gyr_point[k]) * np.float32(1000.0))
         if "RAW_IMU" not in omit:

@@ -74,9 +74,11 @@ def test_ardupilot_telemetry_is_undone_with_the_parameters_received(day, ap_log,
     assert streams.imu.source == "RAW_IMU" and streams.mag.source == "RAW_IMU"
     k = _index(day, streams.mag.t)
     # the GCS heartbeat of system 255 did not make it the vehicle; nothing but the first
-    # sample (before the vehicle's first heartbeat arrived) and the samples right after the
-    # parameter change are missing
-    assert k.size >= ap_log[1]["index"].size - 1 - 25
+    # sample (before the vehicle's first heartbeat arrived), the samples right after the
+    # parameter change and exact repeats of the reading before (stale) are missing
+    (stale,) = [int(n.split()[0]) for n in streams.notes if "repeating the one before" in n]
+    assert 0 < stale < 10  # at rest, 1 mG steps, 2.5 mG noise: a few exact repeats
+    assert k.size >= ap_log[1]["index"].size - 1 - 25 - stale
     assert any("changed 1 time(s)" in n for n in streams.notes)
     rest = ~day.armed[k]  # armed: motor compensation, not in the stream
     after = dict(COMPASS_PARAMS, COMPASS_OFS_Y=70.0, COMPASS_ORIENT=0.0)
@@ -103,6 +105,18 @@ def test_ardupilot_telemetry_imports_and_calibrates(day, ap_result):
     cal = calibrate(result.session, "ml")
     # measured 0.064° (seed 2); 1 mG and 1 mrad/s resolution, 50 Hz
     assert _heading_rms_deg(day, cal.result) < 0.1
+
+
+def test_a_stream_faster_than_the_compass_repeats_no_reading(tmp_path):
+    short = bench_day(seed=3, hand_s=6.0)
+    path = tmp_path / "held.tlog"
+    sent = write_ardupilot_tlog(path, short, mag_hold=3)["index"]
+    streams = tlog.read(str(path))
+    k = _index(short, streams.mag.t)
+    # only the messages that carried a new compass reading remain; the first message read
+    # (the very first came before the vehicle's first heartbeat) is new to the reader
+    assert k[0] == sent[1] and np.array_equal(k[1:], sent[3::3])
+    assert streams.imu.t.size == sent.size - 1  # the IMU is not held
 
 
 def test_ardupilot_telemetry_without_parameters_or_compass(short_logs):

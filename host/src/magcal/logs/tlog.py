@@ -193,6 +193,21 @@ def _mag_samples(seen: dict[str, list], msg_type: str) -> list:
     return [(rx, m) for rx, m in seen.get(msg_type, []) if (m.xmag, m.ymag, m.zmag) != (0, 0, 0)]
 
 
+def _fresh(t: np.ndarray, field: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """Drop a reading identical to the one before: the stream repeats the last compass
+    reading until a new one arrives (a stream faster than the compass), and a repeat is no
+    new measurement. At rest, with 1 mG steps and a few mG of noise, an exact repeat of all
+    three components is rare, so little real data goes with them."""
+    same = np.concatenate([[False], np.all(field[1:] == field[:-1], axis=1)])
+    return t[~same], field[~same], int(same.sum())
+
+
+def _stale_note(count: int, msg_type: str) -> tuple[str, ...]:
+    if not count:
+        return ()
+    return (f"{count} {msg_type} magnetometer reading(s) repeating the one before were dropped",)
+
+
 def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = None) -> LogStreams:
     """Read a MAVLink ``.tlog``; compass and imu are 1-based (see the module docstring)."""
     name = os.path.basename(path)
@@ -250,8 +265,9 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
     samples = _mag_samples(seen, mag_type)
     _check_no_reboot(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
-    field = untruncate([(m.xmag, m.ymag, m.zmag) for _, m in samples])
-    t, field = strictly_increasing(t, field)
+    t, field = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
+    t, field, stale = _fresh(t, field)
+    field = untruncate(field)
     undone = undo_ardupilot(name, t, field, params, compass)
     mag_stream = MagStream(
         t=t[undone.keep],
@@ -273,7 +289,7 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
         naming=undone.naming,
         armed=armed,
         throttle=throttle,
-        notes=undone.notes,
+        notes=_stale_note(stale, mag_type) + undone.notes,
     )
 
 
@@ -302,9 +318,9 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
     samples = _mag_samples(seen, mag_type)
     _check_no_reboot(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
-    wire = untruncate([(m.xmag, m.ymag, m.zmag) for _, m in samples])
-    field = vehicle.mag_wire_to_unit(wire, vehicle.PX4)
-    t, field = strictly_increasing(t, field)
+    t, wire = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
+    t, wire, stale = _fresh(t, wire)
+    field = vehicle.mag_wire_to_unit(untruncate(wire), vehicle.PX4)
     mag_stream = MagStream(
         t=t,
         mag=field,
@@ -324,4 +340,5 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
         param_compass=compass - 1,
         armed=armed,
         throttle=throttle,
+        notes=_stale_note(stale, mag_type),
     )

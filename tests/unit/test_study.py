@@ -22,7 +22,7 @@ from magcal.study.summary import SUMMARY_FILE
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
 #: The smallest study that still exercises every experiment this build can run.
-TINY = {"runs": 3, "zhao_runs": 2, "scenarios": ("table2",)}
+TINY = {"runs": 2, "zhao_runs": 2, "scenarios": ("table2",)}
 
 
 def tiny_settings(**overrides):
@@ -80,7 +80,7 @@ def test_tiny_study_writes_its_files(straight):
     assert outcome.runs_now == n_tasks and outcome.runs_before == 0
     records = saved_records(folder)
     assert sorted(r["key"] for r in records) == sorted(t.key for t in ex.tasks(settings))
-    assert json.loads((folder / SETTINGS_FILE).read_text())["runs"] == 3
+    assert json.loads((folder / SETTINGS_FILE).read_text())["runs"] == 2
     pngs = [p for p in outcome.files if p.suffix == ".png"]
     assert {p.name for p in pngs} >= {"figure8.png", "comparison.png"}
     if "zhao-table1" in settings.experiments:
@@ -90,7 +90,8 @@ def test_tiny_study_writes_its_files(straight):
     text = (folder / SUMMARY_FILE).read_text(encoding="utf-8")
     assert "## Kok & Schön (2016), Figure 8" in text
     assert "## All methods on the same sessions" in text
-    assert outcome.summary.failed == 0
+    # Runs may fail (the CKF refuses some Table 2 sessions): each is counted, none is lost.
+    assert outcome.summary.failed == sum("crashed" in r or r["result"]["failed"] for r in records)
 
 
 def test_interrupted_then_resumed_equals_uninterrupted_and_redoes_nothing(
@@ -140,7 +141,7 @@ def test_rerun_of_a_finished_study_runs_nothing(straight, tmp_path):
 def test_resume_with_other_settings_is_refused(straight):
     folder, settings, _ = straight
     before = (folder / RUNS_FILE).read_bytes()
-    with pytest.raises(StudyError, match=r"other settings \(runs 3 there, 4 now\).*another folder"):
+    with pytest.raises(StudyError, match=r"other settings \(runs 2 there, 4 now\).*another folder"):
         run_study(folder, tiny_settings(runs=4), jobs=1)
     with pytest.raises(StudyError, match=r"seed 1 there, 7 now"):
         run_study(folder, tiny_settings(seed=7), jobs=1)
@@ -153,7 +154,7 @@ def test_cli_refuses_other_settings_in_one_paragraph(straight, capsys):
     assert cli.main(argv) == cli.EXIT_ERROR
     # Notes on what this build cannot run may come first; the refusal is one line.
     last = capsys.readouterr().err.splitlines()[-1]
-    assert last.startswith("magcal study: ") and "runs 3 there, 5 now" in last
+    assert last.startswith("magcal study: ") and "runs 2 there, 5 now" in last
     assert "Traceback" not in last
 
 
@@ -226,19 +227,28 @@ def test_markdown_tables_hold_the_runs_numbers(straight):
         "s per run, median",
     ]
     assert [r[0] for r in rows] == list(settings.methods)
+    checked = 0
     for row in rows:
         mine = [
             r["result"]
             for r in records
             if r["experiment"] == "comparison" and r["params"]["method"] == row[0]
         ]
-        heading = np.array([r["heading_deg"] for r in mine])
-        ratio = np.array([r["heading_deg"] / r["floor_deg"] for r in mine])
-        assert row[1:5] == [str(len(mine)), str(len(mine)), "0", "0"]
+        ok = [r for r in mine if not r["failed"]]
+        refused = sum(bool(r.get("refused")) for r in mine)
+        counts = [len(mine), len(ok), len(mine) - len(ok) - refused, refused]
+        assert row[1:5] == [str(n) for n in counts]
+        assert row[9] == f"{np.median([r['seconds'] for r in mine]):.3f}"
+        if not ok:
+            assert row[5:9] == ["–"] * 4
+            continue
+        heading = np.array([r["heading_deg"] for r in ok])
+        ratio = np.array([r["heading_deg"] / r["floor_deg"] for r in ok])
         assert row[5] == f"{np.median(heading):.3g}"
         assert row[7] == f"{heading.max():.3g}"
         assert row[8] == f"{np.median(ratio):.2f}"
-        assert row[9] == f"{np.median([r['seconds'] for r in mine]):.3f}"
+        checked += 1
+    assert checked >= 2  # init and ml at least
 
     head, rows = table(text, "## Kok & Schön (2016), Figure 8")
     fig8 = [r["result"] for r in records if r["experiment"] == "figure8"]
@@ -259,7 +269,7 @@ def test_cli_runs_a_study(tmp_path, capsys):
     assert cli.main(argv) == 0
     out = capsys.readouterr().out
     assert f"wrote {tmp_path / SUMMARY_FILE}" in out
-    assert re.search(r"\d+ runs \(\d+ now, 0 resumed\), 0 failed", out)
+    assert re.search(r"\d+ runs \(\d+ now, 0 resumed\), \d+ failed", out)
 
 
 @pytest.mark.parametrize(
@@ -283,3 +293,27 @@ def test_comparison_methods_follow_what_calibrate_accepts(monkeypatch):
     settings, notes = make_settings(experiments=("comparison",))
     assert settings.methods == ("init", "ml", "ckf")
     assert any("two-step" in n for n in notes)
+
+
+def test_zhao_table_holds_the_mean_estimates(straight):
+    folder, settings, outcome = straight
+    if "zhao-table1" not in settings.experiments:
+        pytest.skip("this build has no CKF and TWO-STEP")
+    from magcal.study import zhao
+
+    records = [r["result"] for r in saved_records(folder) if r["experiment"] == "zhao-table1"]
+    text = (folder / SUMMARY_FILE).read_text(encoding="utf-8")
+    head, rows = table(text, "## Zhao et al., Table 1")
+    assert head == ["", "true", "CKF (ours)", "TWO-STEP (ours)", "CKF (paper)", "TWO-STEP (paper)"]
+    for col, name in ((2, "ckf"), (3, "two-step")):
+        A = np.mean([r[name]["A"] for r in records], axis=0)
+        b = np.mean([r[name]["b"] for r in records], axis=0)
+        for i in range(3):
+            expected = " ".join(f"{x:.3f}" for x in A[i]) + f" &#124; {b[i]:.3f}"
+            assert rows[i][col] == expected
+        # Recovery on seeded data: at the paper's σ (10 % of the field) both estimators
+        # shrink A by a few per cent (errors in variables); b is unbiased.
+        assert np.max(np.abs(A - zhao.TRUE_A)) < 0.1
+        assert np.max(np.abs(b - zhao.TRUE_B_G)) < 0.02
+    for m in outcome.summary.zhao.methods:
+        assert (m.ok, m.failed) == (settings.zhao_runs, 0)

@@ -5,8 +5,8 @@ The format (PX4's "ULog File Format" and pyulog's parser): a 16-byte header (``U
 payload``: the definitions (``F`` formats ``name:type field;…``, ``I`` information,
 ``P`` initial parameters), then the data (``A`` subscribe a topic instance to a message id,
 ``D`` data ``uint16 id`` + the packed fields, ``P`` a parameter change). Topics follow PX4's
-msg definitions: sensor_combined, sensor_mag (raw, gauss), vehicle_magnetometer (calibrated:
-``Rot · S · (raw − off)`` via magcal.autopilot.mapping.px4_correct), actuator_armed.
+msg definitions: sensor_combined, sensor_mag (raw, gauss), vehicle_magnetometer (calibrated,
+:func:`px4_corrected`), actuator_armed.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import struct
 
 import numpy as np
 
-from magcal.autopilot import mapping
+from magcal.autopilot import mapping, rotations
 from tests.loggen.scenario import BenchDay
 from tests.loggen.tlog import PX4_INT_PARAMS, PX4_PARAMS
 
@@ -64,6 +64,8 @@ TOPICS = {
         ("bool", "in_esc_calibration_mode"),
     ],
 }
+#: Integer parameters (written as int32_t), in addition to the CAL_MAG0 ones.
+INT_PARAMS = PX4_INT_PARAMS | {"SENS_BOARD_ROT"}
 _CODES = {
     "uint64_t": "Q",
     "uint32_t": "I",
@@ -92,9 +94,20 @@ def _key_value(type_name: str, key: str, value: bytes) -> bytes:
 
 
 def _param(name: str, value: float) -> bytes:
-    if name in PX4_INT_PARAMS:
+    if name in INT_PARAMS:
         return _key_value("int32_t", name, struct.pack("<i", int(value)))
     return _key_value("float", name, struct.pack("<f", value))
+
+
+def px4_corrected(raw: np.ndarray, params: dict[str, float]) -> np.ndarray:
+    """PX4's Magnetometer::Correct for CAL_MAG0 (no power compensation) on raw (3,) gauss:
+    ``L · Rot · S · (raw − off)``, Rot = CAL_MAG0_ROT or, when −1 (internal), SENS_BOARD_ROT;
+    L from SENS_BOARD_X/Y/Z_OFF (roll, pitch, yaw degrees)."""
+    p = dict(params)
+    if p["CAL_MAG0_ROT"] < 0:
+        p["CAL_MAG0_ROT"] = p["SENS_BOARD_ROT"]
+    L = rotations.euler_deg_to_matrix(*(p.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"))
+    return L @ mapping.px4_correct(raw, p, 0)[0]
 
 
 def write_ulog(
@@ -106,12 +119,14 @@ def write_ulog(
     raw: bool = True,
     calibrated: bool = True,
     omit: tuple[str, ...] = (),
+    unlogged: tuple[str, ...] = (),
 ) -> dict:
     """Write ``day`` as a ULog; raw field = ``day.mag`` / 1000 gauss.
 
     raw, calibrated : write sensor_mag, vehicle_magnetometer
     changes         : (time s, name, value) parameter changes mid-log
     omit            : topics not to write (e.g. "sensor_combined")
+    unlogged        : parameters used by the correction but not written to the log
 
     Returns {"mag_index": day samples with a magnetometer record}.
     """
@@ -130,7 +145,8 @@ def write_ulog(
         out.append(_message("F", f"{name}:{fmt}".encode()))
     out.append(_message("I", _key_value("char[3]", "sys_name", b"PX4")))
     for pname, value in params.items():
-        out.append(_message("P", _param(pname, value)))
+        if pname not in unlogged:
+            out.append(_message("P", _param(pname, value)))
     ids = {name: i for i, name in enumerate(topics)}
     for name, msg_id in ids.items():
         out.append(_message("A", struct.pack("<BH", 0, msg_id) + name.encode()))
@@ -162,7 +178,7 @@ def write_ulog(
             while pending and pending[0][0] <= day.t[k]:
                 in_force[pending[0][1]] = pending[0][2]
                 pending.pop(0)
-            corrected = mapping.px4_correct(raw_gauss[k], in_force, 0)[0]
+            corrected = px4_corrected(raw_gauss[k], in_force)
             stamp = int(t_us[k]) + MAG_PUBLISH_LATENCY_US
             data("vehicle_magnetometer", stamp, int(t_us[k]), device, *corrected, 0)
     if "actuator_armed" in ids:

@@ -89,6 +89,24 @@ def test_vehicle_magnetometer_is_undone_with_the_calibration_in_force(day, logs)
     assert any("changed 1 time(s)" in n for n in streams.notes)
 
 
+def test_an_internal_magnetometer_with_a_level_adjustment_is_undone(day, tmp_path):
+    """Internal (CAL_MAG0_ROT = −1): PX4 rotates it with the board, SENS_BOARD_ROT, and newer
+    PX4 adds the level adjustment SENS_BOARD_X/Y/Z_OFF to every magnetometer's rotation."""
+    params = dict(PX4_PARAMS, CAL_MAG0_ROT=-1.0, SENS_BOARD_ROT=4.0)
+    params |= {"SENS_BOARD_X_OFF": 1.5, "SENS_BOARD_Y_OFF": -0.8, "SENS_BOARD_Z_OFF": 2.0}
+    path = tmp_path / "internal.ulg"
+    write_ulog(path, day, params=params, raw=False)
+    streams = ulog.read(str(path))
+    k = _index(day, streams.mag.t)
+    assert np.allclose(streams.mag.mag, day.mag[k] / 1000.0, rtol=0, atol=2e-6)
+    assert "SENS_BOARD_X_OFF" in streams.param_names and "SENS_BOARD_ROT" in streams.param_names
+    assert import_log(str(path)).session.meta["compass_external"] == "0"
+    # without SENS_BOARD_ROT in the log, an internal calibration cannot be undone
+    write_ulog(path, day, params=params, raw=False, unlogged=("SENS_BOARD_ROT",))
+    with pytest.raises(LogImportError, match=r"internal one \(CAL_MAG0_ROT = -1\)"):
+        ulog.read(str(path))
+
+
 def test_missing_topics_are_listed(logs):
     with pytest.raises(
         LogImportError,

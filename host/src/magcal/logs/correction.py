@@ -14,8 +14,9 @@ rotation in force) and what ``magcal collect`` records. That frame is also the o
 can be recovered for an internal compass, whose rotation (``AHRS_ORIENTATION`` and the
 board's own) is not in the compass parameters.
 
-PX4's ``vehicle_magnetometer`` topic is ``Rot · S · (raw − off)``; undoing it gives the raw
-sensor-frame field (``Rot0 = I`` for :func:`~magcal.autopilot.mapping.to_px4`).
+PX4's ``vehicle_magnetometer`` topic is ``L · Rot · S · (raw − off)`` (L: the board level
+adjustment); undoing it gives the raw sensor-frame field (``Rot0 = I`` for
+:func:`~magcal.autopilot.mapping.to_px4`).
 
 A change of parameters mid-log is honoured: each sample is undone with the parameters in
 force at its time, and the samples in the :data:`MIXED_WINDOW_S` after a change are dropped
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.autopilot import mapping, vehicle
+from magcal.autopilot import mapping, rotations, vehicle
 from magcal.logs.streams import LogImportError, ParamTimeline
 
 #: Samples this long after a compass-parameter change are dropped, s: ArduPilot averages the
@@ -238,13 +239,22 @@ def px4_calibration_index(params: dict[str, float], device_id: int) -> int | Non
     return None
 
 
+def px4_level_adjustment(params: dict[str, float]) -> np.ndarray:
+    """(3, 3) PX4's board level adjustment from SENS_BOARD_X/Y/Z_OFF (degrees; identity when
+    not logged): newer PX4 applies it to every magnetometer's rotation
+    (``Magnetometer::set_rotation``: ``Dcmf(GetSensorLevelAdjustment()) * get_rot_matrix``)."""
+    angles = [params.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"]
+    return rotations.euler_deg_to_matrix(*angles)
+
+
 def undo_px4(
     source: str, t: np.ndarray, corrected: np.ndarray, params: ParamTimeline, index: int
 ) -> Undone:
-    """PX4's ``Rot · S · (raw − off)`` undone with CAL_MAG``index``_* in force at each time.
+    """PX4's ``L · Rot · S · (raw − off)`` undone with the parameters in force at each time.
 
     t : (N,) s;  corrected : (N, 3) gauss (vehicle_magnetometer);  returns raw gauss, sensor
-    frame.
+    frame. ``Rot`` is CAL_MAG``index``_ROT, or for an internal magnetometer (ROT = −1) the
+    board rotation SENS_BOARD_ROT; ``L`` is :func:`px4_level_adjustment`.
     """
     required = px4_required(index)
     missing = [n for n in required if n not in params.names()]
@@ -254,18 +264,23 @@ def undo_px4(
             "the corrected field cannot be undone; log sensor_mag (raw) instead"
         )
     rot = px4_param_names(index)["ROT"]
-    changes = params.change_times(set(required))
+    watched = set(required) | {"SENS_BOARD_ROT"} | {f"SENS_BOARD_{a}_OFF" for a in "XYZ"}
+    changes = params.change_times(watched)
     mixed = _mixed(t, changes)
     mag = np.empty_like(np.asarray(corrected, dtype=float))
     for i0, i1 in _segments(t, changes):
         p = params.at(float(t[i0]))
         if p[rot] < 0:
-            raise LogImportError(
-                f"{source}: magnetometer calibration {index} is an internal one ({rot} = -1: "
-                "the board rotation SENS_BOARD_ROT applies), whose correction magcal does not "
-                "undo; log the raw sensor_mag topic instead"
-            )
-        mag[i0:i1] = mapping.px4_uncorrect(np.asarray(corrected[i0:i1], dtype=float), p, index)
+            if "SENS_BOARD_ROT" not in p:
+                raise LogImportError(
+                    f"{source}: magnetometer calibration {index} is an internal one ({rot} = "
+                    "-1), rotated with the board (SENS_BOARD_ROT), which the log does not hold; "
+                    "log the raw sensor_mag topic instead"
+                )
+            p[rot] = p["SENS_BOARD_ROT"]
+        # row vectors: c @ L is Lᵀ c
+        field = np.asarray(corrected[i0:i1], dtype=float) @ px4_level_adjustment(p)
+        mag[i0:i1] = mapping.px4_uncorrect(field, p, index)
     notes = []
     if changes.size:
         notes.append(

@@ -63,7 +63,7 @@ class _ProgressFile(io.RawIOBase):
     """A read-only file that reports the fraction read (pyulog takes a file object)."""
 
     def __init__(self, path: str, progress: Progress | None) -> None:
-        self._f = open(path, "rb")  # noqa: SIM115 (closed by close())
+        self._f = open(path, "rb")  # closed by close()
         self._size = max(1, os.fstat(self._f.fileno()).st_size)
         self._progress = progress
         self._reported = -1

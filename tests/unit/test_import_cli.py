@@ -129,3 +129,12 @@ def test_an_unwritable_output_is_refused_before_reading(log, tmp_path, capsys):
 def test_a_short_range_warns(log, tmp_path, capsys):
     assert main(["import", log, "-o", str(tmp_path / "s.csv"), "--start", "10", "--end", "12"]) == 0
     assert "warning: 101 samples; calibration needs at least 200" in capsys.readouterr().err
+
+
+def test_a_slowly_logged_imu_gets_a_note(tmp_path, capsys):
+    path = tmp_path / "slow.bin"
+    write_bin(path, bench_day(seed=1, rate_hz=40.0, hand_s=8.0), mag_every=4)
+    assert main(["import", str(path), "-o", str(tmp_path / "s.csv")]) == 0
+    err = capsys.readouterr().err
+    assert "IMU 1 at 40.0 Hz, compass 1 at 10.0 Hz" in err
+    assert "note: the IMU is logged at only 40 Hz" in err

@@ -19,6 +19,8 @@ from magcal.logs.stretch import describe
 
 #: Progress lines when stderr is not a terminal: one per this many percent.
 LOG_STEP_PCT = 25
+#: Below this IMU rate the rotation between magnetometer samples rests on few gyro samples.
+SLOW_IMU_HZ = 50.0
 
 
 def add_parser(sub) -> None:
@@ -96,6 +98,13 @@ def run(args, out=None, err=None) -> int:
     )
     for note in streams.notes:
         print(f"note: {note}", file=err)
+    if rows.imu_rate_hz < SLOW_IMU_HZ:
+        print(
+            f"note: the IMU is logged at only {rows.imu_rate_hz:.0f} Hz, so the rotation between "
+            "magnetometer samples rests on few gyroscope samples; log the IMU faster for a better "
+            "calibration (ArduPilot: LOG_BITMASK IMU_FAST)",
+            file=err,
+        )
     if result.stretch is None:
         print(f"range from --start/--end: {result.start_s:.2f}–{result.end_s:.2f} s", file=err)
     else:

@@ -13,7 +13,8 @@ alone (plus the armed state and throttle when the log has them):
    rotate in flight, and its motors disturb the compass); so are samples where the specific
    force's norm departs from g by more than ``max_acc_rms_m_s2`` RMS over ``smooth_s``: a
    hand moves a vehicle with about 1 m/s² (some 0.6 m/s² along gravity), a vehicle in a
-   turn, a climb or a launch with several.
+   turn, a climb or a launch with several. Samples the caller marks unusable (IMU data
+   lost, a correction that cannot be undone) count as flight too.
 3. **Stretches.** Runs of rotating, not-flying samples, joined across pauses shorter than
    ``max_gap_s`` (a person changes grip) in which the vehicle did not fly; runs shorter than
    ``min_duration_s`` are dropped.

@@ -14,12 +14,14 @@ and every sample is the scalar pseudo-measurement (eq. 8–12)
 
 magcal normalises the field to ``B_m = 1`` (contracts.md: ``D⁻¹(y − o)`` has unit norm), so
 ``A = D⁻ᵀ D⁻¹`` in the session's unit. With sensor noise ``n ~ N(0, σ² I)`` on ``y``, eq. 13's
-``v = 2(b − y)ᵀ A n + nᵀ A n`` has mean ``σ² tr A`` and variance
+``v = 2(b − y)ᵀ A n + nᵀ A n`` (``y`` the reading, which carries ``n`` itself:
+``y − b = (y − n − b) + n``) has mean ``−σ² tr A`` and variance
 
     r = 4 σ² ‖A (y − b)‖² + 2 σ⁴ tr(A²)          (Gaussian n; r_k of eq. 17)
 
-The mean is added to each cubature point's prediction (the paper leaves it out: a bias of
-``σ² tr A`` in ``B_m²``, 1.5σ² relative, which is small but free to avoid).
+The mean is added to each cubature point's prediction. The paper leaves it out, which biases
+the field norm by 1.5σ² relative: small (4e-5 for σ = 0.5 % of the field) but over 100k
+samples many times the estimate's own uncertainty (tested).
 
 Filter (eq. 15–18): cubature points ``x̂ ± √n S e_j`` (n = 9, 2n = 18 points, ``P = S Sᵀ``),
 ``ẑ`` their mean prediction, ``P_zz`` their spread plus ``r``, ``P_xz`` their cross spread,
@@ -31,8 +33,12 @@ Filter (eq. 15–18): cubature points ``x̂ ± √n S e_j`` (n = 9, 2n = 18 poin
   of that middle factor. Cauchy–Schwarz on the cubature sums gives ``‖w‖² ≤ P_zz − r``, so the
   factor's smallest eigenvalue is at least ``√(r / P_zz) > 0``: ``P`` stays symmetric positive
   definite by construction, with no subtraction of covariances (tested over 100k samples).
-  Any square root serves for the points: the rule ``±√n`` along the columns of ``S Q`` is the
-  same third-degree rule for every orthogonal ``Q``.
+  The product is then brought back to the lower-triangular root (Cholesky of ``S Sᵀ``; kept
+  as it is should that fail): the rule ``±√n`` along the columns of any root ``S Q`` is a
+  third-degree rule, but ``P_zz`` and ``P_xz`` are of higher degree in the state and their
+  approximation depends on the root. The Cholesky root, the paper's ``√P``, gave the better
+  estimates: on 12 MEMS simulations the worst error in ``A`` noise-free was 2e-7 against
+  2e-5 with the product form, on 12 hand-held ones 9e-4 against 2e-2.
 * **Normalised coordinates.** The filter runs on ``u = (y − c) / s`` with ``c``, ``s`` the
   centre and radius of the starting sphere, so the state is O(1) whatever the unit and the
   update is invariant to the data's scale and offset (raw counts calibrate like µT).
@@ -67,6 +73,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg.lapack import dpotrf as _potrf
 
 from magcal.calib import attitude_free
 from magcal.calib.ellipsoid import EllipsoidFit
@@ -498,11 +505,11 @@ class CubatureCalibrator:
         np.add(x, spread, out=pts[:N_STATE])
         np.subtract(x, spread, out=pts[N_STATE:])
         # h at every point: Σ_k a_k m_k(d), m(d) = (d0², d1², d2², 2d0d1, 2d0d2, 2d1d2); plus
-        # the noise's mean σ² tr A (eq. 13).
+        # the noise's mean −σ² tr A (eq. 13).
         d = u - pts[:, 6:]
         m = d[:, _PAIR_I] * d[:, _PAIR_J]
         m *= _PAIR_WEIGHT
-        m[:, :3] += self._sigma2
+        m[:, :3] -= self._sigma2
         z = np.einsum("ij,ij->i", pts[:, :6], m)
         z_hat = float(z.sum()) / (2 * N_STATE)
         dz = z - z_hat
@@ -522,6 +529,12 @@ class CubatureCalibrator:
         x += p_xz * ((1.0 - z_hat) / p_zz)
         ratio = min(float(w @ w) / p_zz, 1.0)
         S -= p_xz[:, None] * (w / (p_zz * (1.0 + np.sqrt(1.0 - ratio))))
+        # Back to the lower-triangular (Cholesky) root, the paper's √P (see the module doc).
+        # (LAPACK's dpotrf directly: numpy's wrapper costs more than the 9 × 9 factorisation.)
+        root, info = _potrf(S @ S.T, lower=1, clean=1)
+        if info == 0:
+            S[:] = root
+        # else: the product form is a valid root too, and positive definite
         self.updates += 1
 
 

@@ -20,6 +20,7 @@ Files in the study folder:
 
 from __future__ import annotations
 
+import ctypes
 import json
 import math
 import os
@@ -41,6 +42,8 @@ SETTINGS_FILE = "settings.json"
 RUNS_FILE = "runs.jsonl"
 #: Without a terminal, a progress line is printed at most this often, s.
 PROGRESS_LOG_INTERVAL_S = 10.0
+#: prctl(2) option: the signal a process gets when its parent dies (linux/prctl.h).
+PR_SET_PDEATHSIG = 1
 
 
 class StudyError(MagcalError):
@@ -280,10 +283,25 @@ def _clock(seconds: float) -> str:
 # Running
 
 
-def _ignore_sigint() -> None:
+def _init_worker(parent_pid: int) -> None:
     # Ctrl-C goes to the whole process group: the workers leave it to the parent, which
     # stops handing out runs and lets the ones in progress finish (and saves them).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    _die_with_parent(parent_pid)
+
+
+def _die_with_parent(parent_pid: int) -> None:
+    """On Linux, have the kernel end this worker when the study process dies (killed rather
+    than interrupted); otherwise a worker would wait for work forever."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(PR_SET_PDEATHSIG, signal.SIGTERM)
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent_pid:  # it died before prctl took effect
+        os._exit(1)
 
 
 def run_tasks(
@@ -322,7 +340,9 @@ def run_tasks(
         return len(pending)
 
     done = 0
-    with ProcessPoolExecutor(max_workers=jobs, initializer=_ignore_sigint) as pool:
+    with ProcessPoolExecutor(
+        max_workers=jobs, initializer=_init_worker, initargs=(os.getpid(),)
+    ) as pool:
         # Every future stays here until its record is saved, so none is lost on interrupt.
         outstanding: set[Future] = {pool.submit(execute_guarded, run, t) for t in pending}
         try:

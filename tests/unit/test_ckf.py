@@ -231,6 +231,14 @@ def test_a_short_session_runs_shuffled_with_a_warning():
 
 def test_readings_at_rest_are_refused_unless_forced():
     session, _ = simulate(preset("mems", duration_s=0.0, stationary_s=5.0), 1)
-    with pytest.raises(InsufficientDataError, match="do not span three dimensions"):
+    with pytest.raises(InsufficientDataError, match="do not spread beyond"):
         run_ckf(session.mag)
     assert run_ckf(session.mag, force=True).order == "shuffled"
+
+
+def test_planar_readings_are_refused_unless_forced():
+    session, _ = simulate(preset("mems", duration_s=20, motion="yaw-only"), 1)
+    with pytest.raises(InsufficientDataError, match="close to a plane"):
+        run_ckf(session.mag)
+    e = run_ckf(session.mag, force=True).estimate
+    assert np.all(np.isfinite(e.A)) and np.all(np.isfinite(e.b))

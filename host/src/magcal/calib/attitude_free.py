@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from magcal.calib import ellipsoid
 from magcal.calib.ellipsoid import EllipsoidFit
 from magcal.errors import CalibrationError, InsufficientDataError
 
@@ -26,7 +27,7 @@ from magcal.errors import CalibrationError, InsufficientDataError
 #: a forced fit on degenerate data comes near it (with a warning).
 MIN_A_EIG_FRACTION = 1e-8
 #: Fewest samples the attitude-independent methods accept (as the ellipsoid fit).
-MIN_SAMPLES = 10
+MIN_SAMPLES = ellipsoid.MIN_SAMPLES
 
 
 def check_readings(mag: np.ndarray, who: str) -> np.ndarray:
@@ -45,6 +46,21 @@ def check_readings(mag: np.ndarray, who: str) -> np.ndarray:
             "interpolate the bad samples first"
         )
     return mag
+
+
+def planarity_problem(mag: np.ndarray, who: str) -> str | None:
+    """A message if the readings (N, 3) lie close to a plane or a line, by the ellipsoid fit's
+    own criterion (:data:`magcal.calib.ellipsoid.MIN_DATA_EIG_RATIO`), else None."""
+    eig = np.linalg.eigvalsh(np.cov(np.asarray(mag, dtype=float), rowvar=False))
+    if eig[-1] > 0.0 and eig[0] >= ellipsoid.MIN_DATA_EIG_RATIO * eig[-1]:
+        return None
+    ratio = eig[0] / eig[-1] if eig[-1] > 0.0 else 0.0
+    return (
+        f"{who}: the magnetometer data lie close to a plane or a line (covariance eigenvalue "
+        f"ratio {ratio:.2g} < {ellipsoid.MIN_DATA_EIG_RATIO:g}), which many ellipsoids fit "
+        "equally well: the sensor was rotated too little; rotate it through all orientations "
+        "(tilt it nose up/down and roll it over, not only yaw)"
+    )
 
 
 def noise_std_from_differences(mag: np.ndarray) -> float:

@@ -564,8 +564,8 @@ def run_ckf(mag: np.ndarray, *, force: bool = False) -> CkfFit:
     module docstring). A session too short for that start (the field directions never span a
     hemisphere before it ends) is run once in a fixed pseudo-random order instead: that is
     the filter without the time correlation, as in Zhao et al.'s own simulation of random
-    attitudes. Raises InsufficientDataError when the readings do not span three dimensions
-    well above their noise (rest, a plane: too little rotation), unless ``force``.
+    attitudes. Raises InsufficientDataError when the readings lie close to a plane or do not
+    spread well beyond their noise (too little rotation, rest), unless ``force``.
     """
     mag = attitude_free.check_readings(mag, "ckf")
     ckf = CubatureCalibrator()
@@ -574,14 +574,15 @@ def run_ckf(mag: np.ndarray, *, force: bool = False) -> CkfFit:
         return CkfFit(ckf.estimate, "time", ckf.start_sample)
     prior = CkfPrior.from_readings(mag)
     spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(mag, rowvar=False))[0], 0.0))
-    if not force and (
-        kasa_sphere(mag) is None or spread < START_MIN_SPREAD_OVER_NOISE * prior.noise_std
-    ):
-        raise InsufficientDataError(
-            f"ckf: the {mag.shape[0]} readings do not span three dimensions well above their "
-            "noise, so no ellipsoid can be fitted: rotate the sensor through all orientations "
-            "(tilt it nose up/down and roll it over, not only yaw)"
+    problem = attitude_free.planarity_problem(mag, "ckf")
+    if problem is None and spread < START_MIN_SPREAD_OVER_NOISE * prior.noise_std:
+        problem = (
+            f"ckf: the {mag.shape[0]} readings do not spread beyond {START_MIN_SPREAD_OVER_NOISE:g}"
+            " times their noise in every direction (the sensor was at rest or barely moved): "
+            "rotate it through all orientations (tilt it nose up/down and roll it over)"
         )
+    if problem is not None and not force:
+        raise InsufficientDataError(problem)
     ckf = CubatureCalibrator(prior)
     order = np.random.default_rng(SHUFFLE_SEED).permutation(mag.shape[0])
     ckf.update_many(mag[order])

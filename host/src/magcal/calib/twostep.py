@@ -219,16 +219,18 @@ def two_step(mag: np.ndarray, *, noise_std: float | None = None, force: bool = F
     ridge = 0.0
     # The centred information F̃ has one null direction by nature (the field's scale, see
     # _centred), which the centre correction fixes; a second one means the readings do not
-    # determine the ellipsoid.
+    # determine the ellipsoid, and so do readings close to a plane.
     Lc = L - L.mean(axis=0)
     eig = np.linalg.eigvalsh(Lc.T @ Lc)
-    if not eig[1] > MIN_FISHER_RATIO * eig[-1]:
+    problem = attitude_free.planarity_problem(mag, "two-step")
+    if problem is None and not eig[1] > MIN_FISHER_RATIO * eig[-1]:
         problem = (
             "two-step: the readings do not determine the ellipsoid (Fisher information "
             f"eigenvalue ratio {eig[1] / eig[-1]:.2g} < {MIN_FISHER_RATIO:g}): the sensor was "
             "rotated too little; rotate it through all orientations (tilt it nose up/down and "
             "roll it over, not only yaw)"
         )
+    if problem is not None:
         if not force:
             raise InsufficientDataError(problem)
         ridge = FORCED_RIDGE

@@ -232,14 +232,31 @@ def test_a_result_without_noise_covariances_gets_a_page_without_sigma(files, cap
     assert len(parse(text).images) == 3  # no innovation histogram
 
 
-def test_an_init_result_says_the_curvature_is_the_ml_costs(files, capsys, tmp_path):
+def test_an_init_result_gets_no_sigma_where_the_ml_cost_curves_down(files, capsys, tmp_path):
+    """The initial estimate's noise levels are far from the ML ones: the cost curves down
+    there (measured on every seed tried), and the page says why it shows no σ."""
     init = calibrate(read_session(files / "fit.csv"), "init")
     write_result(tmp_path / "init.json", init.result)
     code, _, _ = run(capsys, tmp_path / "init.json", files / "fit.csv", "-o", tmp_path / "i.html")
     text = (tmp_path / "i.html").read_text(encoding="utf-8")
     assert code == 0
-    assert "not ml: these are the ML cost&#x27;s curvature" in text
-    assert "not at the minimum of the ML cost" in text
+    assert "no uncertainty: the result (method &#x27;init&#x27;) is not a minimum" in text
+    assert "calibrate with --method ml for standard deviations" in text
+    assert not re.search(r"\d ± \d", text)
+
+
+def test_a_result_far_from_the_ml_minimum_with_negative_curvature_gets_no_sigma(
+    files, capsys, tmp_path
+):
+    r = read_result(files / "result.json")
+    off = dataclasses.replace(r, method="two-step", gyro_bias=r.gyro_bias + [0.0, 0.01, 0.0])
+    write_result(tmp_path / "off.json", off)
+    code, _, _ = run(capsys, tmp_path / "off.json", files / "fit.csv", "-o", tmp_path / "o.html")
+    text = (tmp_path / "o.html").read_text(encoding="utf-8")
+    assert code == 0
+    assert "no uncertainty: the result (method &#x27;two-step&#x27;) is not a minimum" in text
+    assert "negative curvature along" in text and "bias_y" in text
+    assert not re.search(r"\d ± \d", text) and "NOT identifiable" not in text
 
 
 def test_a_non_identifiable_direction_is_flagged_on_the_page(files):
@@ -253,10 +270,16 @@ def test_a_non_identifiable_direction_is_flagged_on_the_page(files):
     sigma = {**u.sigma, "o": np.array([u.sigma["o"][0], np.inf, u.sigma["o"][2]])}
     flagged = dataclasses.replace(
         report,
-        uncertainty=dataclasses.replace(u, sigma=sigma, null_directions=["0.71·o1 − 0.70·D11"]),
+        uncertainty=dataclasses.replace(
+            u,
+            sigma=sigma,
+            null_directions=["0.71·o1 − 0.70·D11"],
+            notes=["the result comes from method 'x', not ml"],
+        ),
     )
     text = html.render_html(flagged)
     assert "NOT identifiable" in text and "0.71·o1 − 0.70·D11" in text
+    assert "the result comes from method &#x27;x&#x27;, not ml" in text
     assert f"{report.result.o[1]:.6g} ± ∞" in text and "± ∞ marks what the data" in text
     assert "NOT identifiable" not in html.render_html(report)
 

@@ -126,6 +126,7 @@ def test_sigma_is_finite_and_positive_for_every_quantity_and_the_estimate_is_the
     np.testing.assert_allclose(u.values["o"], cal.result.o, rtol=1e-12, atol=1e-12)
     assert u.values["dip_deg"] == pytest.approx(cal.result.dip_deg, abs=1e-12)
     assert u.newton_step_sigma < 0.1  # ML converged: the point is the cost's minimum
+    assert u.at_minimum and not u.negative_curvature
     assert u.notes == []
 
 

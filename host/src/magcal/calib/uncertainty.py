@@ -57,6 +57,9 @@ IDENTIFIABILITY_RTOL = 1e-5
 NULL_LOADING_RTOL = 1e-4
 #: Step of the linearisation of derived quantities, as a fraction of each expected σ.
 JACOBIAN_STEP_FRACTION = 1e-4
+#: A point whose Newton step to the cost's minimum is longer than this many standard
+#: deviations is not the ML estimate: its curvature does not describe an estimate's spread.
+AT_MINIMUM_NEWTON_STEP_SIGMA = 1.0
 #: Components smaller than this (unit eigenvector) are left out of a direction's text.
 DIRECTION_TEXT_MIN = 0.1
 
@@ -270,6 +273,8 @@ class CalibrationUncertainty:
                        method's estimate
     min_scaled_eigenvalue : the smallest eigenvalue of the scaled Hessian (order one when
                        every parameter is well determined)
+    negative_curvature : an eigenvalue is below −IDENTIFIABILITY_RTOL × the largest: the
+                       cost curves down there, so the point is not a minimum
     gradient_evaluations, seconds, n_samples
     """
 
@@ -279,6 +284,7 @@ class CalibrationUncertainty:
     null_directions: list[str]
     newton_step_sigma: float
     min_scaled_eigenvalue: float
+    negative_curvature: bool
     gradient_evaluations: int
     seconds: float
     n_samples: int
@@ -287,6 +293,13 @@ class CalibrationUncertainty:
     @property
     def identifiable(self) -> bool:
         return not self.null_directions
+
+    @property
+    def at_minimum(self) -> bool:
+        """The point is (close to) a minimum of the ML cost, as an ML estimate is."""
+        return (
+            not self.negative_curvature and self.newton_step_sigma <= AT_MINIMUM_NEWTON_STEP_SIGMA
+        )
 
 
 def penalised_gradient(problem: LikelihoodProblem) -> Callable[[np.ndarray], np.ndarray]:
@@ -349,6 +362,7 @@ def calibration_uncertainty(
         null_directions=[direction_text(v, params.PARAM_NAMES) for v in hc.null_directions],
         newton_step_sigma=float(np.sqrt(max(float(g0 @ hc.cov @ g0), 0.0))),
         min_scaled_eigenvalue=float(hc.eigenvalues[0]),
+        negative_curvature=bool(hc.eigenvalues[0] < -IDENTIFIABILITY_RTOL * hc.eigenvalues[-1]),
         gradient_evaluations=2 * params.N_PARAMS + 1,
         seconds=time.perf_counter() - t0,
         n_samples=problem.n_samples,

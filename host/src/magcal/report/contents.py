@@ -322,6 +322,24 @@ def build_report(
         notes.append(f"no uncertainty and no innovations: {exc}")
     except CalibrationError as exc:  # the filter breaks down at or next to the result
         notes.append(f"no uncertainty: {exc}")
+    if (
+        unc is not None
+        and result.method != "ml"
+        and unc.negative_curvature
+        and unc.newton_step_sigma > uncertainty.AT_MINIMUM_NEWTON_STEP_SIGMA
+    ):
+        # Another method's estimate away from the ML minimum: a Hessian that curves down
+        # there is the cost's shape at that point, not a statement about what the data
+        # determine, so no σ rather than misleading ones. (An ML result is meant to be the
+        # minimum: its non-positive-definite Hessian is reported as not identifiable.)
+        notes.append(
+            f"no uncertainty: the result (method {result.method!r}) is not a minimum of the ML "
+            f"cost on this session (a Newton step of {unc.newton_step_sigma:.3g} standard "
+            "deviations away, with negative curvature along "
+            f"{'; '.join(unc.null_directions)}), so its curvature says nothing about the "
+            "estimate's spread; calibrate with --method ml for standard deviations"
+        )
+        unc = None
     if progress:
         progress("drawing the figures", 0, 1)
     fit = evaluate_session(result, session, session_path, "fit session")

@@ -382,7 +382,7 @@ def _uncertainty(report: Report) -> str:
         ["identifiable", "yes" if unc.identifiable else "no: " + "; ".join(unc.null_directions)],
     ]
     out.append(_table(None, rows, numeric_from=None))
-    if unc.newton_step_sigma > 1.0:
+    if not unc.at_minimum:
         out.append(
             '<div class="box warn">The result is not at the minimum of the ML cost on this '
             f"session (a Newton step of {unc.newton_step_sigma:.3g} standard deviations "

@@ -211,3 +211,12 @@ def test_inclination_gives_the_dip_at_every_orientation_and_skips_accelerated_sa
     dips, used = evaluation.inclination_dip_deg(acc, 3.0 * field_b)
     assert used.sum() == 450 and not used[:50].any()
     np.testing.assert_allclose(dips, 64.0, atol=1e-9)
+
+
+def test_misalignment_is_the_rotation_of_the_polar_decomposition():
+    angles = np.array([3.0, -2.0, 5.0])
+    U = frames.quat_to_matrix(frames.rotvec_to_quat(np.deg2rad(angles))).T  # body → mag axes
+    P = np.array([[1.2, 0.1, -0.05], [0.1, 0.9, 0.02], [-0.05, 0.02, 1.05]])  # soft iron, SPD
+    np.testing.assert_allclose(uncertainty.misalignment_deg(40.0 * P @ U), angles, atol=1e-9)
+    mirrored = P @ U @ np.diag([1.0, 1.0, -1.0])
+    assert np.isnan(uncertainty.misalignment_deg(mirrored)).all()

@@ -182,6 +182,17 @@ def direction_text(direction: np.ndarray, names: list[str] | tuple[str, ...]) ->
 # The calibration's quantities as functions of θ
 
 
+def misalignment_deg(D: np.ndarray) -> np.ndarray:
+    """(3,) degrees: the rotation of the magnetometer's axes against the body axes, as a
+    rotation vector in body axes. With the left polar decomposition D = P U (P symmetric
+    positive definite: scale factors and soft iron; U a rotation) it is Uᵀ's. NaN when
+    det D ≤ 0 (a mirrored triad has no such rotation)."""
+    U, _ = scipy.linalg.polar(np.asarray(D, dtype=float), side="left")
+    if np.linalg.det(U) <= 0.0:
+        return np.full(3, np.nan)
+    return np.rad2deg(frames.quat_to_rotvec(frames.matrix_to_quat(U.T)))
+
+
 def derived_quantities(theta: np.ndarray, norm: Normalisation) -> dict[str, np.ndarray]:
     """Everything :data:`QUANTITIES` lists, from normalised θ (34,).
 
@@ -190,18 +201,10 @@ def derived_quantities(theta: np.ndarray, norm: Normalisation) -> dict[str, np.n
         noise_std_gyr rad/s; noise_std_acc m/s² (the standard deviations per axis: the
         square roots of the noise covariances' diagonals).
 
-    misalignment_deg : the rotation of the magnetometer's axes against the body
-        (accelerometer) axes: with the left polar decomposition D = P U (P symmetric positive
-        definite: scale factors and soft iron; U a rotation), the rotation vector of Uᵀ in
-        degrees, in body axes. NaN when det D ≤ 0 (a mirrored triad has no such rotation).
-    misalignment_angle_deg : its length, the total angle.
+    misalignment_deg : :func:`misalignment_deg` of D; misalignment_angle_deg : its length.
     """
     p = params.unpack(theta).unscaled_magnetometer(norm.centre, norm.scale)
-    U, _ = scipy.linalg.polar(p.D, side="left")
-    if np.linalg.det(U) > 0.0:
-        misalignment = np.rad2deg(frames.quat_to_rotvec(frames.matrix_to_quat(U.T)))
-    else:
-        misalignment = np.full(3, np.nan)
+    misalignment = misalignment_deg(p.D)
     # The angle's derivative is undefined at zero; an estimate is never exactly aligned.
     angle = np.linalg.norm(misalignment)
     return {

@@ -17,6 +17,7 @@ import os
 import numpy as np
 
 from magcal import __version__
+from magcal.calib import uncertainty
 from magcal.io.result import REQUIRED_KEYS, result_to_dict
 from magcal.io.session import check_writable, os_error_advice
 from magcal.report.contents import Figure, Report, ReportError, SessionEvaluation
@@ -179,17 +180,15 @@ def _summary(report: Report) -> str:
         )
     dip_sigma = None if unc is None else float(unc.sigma["dip_deg"])
     kpis.append(_kpi("Dip angle", value_pm(r.dip_deg, dip_sigma) + "°", "positive down"))
-    if unc is not None:
-        mis = unc.values["misalignment_deg"]
-        if np.isfinite(mis).all():
-            angle = float(unc.values["misalignment_angle_deg"])
-            kpis.append(
-                _kpi(
-                    "Misalignment",
-                    value_pm(angle, float(unc.sigma["misalignment_angle_deg"])) + "°",
-                    "magnetometer vs body axes",
-                )
+    mis = uncertainty.misalignment_deg(r.D)
+    if np.isfinite(mis).all():
+        kpis.append(
+            _kpi(
+                "Misalignment",
+                _pm(report, "misalignment_angle_deg", float(np.linalg.norm(mis))) + "°",
+                "magnetometer vs body axes",
             )
+        )
     if fit.dip_calibrated is not None and fit.dip_raw is not None:
         kpis.append(
             _kpi(
@@ -277,8 +276,8 @@ def _calibration(report: Report) -> str:
     field_rows.append(["field direction m_n y", "0"])
     field_rows.append(["field direction m_n z", _pm(report, "m_n", float(r.m_n[2]), (2,))])
     rot_rows = []
-    if unc is not None:
-        mis = unc.values["misalignment_deg"]
+    mis = uncertainty.misalignment_deg(r.D)
+    if np.isfinite(mis).all():
         for i, a in enumerate(axes):
             rot_rows.append(
                 [
@@ -286,12 +285,8 @@ def _calibration(report: Report) -> str:
                     _pm(report, "misalignment_deg", float(mis[i]), (i,)),
                 ]
             )
-        rot_rows.append(
-            [
-                "misalignment angle (°)",
-                _pm(report, "misalignment_angle_deg", float(unc.values["misalignment_angle_deg"])),
-            ]
-        )
+        angle = float(np.linalg.norm(mis))
+        rot_rows.append(["misalignment angle (°)", _pm(report, "misalignment_angle_deg", angle)])
     if r.gyro_bias is not None:
         deg = float(np.rad2deg(1.0))
         for i, a in enumerate(axes):

@@ -167,6 +167,18 @@ def format_table(res: dict) -> str:
             f"   log-log slope of cost+gradient time vs samples: "
             f"{scal['loglog_slope_cost_grad']:.3f} (1 = linear)"
         )
+    ckf = res.get("ckf")  # results before the CKF (issue 7) have none
+    if ckf is not None:
+        out += [
+            "",
+            f"5. CKF (Zhao et al.), time per sample on {ckf['samples']:,} samples, median",
+            f"   {'filter step (update_many)':<34}{ckf['step_us_per_sample']:8.1f} µs",
+            f"   {'update() with estimate + P':<34}{ckf['update_us_per_sample']:8.1f} µs",
+            f"   {'live, as collect runs it':<34}{ckf['live_us_per_sample']:8.1f} µs per reading",
+            f"   {'whole session, --method ckf filter':<34}{ckf['run_ckf_s']:8.2f} s "
+            f"({ckf['run_ckf_order']} order); TWO-STEP {ckf['two_step_s']:.2f} s",
+            f"   {'filter state':<34}{ckf['filter_state_bytes']:8d} bytes, whatever the samples",
+        ]
     out += ["", f"benchmark took {res['bench_wall_s']:.0f} s"]
     return "\n".join(out)
 
@@ -189,6 +201,7 @@ HEADLINE = (
     ),
     ("final cost rel. diff", ("exact_vs_numeric", "final_cost_rel_diff_max"), "{:.1e}"),
     ("cost+grad slope", ("scaling", "loglog_slope_cost_grad"), "{:.3f}"),
+    ("CKF step (µs/sample)", ("ckf", "step_us_per_sample"), "{:.1f}"),
 )
 
 

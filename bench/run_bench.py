@@ -17,6 +17,10 @@ CPU with ``os.sched_setaffinity``:
 3. ``compare``: exact against finite-difference gradients on a shorter session, both ML
    optimisations from the same initial estimate θ₀ in one process.
 4. ``scaling``: one cost+gradient and one cost-only evaluation at 6k, 60k and 600k samples.
+5. ``ckf``: Zhao et al.'s cubature Kalman filter (``magcal.calib.ckf``), time per sample: the
+   filter step alone, ``update`` returning the estimate and covariance, the live estimate as
+   ``magcal collect`` runs it, and a whole session through ``--method ckf``'s filter and
+   through TWO-STEP for comparison.
 
 Progress goes to stderr, the table (formatted by bench/report.py) to stdout, the
 machine-readable summary to ``--out``.
@@ -85,6 +89,8 @@ class BenchConfig:
     compare_max_iter: int = 500
     scaling_durations_s: tuple[float, ...] = (60.0, 600.0, 6000.0)
     scaling_reps: tuple[int, ...] = (9, 5, 3)
+    ckf_duration_s: float = 600.0
+    ckf_reps: int = 3
 
 
 #: A few seconds in total; only checks that the code runs (tests/unit/test_bench_smoke.py).
@@ -96,6 +102,8 @@ SMOKE_CONFIG = BenchConfig(
     compare_max_iter=3,
     scaling_durations_s=(15.0, 30.0),
     scaling_reps=(2, 1),
+    ckf_duration_s=15.0,
+    ckf_reps=1,
 )
 
 
@@ -414,6 +422,61 @@ def work_scaling(durations_s: list[float], reps: list[int], seed: int) -> dict:
     return {"rows": rows, "loglog_slope_cost_grad": slope, "peak_rss_mb": _peak_rss_mb()}
 
 
+#: Readings per ``LiveCalibration.add`` in the live figure: what collect feeds every 0.25 s at
+#: 100 Hz (it asks for the state as often).
+LIVE_CHUNK = 25
+
+
+def work_ckf(duration_s: float, seed: int, reps: int) -> dict:
+    """The CKF's cost per sample on one session (median of ``reps`` passes each).
+
+    - ``step``: ``CubatureCalibrator.update_many`` from a prior: the filter step alone;
+    - ``update``: ``update(y)`` per sample, which also returns the estimate and covariance;
+    - ``live``: ``LiveCalibration`` fed as collect feeds it, with its state every
+      LIVE_CHUNK readings (per reading);
+    - ``run_ckf_s``: a whole session as ``--method ckf`` filters it (start included);
+      ``two_step_s``: TWO-STEP on the same readings.
+    """
+    from magcal.calib import ckf, live, twostep
+
+    session = _session(duration_s, seed)
+    mag = session.mag
+    n = len(mag)
+    prior = ckf.CkfPrior.from_readings(mag)
+
+    def step():
+        ckf.CubatureCalibrator(prior).update_many(mag)
+
+    def update():
+        f = ckf.CubatureCalibrator(prior)
+        for y in mag:
+            f.update(y)
+
+    def live_feed():
+        lc = live.LiveCalibration(100.0)
+        for i in range(0, n, LIVE_CHUNK):
+            lc.add(mag[i : i + LIVE_CHUNK])
+            lc.state(0.5)
+
+    out: dict = {"samples": n}
+    for key, fn in (("step", step), ("update", update), ("live", live_feed)):
+        _log(f"  {key}: {reps} pass(es) over {n} samples")
+        seconds = _median_seconds(fn, reps)
+        out[f"{key}_us_per_sample"] = 1e6 * seconds / n
+    t0 = time.perf_counter()
+    fit = ckf.run_ckf(mag)
+    out["run_ckf_s"] = time.perf_counter() - t0
+    out["run_ckf_order"] = fit.order
+    out["run_ckf_start_sample"] = fit.start_index
+    t0 = time.perf_counter()
+    twostep.two_step(mag)
+    out["two_step_s"] = time.perf_counter() - t0
+    f = ckf.CubatureCalibrator(prior)
+    f.update_many(mag[:10])
+    out["filter_state_bytes"] = sum(v.nbytes for v in vars(f).values() if hasattr(v, "nbytes"))
+    return out
+
+
 def _worker_main(name: str, params: dict, result_file: str) -> None:
     # Normally inherited from the parent; set again in case a worker is run by hand. Still
     # before any numpy import: the workers import it lazily.
@@ -426,6 +489,7 @@ def _worker_main(name: str, params: dict, result_file: str) -> None:
         "imports": work_imports,
         "compare": work_compare,
         "scaling": work_scaling,
+        "ckf": work_ckf,
     }
     out = workers[name](**params)
     out["versions"] = {
@@ -550,7 +614,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
 
     runs = []
     for i in range(config.calib_runs):
-        _log(f"1/4 full calibration, cold process, run {i + 1}/{config.calib_runs}")
+        _log(f"1/5 full calibration, cold process, run {i + 1}/{config.calib_runs}")
         r = run_worker(
             "calibrate",
             {"duration_s": config.calib_duration_s, "seed": SEED, "warm": False},
@@ -559,7 +623,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         _log(f"  total {r['wall_s']:.2f} s, peak RSS {r['peak_rss_mb']:.0f} MB")
         runs.append(r)
     # In a process of its own, so that the cold runs' process times and memory stay clean.
-    _log("1/4 full calibration twice in one process (for the warm figure)")
+    _log("1/5 full calibration twice in one process (for the warm figure)")
     warm = run_worker(
         "calibrate", {"duration_s": config.calib_duration_s, "seed": SEED, "warm": True}, cpu
     )
@@ -586,14 +650,14 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         "peak_rss_before_calibrate_mb": max(r["peak_rss_before_calibrate_mb"] for r in runs),
     }
 
-    _log("2/4 import times (fresh process)")
+    _log("2/5 import times (fresh process)")
     results["imports"] = run_worker("imports", {}, cpu)
     results["imports"].pop("versions", None)
 
     per_seed = []
     for seed in config.compare_seeds:
         _log(
-            f"3/4 exact vs numeric gradient, {config.compare_duration_s:g} s session, "
+            f"3/5 exact vs numeric gradient, {config.compare_duration_s:g} s session, "
             f"seed {seed} ({len(per_seed) + 1}/{len(config.compare_seeds)})"
         )
         r = run_worker(
@@ -610,7 +674,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         per_seed.append({"seed": seed, **r})
     results["exact_vs_numeric"] = compare_summary(per_seed, config.compare_duration_s)
 
-    _log("4/4 scaling of one cost(+gradient) evaluation")
+    _log("4/5 scaling of one cost(+gradient) evaluation")
     scal = run_worker(
         "scaling",
         {
@@ -622,6 +686,15 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
     )
     scal.pop("versions", None)
     results["scaling"] = scal
+
+    _log("5/5 CKF time per sample")
+    ckf = run_worker(
+        "ckf",
+        {"duration_s": config.ckf_duration_s, "seed": SEED, "reps": config.ckf_reps},
+        cpu,
+    )
+    ckf.pop("versions", None)
+    results["ckf"] = ckf
 
     results["targets"] = targets(results)
     results["bench_wall_s"] = time.perf_counter() - started

@@ -116,10 +116,8 @@ PRIOR_STD_B = 0.3
 SHUFFLE_SEED = 0
 
 _OFF = ((0, 1), (0, 2), (1, 2))
-# m(d) = d[_PAIR_I] d[_PAIR_J] _PAIR_WEIGHT = (d0², d1², d2², 2d0d1, 2d0d2, 2d1d2).
-_PAIR_I = np.array([0, 1, 2, 0, 0, 1])
-_PAIR_J = np.array([0, 1, 2, 1, 2, 2])
-_PAIR_WEIGHT = np.array([1.0, 1.0, 1.0, 2.0, 2.0, 2.0])
+# state[..., _SYM_INDEX] is A as a (…, 3, 3) matrix.
+_SYM_INDEX = np.array([[0, 3, 4], [3, 1, 5], [4, 5, 2]])
 
 
 @dataclass(frozen=True, eq=False)
@@ -265,13 +263,8 @@ def algebraic_ellipsoid(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _sym(a: np.ndarray) -> np.ndarray:
-    """(…, 6) state parts → (…, 3, 3) symmetric matrices."""
-    out = np.empty(a.shape[:-1] + (3, 3))
-    out[..., 0, 0], out[..., 1, 1], out[..., 2, 2] = a[..., 0], a[..., 1], a[..., 2]
-    out[..., 0, 1] = out[..., 1, 0] = a[..., 3]
-    out[..., 0, 2] = out[..., 2, 0] = a[..., 4]
-    out[..., 1, 2] = out[..., 2, 1] = a[..., 5]
-    return out
+    """(…, 6) state parts [A11 A22 A33 A12 A13 A23] → (…, 3, 3) symmetric matrices."""
+    return a[..., _SYM_INDEX]
 
 
 def _h(x: np.ndarray, u: np.ndarray) -> np.ndarray:
@@ -504,13 +497,10 @@ class CubatureCalibrator:
         spread = ROOT_N * S.T  # row j: √n S[:, j]
         np.add(x, spread, out=pts[:N_STATE])
         np.subtract(x, spread, out=pts[N_STATE:])
-        # h at every point: Σ_k a_k m_k(d), m(d) = (d0², d1², d2², 2d0d1, 2d0d2, 2d1d2); plus
-        # the noise's mean −σ² tr A (eq. 13).
+        # h = dᵀ A d at every point, plus the noise's mean −σ² tr A (eq. 13).
         d = u - pts[:, 6:]
-        m = d[:, _PAIR_I] * d[:, _PAIR_J]
-        m *= _PAIR_WEIGHT
-        m[:, :3] -= self._sigma2
-        z = np.einsum("ij,ij->i", pts[:, :6], m)
+        z = np.einsum("ki,kij,kj->k", d, pts[:, _SYM_INDEX], d)
+        z -= self._sigma2 * pts[:, :3].sum(axis=1)
         z_hat = float(z.sum()) / (2 * N_STATE)
         dz = z - z_hat
         dx = u - x[6:]

@@ -89,7 +89,7 @@ class BenchConfig:
     compare_max_iter: int = 500
     scaling_durations_s: tuple[float, ...] = (60.0, 600.0, 6000.0)
     scaling_reps: tuple[int, ...] = (9, 5, 3)
-    ckf_duration_s: float = 600.0
+    ckf_duration_s: float = 120.0
     ckf_reps: int = 3
 
 

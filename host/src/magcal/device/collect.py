@@ -201,8 +201,10 @@ class _Recorder:
         return len(self.seq)
 
 
-class _Live:
-    """The live estimate, fenced: a failure of the estimate must not end a collection."""
+class GuardedLiveCalibration:
+    """The live estimate as a recorder runs it: a failure of the estimate must not end a
+    collection, so it is logged and the estimate switched off. For every recorder (the
+    MAVLink one too): ``add`` the readings, ``state(coverage)`` for :func:`progress_hint`."""
 
     def __init__(self, sample_rate_hz: float, ok_coverage: float) -> None:
         self.calibration: LiveCalibration | None = LiveCalibration(
@@ -275,7 +277,7 @@ def collect(
         raise MagcalError("collect: give a stop condition (duration, coverage or sample count)")
     rec = _Recorder()
     tracker = CoverageTracker(min_extent=COVERAGE_MIN_EXTENT_UT)
-    live = _Live(info.sample_rate_hz, coverage_target or OK_COVERAGE)
+    live = GuardedLiveCalibration(info.sample_rate_hz, coverage_target or OK_COVERAGE)
     mag_sensor = info.sensor("mag")
     start = clock()
     last_sample = start
@@ -376,7 +378,11 @@ def _drain_queued(client: DeviceClient, rec: _Recorder, max_samples: int | None)
 
 
 def _feed_coverage(
-    rec: _Recorder, tracker: CoverageTracker, mag: SensorInfo, live: _Live, force: bool = False
+    rec: _Recorder,
+    tracker: CoverageTracker,
+    mag: SensorInfo,
+    live: GuardedLiveCalibration,
+    force: bool = False,
 ) -> CoverageState:
     """The samples not yet seen, in µT, to the coverage tracker and the live estimate."""
     new = rec.mag[rec.fed_to_coverage :]
@@ -391,7 +397,7 @@ def _feed_coverage(
 def _progress(
     rec: _Recorder,
     state: CoverageState,
-    live: _Live,
+    live: GuardedLiveCalibration,
     elapsed: float,
     times: list[float],
     live_state: LiveState | None = None,

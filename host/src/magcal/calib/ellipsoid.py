@@ -85,7 +85,8 @@ class EllipsoidFit:
     o          : (3,) float, centre (hard-iron offset), raw magnetometer units
     D_tilde    : (3, 3) float, lower-triangular Cholesky factor, ``D̃ D̃ᵀ = D Dᵀ``, raw units
                  (``D̃⁻¹(y − o)`` has unit norm on the ellipsoid)
-    method     : ``"sdp"`` or ``"algebraic"``
+    method     : ``"sdp"`` or ``"algebraic"`` (or ``"ckf"``, ``"two-step"``: see
+                 :func:`magcal.calib.attitude_free.ellipsoid_fit_from`)
     radius_rms : float, dimensionless, RMS of ``‖D̃⁻¹(y_t − o)‖ − 1`` over the data
     a_eig_ratio: float, smallest/largest eigenvalue of ``A`` in the normalised coordinates
                  (1 for a sphere; near 0 for data on a plane)

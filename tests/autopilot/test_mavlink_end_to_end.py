@@ -53,14 +53,20 @@ def test_ardupilot_collect_calibrate_flash_verify_restore(tmp_path, capsys):
         assert meta["mag_unit"] == "mG" and meta["autopilot"] == "ardupilot"
         assert float(meta["param.COMPASS_OFS_X"]) == pytest.approx(old["COMPASS_OFS_X"], rel=1e-6)
 
-        common = ["--mavlink", emu.url, "--field", _field_arg(emu), "--session", str(session)]
+        common = ["--mavlink", emu.url, "--field", _field_arg(emu)]
         dry = tmp_path / "dry.parm"
-        assert cli.main(["flash", str(result), *common, "--dry-run", "--param-file", str(dry)]) == 0
+        from_session = [*common, "--session", str(session)]
+        assert (
+            cli.main(["flash", str(result), *from_session, "--dry-run", "--param-file", str(dry)])
+            == 0
+        )
         assert emu.params == old  # a dry run reads, never writes
         planned = ap_params.read_param_file(dry).as_dict()
         assert "CUST_ROT1_YAW" in planned  # the hidden 3° misalignment needs a custom rotation
 
         capsys.readouterr()
+        # Without --session: the result carries the session's metadata (the parameters in
+        # force while it was recorded).
         assert cli.main(["flash", str(result), *common]) == 0
         after = emu.heading_error_deg()
         out = capsys.readouterr().out

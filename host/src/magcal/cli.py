@@ -191,8 +191,12 @@ def _print_truth_comparison(cal, truth, session, out=None) -> None:
         ("known-attitude floor", floor),
         ("initial estimate", (cal.init.params.D, cal.init.params.o)),
     ]
+    # init's result is the initial estimate; ckf and two-step replace its ellipsoid step, so
+    # their "initial estimate" is their own result.
     if cal.ml is not None:
         rows.append(("ML estimate", (cal.result.D, cal.result.o)))
+    elif cal.result.method != "init":
+        rows[1] = (f"{cal.result.method} estimate", (cal.result.D, cal.result.o))
     print("calibration-induced heading error against the truth (RMS over SO(3)):", file=out)
     for name, (D, o) in rows:
         e = quality.calibration_heading_errors(st.D, st.o, st.m_n, D, o)

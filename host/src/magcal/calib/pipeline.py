@@ -180,6 +180,10 @@ def calibrate(
     # them into device counts without being told again.
     if session.meta.get("mag_unit"):
         extra["mag_unit"] = session.meta["mag_unit"]
+    # The session's metadata travels with the result: flash --mavlink needs the compass
+    # parameters that were in force while it was recorded (the frame D and o live in).
+    if session.meta:
+        extra["session_meta"] = {str(k): str(v) for k, v in session.meta.items()}
 
     result = CalibrationResult(
         method=method,

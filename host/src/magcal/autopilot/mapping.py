@@ -26,7 +26,9 @@ On-board corrections, as in the sources (checked with the code search tool):
   symmetric, and ``_rotation = get_rot_matrix(CAL_MAGn_ROT)``; an external ROT outside
   [0, ROTATION_MAX) is reset to 0 and an internal one is −1 (board rotation). That commit has
   **no** custom rotation: ROT = 100 with ``CAL_MAGn_ROLL/PITCH/YAW`` (autopilots.md) is not
-  confirmed by the sources read, so :func:`to_px4` allows it only when asked.
+  in that commit (an external ROT of 100 is reset to 0 there); newer releases have it, so
+  :func:`to_px4` writes it only when asked (``flash --px4-custom-rotation``, which checks
+  that the vehicle reports ``CAL_MAGn_ROLL``).
 - Limits: ArduPilot |OFS| < COMPASS_OFFS_MAX (default 1800 mG), DIA 0.2–5.0, |ODI| < 1
   (autopilots.md, ArduPilot's own calibrator); SCALE used only in [0.85, 1.4]
   (CompassCalibrator.h COMPASS_MIN/MAX_SCALE_FACTOR). PX4 scales 0.1–3.0 (autopilots.md);

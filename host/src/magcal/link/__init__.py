@@ -2,9 +2,9 @@
 
 ``open_link(url, timeout_s)`` turns a ``--port`` URL into a :class:`Link`: a device or
 pseudo-terminal path (``/dev/ttyACM0``, ``/dev/pts/5``, ``COM3``), ``socket://host:port`` or any
-other URL pyserial's ``serial_for_url`` accepts (``rfc2217://``, ``loop://``, ...). A ``--mavlink``
-link (pymavlink's connection strings) is a later addition: it will be one more opener in
-:mod:`magcal.link.serial_link`'s dispatch, returning the same :class:`Link`.
+other URL pyserial's ``serial_for_url`` accepts (``rfc2217://``, ``loop://``, ...).
+``--mavlink`` URLs (pymavlink's connection strings) carry messages, not our byte frames:
+:class:`magcal.link.mavlink.MavlinkClient` opens them.
 """
 
 from magcal.link.base import (

@@ -388,8 +388,16 @@ def plot_norm_series(
     fig = _new_figure((8.0, 3.8))
     ax = fig.add_subplot()
     k = np.arange(1, first.size + 1)
-    for (label, v), color in zip(arrays.items(), SERIES_COLORS, strict=False):
-        ax.plot(k, v, color=color, linewidth=0.7, label=f"{label} (std {v.std():.3g} {unit})")
+    for i, ((label, v), color) in enumerate(zip(arrays.items(), SERIES_COLORS, strict=False)):
+        # Calibrated series overlap closely: translucent, so that one does not hide another.
+        ax.plot(
+            k,
+            v,
+            color=color,
+            linewidth=0.7,
+            alpha=1.0 if i == 0 else 0.7,
+            label=f"{label} (std {v.std():.3g} {unit})",
+        )
     ax.axhline(reference, color="0.3", linewidth=1.0, linestyle="--", label="reference norm")
     ax.set_xlabel("sample")
     ax.set_ylabel(f"field norm [{unit}]")

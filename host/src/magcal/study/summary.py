@@ -113,9 +113,12 @@ class ZhaoSummary:
 
 @dataclass(frozen=True)
 class StudySummary:
+    """seconds_runs: the runs' own times added up (whatever the jobs and interruptions)."""
+
     settings: StudySettings
     runs: int
     failed: int
+    seconds_runs: float
     figure8: Figure8Summary | None
     zhao: ZhaoSummary | None
     comparison: tuple[ComparisonRow, ...]
@@ -305,6 +308,7 @@ def summarise(settings: StudySettings, records: list[dict]) -> StudySummary:
         settings=settings,
         runs=len(records),
         failed=sum(_failed(r) for r in records),
+        seconds_runs=float(sum(r["seconds"] for r in records)),
         figure8=summarise_figure8(by_experiment["figure8"])
         if "figure8" in settings.experiments
         else None,
@@ -398,7 +402,11 @@ def _zhao_md(s: ZhaoSummary, settings: StudySettings) -> list[str]:
         f"{s.runs} runs (seeds {_seed_range(settings, 'zhao-table1')}) of the paper's "
         f"simulation, {s.samples} samples each (`magcal.study.zhao`: σ = "
         f"{zhao.NOISE_SIGMA_G} G, field {zhao.field_norm_g():.3f} G, the true A and b of "
-        "their Table 1). Mean estimates, each row `A` row &#124; `b` component (gauss):",
+        "their Table 1; the sample count is ours, the paper gives none). magcal's CKF "
+        "(`CubatureCalibrator`, sample by sample, started from the sphere of the first "
+        "samples) and TWO-STEP, both given σ as the paper's filter is. Mean estimates, each "
+        "row `A` row &#124; `b` component (gauss); the paper's columns are their Table 1 "
+        "(its text lost the column heads: the order true, CKF, TWO-STEP is assumed):",
         "",
         "| | " + " | ".join(name for name, *_ in columns) + " |",
         "|---|" + "---|" * len(columns),
@@ -478,8 +486,9 @@ def render_markdown(summary: StudySummary, meta: dict) -> str:
         "# magcal study: the papers' experiments",
         "",
         f"Made by `{meta['command']}` on {meta['date']}; {meta['build']}. "
-        f"{summary.runs} runs, {summary.failed} failed; {meta['runs_now']} run now in "
-        f"{meta['wall_s']:.0f} s wall time with {meta['jobs']} jobs on {meta['cores']} cores"
+        f"{summary.runs} runs, {summary.failed} failed, {summary.seconds_runs:.0f} s of "
+        f"runs in all (the runs' own times added up); this call ran {meta['runs_now']} of them "
+        f"in {meta['wall_s']:.0f} s wall time with {meta['jobs']} jobs on {meta['cores']} cores"
         + (f", {meta['runs_before']} resumed from `runs.jsonl`" if meta["runs_before"] else "")
         + ".",
         "",

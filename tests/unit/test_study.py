@@ -317,3 +317,9 @@ def test_zhao_table_holds_the_mean_estimates(straight):
         assert np.max(np.abs(b - zhao.TRUE_B_G)) < 0.02
     for m in outcome.summary.zhao.methods:
         assert (m.ok, m.failed) == (settings.zhao_runs, 0)
+
+
+def test_settings_without_the_comparison_record_no_methods():
+    settings, notes = make_settings(experiments=("figure8",))
+    assert settings.methods == () and settings.scenarios == ()
+    assert not any(n.startswith("method(s)") for n in notes)

@@ -158,6 +158,10 @@ def make_settings(
             f"{', '.join(PRESETS)}"
         )
     ordered = tuple(e for e in EXPERIMENTS if e in experiments)
+    if "comparison" not in ordered:
+        # Not part of this study: a later build with more methods must not block its resume.
+        methods, scenarios = (), ()
+        notes = [n for n in notes if not n.startswith("method(s)")]
     settings = StudySettings(runs, zhao_runs, seed, ordered, methods, tuple(scenarios))
     return settings, notes
 

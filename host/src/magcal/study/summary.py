@@ -493,8 +493,9 @@ def render_markdown(summary: StudySummary, meta: dict) -> str:
         + ".",
         "",
         f"Settings (`settings.json`): experiments {', '.join(st.experiments)}; runs {st.runs}"
-        f" (Zhao: {st.zhao_runs}); first seed {st.seed}; methods {', '.join(st.methods)}; "
-        f"scenarios {', '.join(st.scenarios)}. Every run's numbers are in `runs.jsonl`.",
+        f" (Zhao: {st.zhao_runs}); first seed {st.seed}; methods "
+        f"{', '.join(st.methods) or '–'}; scenarios {', '.join(st.scenarios) or '–'}. Every "
+        "run's numbers are in `runs.jsonl`.",
         "",
     ]
     for note in meta.get("notes", []):

@@ -8,6 +8,7 @@ import dataclasses
 import json
 import math
 import re
+import shlex
 
 import numpy as np
 import pytest
@@ -270,6 +271,11 @@ def test_cli_runs_a_study(tmp_path, capsys):
     out = capsys.readouterr().out
     assert f"wrote {tmp_path / SUMMARY_FILE}" in out
     assert re.search(r"\d+ runs \(\d+ now, 0 resumed\), \d+ failed", out)
+    # The command the summary names resumes this study: nothing left to run.
+    text = (tmp_path / SUMMARY_FILE).read_text(encoding="utf-8")
+    command = re.search(r"Made by `magcal ([^`]*)`", text).group(1)
+    assert cli.main(shlex.split(command)) == 0
+    assert re.search(r"\d+ runs \(0 now, [1-9]\d* resumed\)", capsys.readouterr().out)
 
 
 @pytest.mark.parametrize(

@@ -77,10 +77,10 @@ def _command(args, settings) -> str:
         f"--runs {settings.runs}",
         f"--zhao-runs {settings.zhao_runs}",
         f"--experiments {','.join(settings.experiments)}",
-        f"--scenarios {','.join(settings.scenarios)}",
-        f"--seed {settings.seed}",
-        f"--jobs {args.jobs}",
     ]
+    if settings.scenarios:  # none without the comparison
+        parts.append(f"--scenarios {','.join(settings.scenarios)}")
+    parts += [f"--seed {settings.seed}", f"--jobs {args.jobs}"]
     return " ".join(parts)
 
 

@@ -18,8 +18,10 @@ nothing to pair: a message is a sample. The session holds (see :mod:`magcal.auto
 - metadata: source, autopilot, vehicle, firmware, compass, stream, the compass parameters in
   force (``param.NAME: value``), counts.
 
-Progress and coverage are those of the serial path (:class:`magcal.device.collect.CollectProgress`,
-:class:`magcal.device.coverage.CoverageTracker`), and so are the stop rules and the result
+Progress, coverage and the live estimate are those of the serial path
+(:class:`magcal.device.collect.CollectMonitor`: the coverage of field directions, the live CKF
+on the magnetometer in session units, its norm spread and "ok to stop" in the progress hint,
+its final state as the ``live_estimate`` metadata), and so are the stop rules and the result
 (:class:`magcal.device.collect.CollectResult`: on Ctrl-C ``interrupted``; on an error
 :class:`~magcal.device.collect.CollectError` with the partial result).
 """
@@ -35,16 +37,20 @@ import numpy as np
 
 from magcal.autopilot import vehicle
 from magcal.autopilot.connection import Autopilot
+from magcal.calib.live import LiveState
 from magcal.device.collect import (
     COVERAGE_MIN_EXTENT_UT,
-    PROGRESS_INTERVAL_S,
-    RATE_WINDOW_SAMPLES,
     STALL_TIMEOUT_S,
     CollectError,
+    CollectMonitor,
     CollectProgress,
     CollectResult,
+    StopRules,
+    final_report,
+    live_metadata,
+    record_stream,
 )
-from magcal.device.coverage import CoverageState, CoverageTracker
+from magcal.device.coverage import CoverageState
 from magcal.errors import MagcalError
 from magcal.io.session import session_from_arrays
 from magcal.link.mavlink import MavlinkTimeoutError
@@ -101,7 +107,6 @@ class _Recorder:
         self.acc: list[tuple[int, int, int]] = []
         self.gyr: list[tuple[int, int, int]] = []
         self.mag: list[tuple[int, int, int]] = []
-        self.fed_to_coverage = 0
         self.gaps = 0
         self._step: int | None = None  # the nominal step, ticks
 
@@ -142,92 +147,48 @@ def collect(
     min_samples), max_samples : stop conditions as for the serial collect; progress : called
     about every PROGRESS_INTERVAL_S. Raises CollectError with the partial result on a link
     error or when no message arrives for STALL_TIMEOUT_S."""
-    if duration_s is None and coverage_target is None and max_samples is None:
-        raise MagcalError("collect: give a stop condition (duration, coverage or sample count)")
+    rules = StopRules(duration_s, coverage_target, max_samples, min_samples)
     stream = vehicle.collect_stream(ap.autopilot, cp.compass)
     rec = _Recorder(stream)
-    tracker = CoverageTracker(min_extent=COVERAGE_MIN_EXTENT_UT * UNIT_PER_UT[ap.autopilot])
+    monitor = CollectMonitor(
+        COVERAGE_MIN_EXTENT_UT * UNIT_PER_UT[ap.autopilot],
+        rate_hz,
+        coverage_target,
+        lambda wire: vehicle.session_mag(wire.astype(float), cp),
+    )
+
+    def receive(wait_s: float) -> bool:
+        rec.add(ap.client.recv((stream,), wait_s), clock())
+        return True
+
+    def stalled() -> MavlinkTimeoutError:
+        return MavlinkTimeoutError(
+            f"collect on {ap.url}: no {stream} for {STALL_TIMEOUT_S:g} s; check that the "
+            "vehicle streams it (link bandwidth, compass present)"
+        )
+
     how = start_stream(ap, stream, rate_hz)
     start = clock()
-    last_sample = start
-    next_report = start
-    stopped = "error"
-    error: BaseException | None = None
-    rate_times: list[float] = []
-    try:
-        while True:
-            now = clock()
-            if duration_s is not None and now - start >= duration_s:
-                stopped = "duration"
-                break
-            wait = max(0.001, min(PROGRESS_INTERVAL_S, next_report - now))
-            if duration_s is not None:
-                wait = max(0.001, min(wait, start + duration_s - now))
-            try:
-                msg = ap.client.recv((stream,), wait)
-            except MavlinkTimeoutError:
-                msg = None
-                if clock() - last_sample > STALL_TIMEOUT_S:
-                    raise MavlinkTimeoutError(
-                        f"collect on {ap.url}: no {stream} for {STALL_TIMEOUT_S:g} s; check "
-                        "that the vehicle streams it (link bandwidth, compass present)"
-                    ) from None
-            if msg is not None:
-                last_sample = clock()
-                rec.add(msg, last_sample)
-                rate_times.append(last_sample)
-                if len(rate_times) > RATE_WINDOW_SAMPLES:
-                    del rate_times[0]
-                if max_samples is not None and len(rec) >= max_samples:
-                    stopped = "samples"
-                    break
-            now = clock()
-            if now >= next_report:
-                next_report = now + PROGRESS_INTERVAL_S
-                state = _feed_coverage(rec, tracker, cp)
-                if progress is not None:
-                    progress(_progress(rec, state, now - start, rate_times))
-                if (
-                    coverage_target is not None
-                    and state.coverage >= coverage_target
-                    and len(rec) >= min_samples
-                ):
-                    stopped = "coverage"
-                    break
-    except KeyboardInterrupt:
-        stopped = "interrupted"
-    except (MagcalError, OSError) as exc:
-        stopped = "error"
-        error = exc
+    stopped, error = record_stream(
+        rec,
+        receive,
+        monitor,
+        rules,
+        start_s=start,
+        timeout_error=MavlinkTimeoutError,
+        stall_error=stalled,
+        progress=progress,
+        clock=clock,
+    )
     stop_stream(ap, stream, how)
-    state = _feed_coverage(rec, tracker, cp, force=True)
     elapsed = clock() - start
-    if progress is not None and len(rec):
-        progress(_progress(rec, state, elapsed, rate_times))
-    result = _result(ap, cp, rec, stream, how, rate_hz, firmware, stopped, state, elapsed)
+    state, live = final_report(rec, monitor, elapsed, progress)
+    result = _result(ap, cp, rec, stream, how, rate_hz, firmware, stopped, state, elapsed, live)
     if error is not None:
         raise CollectError(
             f"collect on {ap.url}: stopped by an error after {len(rec)} samples: {error}", result
         ) from error
     return result
-
-
-def _feed_coverage(
-    rec: _Recorder, tracker: CoverageTracker, cp: vehicle.CompassParams, force: bool = False
-) -> CoverageState:
-    new = rec.mag[rec.fed_to_coverage :]
-    if new:
-        tracker.add(vehicle.session_mag(np.array(new, dtype=float), cp))
-        rec.fed_to_coverage = len(rec.mag)
-    return tracker.state(force=force)
-
-
-def _progress(
-    rec: _Recorder, state: CoverageState, elapsed: float, times: list[float]
-) -> CollectProgress:
-    span = times[-1] - times[0] if len(times) > 1 else 0.0
-    rate = (len(times) - 1) / span if span > 0 else 0.0
-    return CollectProgress(len(rec), elapsed, rate, rec.gaps, state.coverage, state.hint)
 
 
 def _result(
@@ -241,6 +202,7 @@ def _result(
     stopped: str,
     state: CoverageState,
     elapsed: float,
+    live: LiveState | None,
 ) -> CollectResult:
     timeline = vehicle.unwrap_times(np.array(rec.ticks), rec.base, np.array(rec.host))
     keep = timeline.keep
@@ -262,6 +224,7 @@ def _result(
                 "stopped": stopped,
             }
         )
+        meta.update(live_metadata(live))
         mag = vehicle.session_mag(np.array(rec.mag, dtype=float)[keep], cp)
         session = session_from_arrays(
             timeline.t[keep],
@@ -280,6 +243,7 @@ def _result(
         out_of_order=repeated,
         coverage=state,
         elapsed_s=elapsed,
+        live=live,
     )
 
 

@@ -3,7 +3,9 @@
 :func:`collect` starts a raw stream, converts each sample's counts to SI units with the
 device's exact count scales, tracks the coverage of field directions
 (:mod:`magcal.device.coverage`) and stops at a coverage target, a duration, a sample count or
-Ctrl-C. It returns a :class:`CollectResult` holding a :class:`~magcal.io.session.Session`:
+Ctrl-C (:class:`StopRules`; the loop, :func:`record_stream`, and what it watches,
+:class:`CollectMonitor`, serve the MAVLink recorder :mod:`magcal.autopilot.collect` too). It
+returns a :class:`CollectResult` holding a :class:`~magcal.io.session.Session`:
 
 - ``t`` seconds of the device clock (``t_us / 1e6``; t_us is a 64-bit microsecond counter that
   never wraps), ``gyr`` rad/s, ``acc`` m/s², ``mag`` µT (``# mag_unit: uT``). Each value is
@@ -13,7 +15,8 @@ Ctrl-C. It returns a :class:`CollectResult` holding a :class:`~magcal.io.session
   units, samples, dropped, device_dropped, coverage, stopped (why it stopped).
 
 Live estimate: the magnetometer stream also runs through a
-:class:`~magcal.calib.live.LiveCalibration` (Zhao et al.'s CKF on block means of about 100 Hz),
+:class:`~magcal.calib.live.LiveCalibration` (Zhao et al.'s CKF on block means of about 100 Hz;
+:class:`CollectMonitor` runs it with the coverage for both recorders, serial and MAVLink),
 whose state goes with every progress report: the calibrated field's norm spread and, once
 the estimate has converged and the coverage reached the target (90 % without one), "ok to
 stop" (:meth:`~magcal.calib.live.LiveState.text`, shown before the coverage hint). It never
@@ -35,9 +38,11 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
+from typing import Protocol
 
 import numpy as np
 
@@ -182,7 +187,6 @@ class _Recorder:
         self.gyr: list[tuple[int, int, int]] = []
         self.gaps = 0
         self.out_of_order = 0
-        self.fed_to_coverage = 0
 
     def add(self, s: Sample) -> None:
         if self.seq:
@@ -241,6 +245,12 @@ def live_summary(live: LiveState) -> str:
     )
 
 
+def live_metadata(live: LiveState | None) -> dict[str, str]:
+    """``{"live_estimate": ...}`` for the session's metadata once the estimate has started,
+    else nothing."""
+    return {"live_estimate": live_summary(live)} if live is not None and live.started else {}
+
+
 def progress_hint(coverage: CoverageState, live: LiveState | None) -> str:
     """The progress line's advice: "ok to stop: ..." alone once it is, else the live
     estimate's state followed by the coverage hint."""
@@ -249,6 +259,185 @@ def progress_hint(coverage: CoverageState, live: LiveState | None) -> str:
     if live.ok_to_stop:
         return live.text()
     return f"{live.text()}; {coverage.hint}"
+
+
+class RecordedStream(Protocol):
+    """What :func:`record_stream` needs of a recorder: the samples so far (``len``), the
+    messages found missing (``gaps``) and the magnetometer readings as received (``mag``)."""
+
+    gaps: int
+    mag: list[tuple[int, int, int]]
+
+    def __len__(self) -> int: ...
+
+
+class CollectMonitor:
+    """What every recorder (serial, MAVLink) watches while it collects, and reports as
+    :class:`CollectProgress`: the coverage of field directions, the live estimate and the
+    receive rate.
+
+    min_extent : the coverage tracker's minimum extent, in session units
+    sample_rate_hz : the stream's nominal rate (the live estimate's block length)
+    coverage_target : the collection's coverage target (0..1), None without one: the
+        coverage the live estimate needs for "ok to stop" (OK_COVERAGE without a target)
+    to_session_units : magnetometer readings as received (N, 3) -> session units (N, 3)
+    """
+
+    def __init__(
+        self,
+        min_extent: float,
+        sample_rate_hz: float,
+        coverage_target: float | None,
+        to_session_units: Callable[[np.ndarray], np.ndarray],
+    ) -> None:
+        self.tracker = CoverageTracker(min_extent=min_extent)
+        self.live = GuardedLiveCalibration(sample_rate_hz, coverage_target or OK_COVERAGE)
+        self._to_session_units = to_session_units
+        self._fed = 0
+        self._times: deque[float] = deque(maxlen=RATE_WINDOW_SAMPLES)
+
+    def received(self, host_s: float) -> None:
+        """A sample arrived at host time ``host_s`` (s), for the rate shown."""
+        self._times.append(host_s)
+
+    def feed(self, mag: list[tuple[int, int, int]], force: bool = False) -> CoverageState:
+        """The readings of ``mag`` (all received so far, in order) not yet seen, in session
+        units, to the coverage tracker and the live estimate; the coverage now (``force``:
+        refreshed whatever the tracker's schedule)."""
+        if len(mag) > self._fed:
+            readings = self._to_session_units(np.array(mag[self._fed :]))
+            self.tracker.add(readings)
+            self.live.add(readings)
+            self._fed = len(mag)
+        return self.tracker.state(force=force)
+
+    def progress(
+        self,
+        rec: RecordedStream,
+        elapsed_s: float,
+        coverage: CoverageState,
+        live: LiveState | None = None,
+    ) -> CollectProgress:
+        """The report for ``coverage`` and the live estimate's state (``live``: one already
+        taken, else taken now)."""
+        t = self._times
+        span = t[-1] - t[0] if len(t) > 1 else 0.0
+        rate = (len(t) - 1) / span if span > 0 else 0.0
+        if live is None:
+            live = self.live.state(coverage.coverage)
+        return CollectProgress(
+            len(rec),
+            elapsed_s,
+            rate,
+            rec.gaps,
+            coverage.coverage,
+            progress_hint(coverage, live),
+            live,
+        )
+
+
+@dataclass(frozen=True)
+class StopRules:
+    """When a collection stops, whichever comes first (at least one must be given).
+
+    duration_s : after this long (host clock), s
+    coverage_target : once this fraction (0..1) of field directions is covered and at least
+        ``min_samples`` samples were recorded
+    max_samples : after this many samples
+    """
+
+    duration_s: float | None = None
+    coverage_target: float | None = None
+    max_samples: int | None = None
+    min_samples: int = 0
+
+    def __post_init__(self) -> None:
+        if self.duration_s is None and self.coverage_target is None and self.max_samples is None:
+            raise MagcalError("collect: give a stop condition (duration, coverage or sample count)")
+
+
+def record_stream(
+    rec: RecordedStream,
+    receive: Callable[[float], bool],
+    monitor: CollectMonitor,
+    rules: StopRules,
+    *,
+    start_s: float,
+    timeout_error: type[Exception],
+    stall_error: Callable[[], Exception],
+    progress: Callable[[CollectProgress], None] | None,
+    clock: Callable[[], float],
+    begin: Callable[[], None] | None = None,
+) -> tuple[str, BaseException | None]:
+    """The collection loop of every recorder: ``receive(wait_s)`` until a stop rule, with a
+    progress report about every PROGRESS_INTERVAL_S.
+
+    rec : the recorder that ``receive`` adds to
+    receive : waits at most wait_s (s) for one message and records it: True when it was a
+        sample; raises ``timeout_error`` when none arrived
+    start_s : the collection's start (``clock``), from which duration and elapsed count
+    stall_error : the error raised when no sample arrived for STALL_TIMEOUT_S
+    begin : called first, inside the loop's error handling (starts the stream)
+
+    Returns why it stopped ("duration", "samples", "coverage", "interrupted" or "error") and
+    the error for "error" (a MagcalError or OSError; any other is raised). The caller stops
+    the stream and then makes the :func:`final_report`.
+    """
+    last_sample = start_s
+    next_report = start_s
+    try:
+        if begin is not None:
+            begin()
+        while True:
+            now = clock()
+            if rules.duration_s is not None and now - start_s >= rules.duration_s:
+                return "duration", None
+            # Waits only while no sample is queued: wake up for the next report or the end.
+            wait = min(PROGRESS_INTERVAL_S, next_report - now)
+            if rules.duration_s is not None:
+                wait = min(wait, start_s + rules.duration_s - now)
+            try:
+                sample = receive(max(0.001, wait))
+            except timeout_error:
+                sample = False
+                if clock() - last_sample > STALL_TIMEOUT_S:
+                    raise stall_error() from None
+            if sample:
+                last_sample = clock()
+                monitor.received(last_sample)
+                if rules.max_samples is not None and len(rec) >= rules.max_samples:
+                    return "samples", None
+            now = clock()
+            if now >= next_report:
+                next_report = now + PROGRESS_INTERVAL_S
+                state = monitor.feed(rec.mag)
+                if progress is not None:
+                    progress(monitor.progress(rec, now - start_s, state))
+                if (
+                    rules.coverage_target is not None
+                    and state.coverage >= rules.coverage_target
+                    and len(rec) >= rules.min_samples
+                ):
+                    return "coverage", None
+    except KeyboardInterrupt:
+        return "interrupted", None
+    except (MagcalError, OSError) as exc:
+        return "error", exc
+
+
+def final_report(
+    rec: RecordedStream,
+    monitor: CollectMonitor,
+    elapsed_s: float,
+    progress: Callable[[CollectProgress], None] | None,
+) -> tuple[CoverageState, LiveState | None]:
+    """After the stream was stopped: every reading to the coverage and the live estimate, the
+    last progress report (when there were samples); the final coverage and live state."""
+    state = monitor.feed(rec.mag, force=True)
+    live = monitor.live.state(state.coverage)
+    if progress is not None and len(rec):
+        progress(monitor.progress(rec, elapsed_s, state, live))
+    return state, live
 
 
 def collect(
@@ -273,76 +462,50 @@ def collect(
     Returns a CollectResult (``interrupted`` after Ctrl-C). Raises CollectError with the
     partial result on a device or link error, or when no sample arrives for STALL_TIMEOUT_S.
     """
-    if duration_s is None and coverage_target is None and max_samples is None:
-        raise MagcalError("collect: give a stop condition (duration, coverage or sample count)")
+    rules = StopRules(duration_s, coverage_target, max_samples, min_samples)
     rec = _Recorder()
-    tracker = CoverageTracker(min_extent=COVERAGE_MIN_EXTENT_UT)
-    live = GuardedLiveCalibration(info.sample_rate_hz, coverage_target or OK_COVERAGE)
     mag_sensor = info.sensor("mag")
+    monitor = CollectMonitor(
+        COVERAGE_MIN_EXTENT_UT,
+        info.sample_rate_hz,
+        coverage_target,
+        lambda counts: counts_to_session_units(mag_sensor, counts),
+    )
+
+    def receive(wait_s: float) -> bool:
+        msg = client.read_stream(wait_s)
+        if isinstance(msg, Sample):
+            rec.add(msg)
+            return True
+        return False
+
+    def stalled() -> DeviceTimeoutError:
+        return DeviceTimeoutError(
+            f"collect on {client.url}: no sample for {STALL_TIMEOUT_S:g} s; check that the "
+            "device is acquiring (sensors connected, firmware running)",
+            Status.E_EMPTY,
+            "collect",
+        )
+
     start = clock()
-    last_sample = start
-    next_report = start
-    stopped = "error"
-    error: BaseException | None = None
-    rate_times: list[float] = []
-    try:
-        client.stream_start(StreamKind.RAW)
-        while True:
-            now = clock()
-            if duration_s is not None and now - start >= duration_s:
-                stopped = "duration"
-                break
-            # Waits only while no sample is queued: wake up for the next report or the end.
-            wait = min(PROGRESS_INTERVAL_S, next_report - now)
-            if duration_s is not None:
-                wait = min(wait, start + duration_s - now)
-            wait = max(0.001, wait)
-            try:
-                msg = client.read_stream(wait)
-            except DeviceTimeoutError:
-                msg = None
-                if clock() - last_sample > STALL_TIMEOUT_S:
-                    raise DeviceTimeoutError(
-                        f"collect on {client.url}: no sample for {STALL_TIMEOUT_S:g} s; check "
-                        "that the device is acquiring (sensors connected, firmware running)",
-                        Status.E_EMPTY,
-                        "collect",
-                    ) from None
-            if isinstance(msg, Sample):
-                last_sample = clock()
-                rec.add(msg)
-                rate_times.append(last_sample)
-                if len(rate_times) > RATE_WINDOW_SAMPLES:
-                    del rate_times[0]
-                if max_samples is not None and len(rec) >= max_samples:
-                    stopped = "samples"
-                    break
-            now = clock()
-            if now >= next_report:
-                next_report = now + PROGRESS_INTERVAL_S
-                state = _feed_coverage(rec, tracker, mag_sensor, live)
-                if progress is not None:
-                    progress(_progress(rec, state, live, now - start, rate_times))
-                if (
-                    coverage_target is not None
-                    and state.coverage >= coverage_target
-                    and len(rec) >= min_samples
-                ):
-                    stopped = "coverage"
-                    break
-    except KeyboardInterrupt:
-        stopped = "interrupted"
-    except (MagcalError, OSError) as exc:
-        stopped = "error"
-        error = exc
+    stopped, error = record_stream(
+        rec,
+        receive,
+        monitor,
+        rules,
+        start_s=start,
+        timeout_error=DeviceTimeoutError,
+        stall_error=stalled,
+        progress=progress,
+        clock=clock,
+        # inside the loop's handling: a Ctrl-C during the start still stops the stream
+        begin=lambda: client.stream_start(StreamKind.RAW),
+    )
     # Stopped on the way out whatever happened, also after a Ctrl-C during stream_start.
     device_dropped = _stop_stream(client, rec, max_samples)
-    state = _feed_coverage(rec, tracker, mag_sensor, live, force=True)
     elapsed = clock() - start
-    live_state = live.state(state.coverage)
-    if progress is not None and len(rec):
-        progress(_progress(rec, state, live, elapsed, rate_times, live_state))
-    result = _result(rec, info, client, stopped, device_dropped, state, elapsed, live_state)
+    state, live = final_report(rec, monitor, elapsed, progress)
+    result = _result(rec, info, client, stopped, device_dropped, state, elapsed, live)
     if error is not None:
         raise CollectError(
             f"collect on {client.url}: stopped by an error after {len(rec)} samples: {error}",
@@ -377,49 +540,6 @@ def _drain_queued(client: DeviceClient, rec: _Recorder, max_samples: int | None)
             rec.add(msg)
 
 
-def _feed_coverage(
-    rec: _Recorder,
-    tracker: CoverageTracker,
-    mag: SensorInfo,
-    live: GuardedLiveCalibration,
-    force: bool = False,
-) -> CoverageState:
-    """The samples not yet seen, in µT, to the coverage tracker and the live estimate."""
-    new = rec.mag[rec.fed_to_coverage :]
-    if new:
-        ut = counts_to_session_units(mag, np.array(new))
-        tracker.add(ut)
-        live.add(ut)
-        rec.fed_to_coverage = len(rec.mag)
-    return tracker.state(force=force)
-
-
-def _progress(
-    rec: _Recorder,
-    state: CoverageState,
-    live: GuardedLiveCalibration,
-    elapsed: float,
-    times: list[float],
-    live_state: LiveState | None = None,
-) -> CollectProgress:
-    rate = (
-        (len(times) - 1) / (times[-1] - times[0])
-        if len(times) > 1 and times[-1] > times[0]
-        else 0.0
-    )
-    if live_state is None:
-        live_state = live.state(state.coverage)
-    return CollectProgress(
-        len(rec),
-        elapsed,
-        rate,
-        rec.gaps,
-        state.coverage,
-        progress_hint(state, live_state),
-        live_state,
-    )
-
-
 def _result(
     rec: _Recorder,
     info: DeviceInfo,
@@ -448,8 +568,7 @@ def _result(
         )
         if rec.out_of_order:
             meta["out_of_order_skipped"] = str(rec.out_of_order)
-        if live is not None and live.started:
-            meta["live_estimate"] = live_summary(live)
+        meta.update(live_metadata(live))
         t = np.array(rec.t_us, dtype=np.int64)
         session = session_from_arrays(
             t.astype(np.float64) / 1e6,

@@ -5,7 +5,8 @@ the on-board correction undone; the compass parameters in force in the metadata)
 
 Stops at a coverage target of field directions (default 90 %), ``--duration`` or
 ``--max-samples``, whichever comes first, or Ctrl-C. Progress goes to stderr: one line
-rewritten in place on a terminal, one line a second otherwise. Whatever was collected is
+rewritten in place on a terminal (clipped to its width), one line a second otherwise; it shows
+the live estimate's norm spread and says when it is ok to stop. Whatever was collected is
 written, also after Ctrl-C (exit 130) or an error mid-collection (exit 2, the file named).
 """
 
@@ -15,7 +16,14 @@ import argparse
 import sys
 
 from magcal.calib import observability
-from magcal.commands.common import add_link_arguments, check_link_options, open_device, positive
+from magcal.commands.common import (
+    add_link_arguments,
+    check_link_options,
+    clip_line,
+    open_device,
+    positive,
+    terminal_columns,
+)
 from magcal.device.collect import CollectError, CollectProgress, CollectResult, collect
 from magcal.errors import MagcalError
 from magcal.io.session import check_writable, write_session
@@ -61,7 +69,8 @@ def add_parser(sub) -> None:
 
 
 def progress_printer(stream=None):
-    """Progress lines: rewritten in place on a terminal, LOG_LINES_PER_S otherwise."""
+    """Progress lines: rewritten in place on a terminal, clipped to its width (a wrapped line
+    cannot be rewritten); LOG_LINES_PER_S whole lines otherwise."""
     stream = stream or sys.stderr
     tty = stream.isatty()
     state = {"next": 0.0, "shown": False}
@@ -72,6 +81,7 @@ def progress_printer(stream=None):
             f"coverage {100 * p.coverage:5.1f} %  {p.hint}"
         )
         if tty:
+            line = clip_line(line, terminal_columns(stream))
             stream.write("\r" + line + "\x1b[K")  # erase what a longer line left
             stream.flush()
             state["shown"] = True

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import os
+import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -81,6 +83,37 @@ def positive(kind):
         return v
 
     return parse
+
+
+#: What replaces the end of a progress line too long for the terminal.
+CLIPPED_MARK = "..."
+
+
+def terminal_columns(stream) -> int:
+    """The width, in columns, of the terminal ``stream`` writes to: ``COLUMNS`` when set (as
+    :func:`shutil.get_terminal_size` honours it), else the stream's own terminal, else
+    :func:`shutil.get_terminal_size`'s answer (stdout's terminal, or 80)."""
+    if os.environ.get("COLUMNS", "").isdigit() and int(os.environ["COLUMNS"]) > 0:
+        return int(os.environ["COLUMNS"])
+    try:
+        columns = os.get_terminal_size(stream.fileno()).columns
+    except (AttributeError, ValueError, OSError):  # no fileno, closed, or not a terminal
+        columns = 0
+    # 0: a pseudo-terminal whose size was never set
+    return columns if columns > 0 else shutil.get_terminal_size().columns
+
+
+def clip_line(line: str, columns: int) -> str:
+    """``line`` shortened to at most ``columns - 1`` characters, its end replaced by
+    CLIPPED_MARK when cut. A line rewritten in place with ``\\r`` must not wrap: a wrapped
+    line leaves its first part behind on every update, and writing the last column makes
+    some terminals wrap before the next ``\\r``, so that column stays free."""
+    room = max(1, columns - 1)
+    if len(line) <= room:
+        return line
+    if room <= len(CLIPPED_MARK):
+        return line[:room]
+    return line[: room - len(CLIPPED_MARK)] + CLIPPED_MARK
 
 
 def scale_text(s: Scale) -> str:

@@ -107,3 +107,17 @@ def test_terminal_columns_prefers_columns_then_falls_back_to_shutil(monkeypatch)
     monkeypatch.delenv("COLUMNS")
     monkeypatch.setattr(common.shutil, "get_terminal_size", lambda: os.terminal_size((91, 30)))
     assert terminal_columns(io.StringIO()) == 91  # no fileno: not a terminal of its own
+
+
+def test_a_log_gets_the_last_update_even_within_the_second():
+    """The last state is the one that may say "ok to stop": done() writes it if the
+    once-a-second rule held it back, and nothing twice."""
+    stream = io.StringIO()
+    show = progress_printer(stream)
+    show(_progress(0, 0.0))
+    show(_progress(50, 0.5, "ok to stop: coverage 92 %, norm spread 0.4 %"))
+    show.done()
+    show.done()
+    lines = stream.getvalue().splitlines()
+    assert [line.split()[0] for line in lines] == ["0", "50"]
+    assert lines[-1].endswith("ok to stop: coverage 92 %, norm spread 0.4 %")

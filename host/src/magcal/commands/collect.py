@@ -73,7 +73,7 @@ def progress_printer(stream=None):
     cannot be rewritten); LOG_LINES_PER_S whole lines otherwise."""
     stream = stream or sys.stderr
     tty = stream.isatty()
-    state = {"next": 0.0, "shown": False}
+    state = {"next": 0.0, "shown": False, "held": None}
 
     def show(p: CollectProgress) -> None:
         line = (
@@ -87,13 +87,20 @@ def progress_printer(stream=None):
             state["shown"] = True
         elif p.elapsed_s >= state["next"]:
             state["next"] = p.elapsed_s + 1.0 / LOG_LINES_PER_S
+            state["held"] = None
             stream.write(line + "\n")
             stream.flush()
+        else:  # the last state matters most (it may say "ok to stop"): done() writes it
+            state["held"] = line
 
-    def done() -> None:  # ends the rewritten line; idempotent
+    def done() -> None:  # ends the rewritten line, or writes the held last line; idempotent
         if tty and state["shown"]:
             state["shown"] = False
             stream.write("\n")
+            stream.flush()
+        elif not tty and state["held"] is not None:
+            stream.write(state["held"] + "\n")
+            state["held"] = None
             stream.flush()
 
     show.done = done  # type: ignore[attr-defined]

@@ -5,6 +5,8 @@ samples, constant memory, invariance to the data's scale, the start, and the pip
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -232,8 +234,21 @@ def test_a_short_session_runs_shuffled_with_a_warning():
 
 def test_readings_at_rest_are_refused_unless_forced():
     session, _ = simulate(preset("mems", duration_s=0.0, stationary_s=5.0), 1)
-    with pytest.raises(InsufficientDataError, match="do not spread beyond"):
+    with pytest.raises(InsufficientDataError, match="do not spread beyond .* at rest or barely"):
         run_ckf(session.mag)
+    assert run_ckf(session.mag, force=True).order == "shuffled"
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3, 4])
+def test_too_noisy_readings_are_refused_for_the_noise_not_the_motion(seed):
+    # Zhao et al.'s Table 2: turned through all orientations, but σ ≈ 20 % of the field, so
+    # no motion can spread the readings by 5 σ.
+    session, truth = simulate(preset("table2"), seed)
+    with pytest.raises(InsufficientDataError, match=r"noise \(σ ≈ \d+ % of the field\)") as e:
+        run_ckf(session.mag)
+    assert "at rest" not in str(e.value)
+    sigma_percent = float(re.search(r"σ ≈ (\d+) %", str(e.value)).group(1))
+    assert 10 <= sigma_percent <= 30  # the paper's σ_m, relative to its unit field
     assert run_ckf(session.mag, force=True).order == "shuffled"
 
 

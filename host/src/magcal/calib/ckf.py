@@ -103,6 +103,11 @@ START_MIN_DIRECTION_SPREAD = 0.5
 #: ... and when the readings' smallest principal standard deviation is at least this many
 #: times the noise σ (a sensor at rest gives a noise cloud, which has "all directions").
 START_MIN_SPREAD_OVER_NOISE = 5.0
+#: Kåsa's sphere through a noise cloud (a sensor at rest) has a radius of about √3 σ: 1.6-1.9 σ
+#: in 20 simulated at-rest sessions of 400 samples. A sphere this many σ or more is taken as
+#: the field's (Zhao et al.'s Table 2 sessions: 2.6-10.8 σ over seeds 1-40), for telling
+#: noise from rest in :func:`spread_problem`.
+NOISE_CLOUD_MAX_RADIUS_OVER_NOISE = 2.5
 #: Second differences kept for the noise estimate before the start (the most recent ones).
 NOISE_WINDOW = 512
 #: Fewest second differences for a noise estimate.
@@ -221,6 +226,44 @@ def start_ready(reservoir: np.ndarray, noise_std: float) -> tuple[np.ndarray, fl
     if not lam[-1] > 0.0 or np.sqrt(max(lam[0], 0.0) / lam[-1]) < START_MIN_DIRECTION_SPREAD:
         return None
     return sphere
+
+
+def spread_problem(mag: np.ndarray, noise_std: float) -> str | None:
+    """Why the readings fail :func:`start_ready`'s spread test, or None when they pass it.
+
+    mag : (N, 3) float, raw units; noise_std : σ, raw units.
+
+    The test (smallest principal standard deviation ≥ :data:`START_MIN_SPREAD_OVER_NOISE` σ)
+    fails for one of two reasons, told apart by Kåsa's sphere (radius R) through the
+    readings. Turned through all orientations, readings on a sphere of radius R spread by
+    R/√3 along every axis, so when ``R/√3 < 5σ`` no motion can pass: the noise is too large
+    for the start (Zhao et al.'s Table 2 sessions, σ ≈ 20 % of the field). A noise cloud at
+    rest also has a sphere, of radius about √3 σ (RMS distance of a 3-D Gaussian from its
+    mean), so R must also exceed :data:`NOISE_CLOUD_MAX_RADIUS_OVER_NOISE` σ to be a field
+    sphere. Otherwise the sensor was at rest or turned too little.
+    """
+    spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(mag, rowvar=False))[0], 0.0))
+    if spread >= START_MIN_SPREAD_OVER_NOISE * noise_std:
+        return None
+    sphere = kasa_sphere(mag)
+    if sphere is not None:
+        radius = sphere[1]
+        full_turn_spread = radius / np.sqrt(3.0)
+        is_field = radius > NOISE_CLOUD_MAX_RADIUS_OVER_NOISE * noise_std
+        if is_field and full_turn_spread < START_MIN_SPREAD_OVER_NOISE * noise_std:
+            return (
+                f"ckf: the magnetometer noise (σ ≈ {100.0 * noise_std / radius:.0f} % of the "
+                f"field) is too large for the CKF's start: it needs the readings to spread "
+                f"beyond {START_MIN_SPREAD_OVER_NOISE:g} σ in every direction, and a turn "
+                f"through all orientations spreads them by only {full_turn_spread / noise_std:.1f}"
+                " σ here: calibrate with another method (--method ml or two-step) or reduce "
+                "the noise (averaging, a lower bandwidth)"
+            )
+    return (
+        f"ckf: the {mag.shape[0]} readings do not spread beyond {START_MIN_SPREAD_OVER_NOISE:g}"
+        " times their noise in every direction (the sensor was at rest or barely moved): "
+        "rotate it through all orientations (tilt it nose up/down and roll it over)"
+    )
 
 
 def algebraic_ellipsoid(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
@@ -560,7 +603,11 @@ def run_ckf(mag: np.ndarray, *, force: bool = False) -> CkfFit:
     hemisphere before it ends) is run once in a fixed pseudo-random order instead: that is
     the filter without the time correlation, as in Zhao et al.'s own simulation of random
     attitudes. Raises InsufficientDataError when the readings lie close to a plane or do not
-    spread well beyond their noise (too little rotation, rest), unless ``force``.
+    spread well beyond their noise (too little rotation, rest, or noise too large for the
+    start: :func:`spread_problem` says which), unless ``force``. Refused rather than run
+    shuffled when only the noise is at fault: the start's test is what keeps a noise cloud
+    from being taken for a sphere, and at σ ≈ 20 % of the field the filter's linearised
+    start is outside what it was tested on.
     """
     mag = attitude_free.check_readings(mag, "ckf")
     ckf = CubatureCalibrator()
@@ -568,14 +615,7 @@ def run_ckf(mag: np.ndarray, *, force: bool = False) -> CkfFit:
     if ckf.started:
         return CkfFit(ckf.estimate, "time", ckf.start_sample)
     prior = CkfPrior.from_readings(mag)
-    spread = np.sqrt(max(np.linalg.eigvalsh(np.cov(mag, rowvar=False))[0], 0.0))
-    problem = attitude_free.planarity_problem(mag, "ckf")
-    if problem is None and spread < START_MIN_SPREAD_OVER_NOISE * prior.noise_std:
-        problem = (
-            f"ckf: the {mag.shape[0]} readings do not spread beyond {START_MIN_SPREAD_OVER_NOISE:g}"
-            " times their noise in every direction (the sensor was at rest or barely moved): "
-            "rotate it through all orientations (tilt it nose up/down and roll it over)"
-        )
+    problem = attitude_free.planarity_problem(mag, "ckf") or spread_problem(mag, prior.noise_std)
     if problem is not None and not force:
         raise InsufficientDataError(problem)
     ckf = CubatureCalibrator(prior)

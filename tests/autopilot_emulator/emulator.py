@@ -26,6 +26,7 @@ import struct
 import threading
 import time
 import zlib
+from collections.abc import Callable
 
 import numpy as np
 from pymavlink.dialects.v20 import ardupilotmega as mavlink
@@ -186,6 +187,9 @@ class AutopilotEmulator:
         self._wall0 = 0.0
         self._stats: dict[str, int] = {}
         self.gcs_heartbeats = 0
+        #: Called with the parameter's name (in the emulator's thread) when a PARAM_SET
+        #: arrives, before it is stored: tests check what the client did before writing.
+        self.param_set_hook: Callable[[str], None] | None = None
 
     # -- public interface -------------------------------------------------------------------
     @property
@@ -223,7 +227,7 @@ class AutopilotEmulator:
 
     @property
     def stats(self) -> dict[str, int]:
-        """Counters: messages sent per type, PARAM_VALUE_DROPPED."""
+        """Counters: messages sent per type, PARAM_VALUE_DROPPED, PARAM_SET_RECEIVED."""
         with self._lock:
             return dict(self._stats)
 
@@ -418,6 +422,9 @@ class AutopilotEmulator:
         name = self._param_name(
             msg._param_id_raw if hasattr(msg, "_param_id_raw") else msg.param_id
         )
+        self._count("PARAM_SET_RECEIVED")  # stats' other counts are of messages sent
+        if self.param_set_hook is not None:
+            self.param_set_hook(name)
         value_bytes = (_raw_payload(msg) + bytes(4))[:4]  # MAVLink 2 trims trailing zeros
         with self._lock:
             stored = self._store.set_from_wire(name, value_bytes)

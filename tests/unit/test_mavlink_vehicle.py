@@ -8,6 +8,7 @@ import pytest
 
 from magcal.autopilot import mapping, rotations, vehicle
 from magcal.autopilot import params as P
+from magcal.link.mavlink import MavlinkTimeoutError
 
 
 def test_only_ardupilot_and_px4_are_accepted():
@@ -132,7 +133,7 @@ def _reader(values: dict[str, float], types: dict[str, int] | None = None):
     def read(name, tries):
         asked.append(name)
         if name not in values:
-            return None
+            raise MavlinkTimeoutError(f"no answer for parameter {name}")
         return P.ParamEntry(name, values[name], (types or {}).get(name, P.REAL32))
 
     return read, asked
@@ -142,7 +143,7 @@ def test_ardupilot_naming_is_detected_and_custom_angles_read_when_enabled():
     rng = np.random.default_rng(3)
     values = _ap_params(rng, orient=101)
     values |= {"CUST_ROT_ENABLE": 1.0, "CUST_ROT1_ROLL": 1.0, "CUST_ROT1_PITCH": 2.0}
-    values |= {"CUST_ROT1_YAW": 3.0}
+    values |= {"CUST_ROT1_YAW": 3.0, "COMPASS_DEV_ID": 97539.0}
     read, asked = _reader(values)
     cp = vehicle.read_compass_params(read, vehicle.ARDUPILOT, 1)
     assert cp.naming == mapping.AP_NAMING_LEGACY and cp.external
@@ -166,3 +167,36 @@ def test_session_metadata_round_trips_the_parameters():
     assert vehicle.params_from_meta(cp.session_meta()) == pytest.approx(cp.values, rel=1e-7)
     with pytest.raises(vehicle.AutopilotError, match="param.X: 'abc' is not a number"):
         vehicle.params_from_meta({"param.X": "abc"})
+
+
+@pytest.mark.parametrize("autopilot", [vehicle.ARDUPILOT, vehicle.PX4])
+def test_a_compass_with_device_id_zero_is_refused_naming_the_present_ones(autopilot):
+    rng = np.random.default_rng(5)
+    if autopilot == vehicle.ARDUPILOT:
+        ap1 = _ap_params(rng)
+        values = dict(ap1)
+        for k in (2, 3):
+            values |= {
+                n.replace("COMPASS_OFS_", f"COMPASS_OFS{k}_")
+                .replace("COMPASS_DIA_", f"COMPASS_DIA{k}_")
+                .replace("COMPASS_ODI_", f"COMPASS_ODI{k}_")
+                .replace("COMPASS_SCALE", f"COMPASS_SCALE{k}")
+                .replace("COMPASS_ORIENT", f"COMPASS_ORIENT{k}"): 0.0
+                for n in ap1
+                if n != "COMPASS_EXTERNAL"
+            }
+            values[f"COMPASS_EXTERN{k}"] = 0.0
+        values |= {"COMPASS_DEV_ID": 97539.0, "COMPASS_DEV_ID2": 0.0, "COMPASS_DEV_ID3": 131874.0}
+    else:
+        values = {"SENS_BOARD_X_OFF": 0.0, "SENS_BOARD_Y_OFF": 0.0, "SENS_BOARD_Z_OFF": 0.0}
+        for i, dev in enumerate((396825.0, 0.0, 2261002.0)):
+            values |= {n: 0.0 for n in vehicle.px4_required(i)[:10]}
+            values[f"CAL_MAG{i}_ID"] = dev
+    read, _ = _reader(values)
+    name = "COMPASS_DEV_ID2" if autopilot == vehicle.ARDUPILOT else "CAL_MAG1_ID"
+    with pytest.raises(
+        vehicle.AutopilotError,
+        match=rf"compass 2 is absent \({name} = 0\); this vehicle has compasses 1 and 3",
+    ):
+        vehicle.read_compass_params(read, autopilot, 2)
+    assert vehicle.read_compass_params(read, autopilot, 3).compass == 3

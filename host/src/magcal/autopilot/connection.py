@@ -60,12 +60,11 @@ class Autopilot:
             f"{hb.system} component {hb.component}, MAVLink {hb.wire_version}"
         )
 
-    def read(self, name: str, tries: int | None = None) -> params.ParamEntry | None:
-        """The parameter's value as held (None when the vehicle never answered)."""
-        try:
-            pv = self.client.param_read(name, PARAM_READ_TRIES if tries is None else tries)
-        except MavlinkTimeoutError:
-            return None
+    def read(self, name: str, tries: int | None = None) -> params.ParamEntry:
+        """The parameter's value as held. MavlinkTimeoutError when the vehicle never answered
+        (no such parameter, or every reply lost): where a parameter may be hidden or absent,
+        the caller catches it (:func:`magcal.autopilot.vehicle.read_optional`)."""
+        pv = self.client.param_read(name, PARAM_READ_TRIES if tries is None else tries)
         value = params.decode(pv.wire_value, pv.param_type, self.encoding, name)
         return params.ParamEntry(name, value, pv.param_type)
 

@@ -68,6 +68,19 @@ class AutopilotFlashError(MagcalError):
         self.backup_path = backup_path
 
 
+class WriteInterrupted(MagcalError):
+    """The write phase stopped part-way: Ctrl-C (``by_user``), a link error or an OS error
+    (``cause``). The message accounts for every parameter: confirmed, unconfirmed, the one
+    in flight (old or new value) and the ones never sent (old values)."""
+
+    def __init__(self, account: str, cause: BaseException) -> None:
+        self.by_user = isinstance(cause, KeyboardInterrupt)
+        what = "Ctrl-C" if self.by_user else f"{type(cause).__name__}: {cause}"
+        super().__init__(f"interrupted by {what} while writing; {account}")
+        self.account = account
+        self.cause = cause
+
+
 @dataclass(frozen=True)
 class Unconfirmed:
     """A parameter whose new value was not confirmed: wanted, the last value echoed (None when
@@ -400,10 +413,10 @@ def back_up(
     unreadable: list[str] = []
     enable_off = False
     if ap.autopilot == vehicle.ARDUPILOT and any(n.startswith("CUST_ROT") for n in names):
-        e = known.get("CUST_ROT_ENABLE") or ap.read("CUST_ROT_ENABLE")
+        e = known.get("CUST_ROT_ENABLE") or vehicle.read_optional(ap.read, "CUST_ROT_ENABLE")
         enable_off = e is not None and e.value == 0.0
     for name in names:
-        e = known.get(name) or ap.read(name)
+        e = known.get(name) or vehicle.read_optional(ap.read, name)
         if e is None:
             if enable_off and name.startswith("CUST_ROT") and name != "CUST_ROT_ENABLE":
                 hidden.append(name)
@@ -452,19 +465,79 @@ def write_and_confirm(
     writes: tuple[params.ParamEntry, ...],
     progress: Progress | None = None,
     tries: int = PARAM_WRITE_TRIES,
+    old: dict[str, float] | None = None,
 ) -> tuple[Unconfirmed, ...]:
     """PARAM_SET each entry until its echo confirms it (module docstring, step 3); returns the
     ones not confirmed after ``tries`` sends (empty: all confirmed). After DEAD_LINK_PARAMS
-    parameters in a row without any echo the rest are not sent."""
+    parameters in a row without any echo the rest are not sent.
+
+    Ctrl-C, a link error (MagcalError) or an OSError part-way raises WriteInterrupted with
+    the account of every parameter (``old``: the values in force, for that account)."""
+    for e in writes:
+        if e.param_type is None:
+            raise MagcalError(f"flash: no parameter type for {e.name}; nothing was written")
     failed: list[Unconfirmed] = []
+    confirmed: list[params.ParamEntry] = []
+    in_flight: list[params.ParamEntry] = []  # the parameter whose PARAM_SET may have gone out
+    try:
+        _write_all(ap, writes, progress, tries, failed, confirmed, in_flight)
+    except (KeyboardInterrupt, MagcalError, OSError) as exc:
+        raise WriteInterrupted(
+            interrupted_text(writes, confirmed, failed, in_flight, old or {}), exc
+        ) from exc
+    return tuple(failed)
+
+
+def interrupted_text(
+    writes: tuple[params.ParamEntry, ...],
+    confirmed: list[params.ParamEntry],
+    failed: list[Unconfirmed],
+    in_flight: list[params.ParamEntry],
+    old: dict[str, float],
+) -> str:
+    """What each parameter holds after the writes stopped part-way (pure)."""
+    parts = []
+    if confirmed:
+        parts.append(
+            f"{len(confirmed)} confirmed with their new values: "
+            + ", ".join(f"{e.name} = {params.value_text(e.value, e.param_type)}" for e in confirmed)
+        )
+    else:
+        parts.append("none confirmed")
+    if failed:
+        parts.append(f"not confirmed: {unconfirmed_text(tuple(failed))}")
+    flying = {e.name for e in in_flight}
+    for e in in_flight:
+        was = old.get(e.name)
+        was_text = "" if was is None else f" {params.value_text(was, e.param_type)}"
+        parts.append(
+            f"{e.name} was being written: it holds its old value{was_text} or the new "
+            f"{params.value_text(e.value, e.param_type)}"
+        )
+    done = {e.name for e in confirmed} | {u.name for u in failed} | flying
+    untouched = [e.name for e in writes if e.name not in done]
+    if untouched:
+        parts.append(f"not sent (old values): {', '.join(untouched)}")
+    return "; ".join(parts)
+
+
+def _write_all(
+    ap: Autopilot,
+    writes: tuple[params.ParamEntry, ...],
+    progress: Progress | None,
+    tries: int,
+    failed: list[Unconfirmed],
+    confirmed: list[params.ParamEntry],
+    in_flight: list[params.ParamEntry],
+) -> None:
+    """write_and_confirm's loop; the lists say how far it got when it stops part-way."""
     silent = 0
     for k, e in enumerate(writes, start=1):
-        if e.param_type is None:
-            raise MagcalError(f"flash: no parameter type for {e.name}")
         if silent >= DEAD_LINK_PARAMS:
             failed.append(Unconfirmed(e.name, e.value, None, sent=False))
             continue
         echoed: float | None = None
+        in_flight[:] = [e]
         for attempt in range(tries):
             echo = ap.write_once(e.name, e.value, e.param_type)
             if echo is not None:
@@ -475,14 +548,16 @@ def write_and_confirm(
         else:
             silent = silent + 1 if echoed is None else 0
             failed.append(Unconfirmed(e.name, e.value, echoed))
+            in_flight.clear()
             if progress:
                 progress(f"{k}/{len(writes)} {e.name}: NOT confirmed after {tries} tries")
             continue
         silent = 0
+        confirmed.append(e)
+        in_flight.clear()
         if progress:
             text = params.value_text(e.value, e.param_type)
             progress(f"{k}/{len(writes)} {e.name} = {text} confirmed")
-    return tuple(failed)
 
 
 def unconfirmed_text(failed: tuple[Unconfirmed, ...]) -> str:

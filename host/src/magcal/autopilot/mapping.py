@@ -131,12 +131,12 @@ AP_NAMING_LEGACY, AP_NAMING_PER_INSTANCE = "legacy", "per-instance"
 
 
 def _ap_names(compass: int, naming: str = AP_NAMING_LEGACY) -> dict[str, str]:
-    """Role ("OFS_X", "DIA_Y", "ODI_Z", "SCALE", "ORIENT") → parameter name of compass
-    1, 2, 3 in ``naming`` (AP_NAMING_LEGACY or AP_NAMING_PER_INSTANCE)."""
+    """Role ("OFS_X", "DIA_Y", "ODI_Z", "SCALE", "ORIENT", "DEV_ID") → parameter name of
+    compass 1, 2, 3 in ``naming`` (AP_NAMING_LEGACY or AP_NAMING_PER_INSTANCE)."""
     if naming == AP_NAMING_PER_INSTANCE:
         p = f"COMPASS{compass}_"
         names = {f"{g}_{a}": f"{p}{g}_{a}" for g in ("OFS", "DIA", "ODI") for a in "XYZ"}
-        return names | {"SCALE": p + "SCALE", "ORIENT": p + "ORIENT"}
+        return names | {"SCALE": p + "SCALE", "ORIENT": p + "ORIENT", "DEV_ID": p + "DEV_ID"}
     if naming != AP_NAMING_LEGACY:
         raise ValueError(f"unknown ArduPilot parameter naming {naming!r}")
     k = "" if compass == 1 else str(compass)
@@ -144,6 +144,8 @@ def _ap_names(compass: int, naming: str = AP_NAMING_LEGACY) -> dict[str, str]:
     names |= {f"DIA_{a}": f"COMPASS_DIA{k}_{a}" for a in "XYZ"}
     names |= {f"ODI_{a}": f"COMPASS_ODI{k}_{a}" for a in "XYZ"}
     names |= {"SCALE": f"COMPASS_SCALE{k}", "ORIENT": f"COMPASS_ORIENT{k}"}
+    # the device id: ID for the first compass, ID2, ID3 after it (AP_Compass.cpp "DEV_ID")
+    names["DEV_ID"] = f"COMPASS_DEV_ID{k}"
     return names
 
 
@@ -272,12 +274,14 @@ def _check_ardupilot_limits(ofs: np.ndarray, M: np.ndarray, s: float, offs_max: 
             )
 
 
-def _px4_names(index: int) -> dict[str, str]:
+def px4_param_names(index: int) -> dict[str, str]:
+    """Role ("XOFF", "YSCALE", "ZODIAG", "ROT", "ROLL", "PITCH", "YAW", "ID") → parameter name
+    of CAL_MAG{index}_*."""
     p = f"CAL_MAG{index}_"
     names = {f"{a}OFF": f"{p}{a}OFF" for a in "XYZ"}
     names |= {f"{a}SCALE": f"{p}{a}SCALE" for a in "XYZ"}
     names |= {f"{a}ODIAG": f"{p}{a}ODIAG" for a in "XYZ"}
-    names |= {k: p + k for k in ("ROT", "ROLL", "PITCH", "YAW")}
+    names |= {k: p + k for k in ("ROT", "ROLL", "PITCH", "YAW", "ID")}
     return names
 
 
@@ -304,7 +308,7 @@ def to_px4(
     Rot0 = np.eye(3) if Rot0 is None else np.asarray(Rot0, dtype=float)
     U, P = polar_right(A)
     R_want = U @ Rot0
-    names = _px4_names(index)
+    names = px4_param_names(index)
     params: dict[str, float] = {}
     notes: list[str] = []
     near = rotations.nearest(R_want, "px4", max_rotation_index)
@@ -439,7 +443,7 @@ def ardupilot_uncorrect(
 
 def px4_rotation(params: dict[str, float], index: int = 0) -> np.ndarray:
     """(3, 3) rotation selected by CAL_MAGn_ROT (0–47, or 100 with CAL_MAGn_ROLL/PITCH/YAW)."""
-    n = _px4_names(index)
+    n = px4_param_names(index)
     rot_value = int(params[n["ROT"]])
     if rot_value == PX4_CUSTOM_ROT:
         return rotations.euler_deg_to_matrix(
@@ -449,7 +453,7 @@ def px4_rotation(params: dict[str, float], index: int = 0) -> np.ndarray:
 
 
 def _px4_offset_scale(params: dict[str, float], index: int) -> tuple[np.ndarray, np.ndarray]:
-    n = _px4_names(index)
+    n = px4_param_names(index)
     off = np.array([params[n[f"{a}OFF"]] for a in "XYZ"])
     d = [params[n[f"{a}SCALE"]] for a in "XYZ"]
     od = [params[n[f"{a}ODIAG"]] for a in "XYZ"]

@@ -49,6 +49,7 @@ import numpy as np
 
 from magcal.autopilot import mapping, params, rotations
 from magcal.errors import MagcalError
+from magcal.link.mavlink import MavlinkTimeoutError
 
 ARDUPILOT, PX4 = "ardupilot", "px4"
 AUTOPILOT_NAMES = {ARDUPILOT: "ArduPilot", PX4: "PX4"}
@@ -169,9 +170,10 @@ def params_from_meta(meta: dict[str, str]) -> dict[str, float]:
 
 
 def ardupilot_required(compass: int, naming: str) -> list[str]:
-    """What ArduPilot's correct_field and rotate_field need for ``compass``."""
+    """What ArduPilot's correct_field and rotate_field need for ``compass``, and its device id
+    (0: no such compass)."""
     n = mapping.ap_param_names(compass, naming)
-    roles = [f"{g}_{a}" for g in ("OFS", "DIA", "ODI") for a in "XYZ"] + ["ORIENT"]
+    roles = [f"{g}_{a}" for g in ("OFS", "DIA", "ODI") for a in "XYZ"] + ["ORIENT", "DEV_ID"]
     return [n[r] for r in roles] + [mapping.ap_external_name(compass, naming)]
 
 
@@ -184,19 +186,24 @@ def ardupilot_optional(compass: int, naming: str) -> list[str]:
         for k in range(1, MAX_COMPASSES + 1)
         if k != compass
     ]
-    dev_id = "COMPASS_DEV_ID" if compass == 1 else f"COMPASS_DEV_ID{compass}"
-    return [n["SCALE"], dev_id, "COMPASS_OFFS_MAX", "CUST_ROT_ENABLE", "AHRS_ORIENTATION", *others]
+    return [n["SCALE"], "COMPASS_OFFS_MAX", "CUST_ROT_ENABLE", "AHRS_ORIENTATION", *others]
 
 
 def compass_param_names(autopilot: str, compass: int, naming: str = "") -> list[str]:
     """The parameters that belong to one compass alone (not shared with others)."""
     if autopilot == ARDUPILOT:
         n = mapping.ap_param_names(compass, naming)
-        dev_id = "COMPASS_DEV_ID" if compass == 1 else f"COMPASS_DEV_ID{compass}"
-        return [*ardupilot_required(compass, naming), n["SCALE"], dev_id]
+        return [*ardupilot_required(compass, naming), n["SCALE"]]
     index = px4_index(compass)
-    p = f"CAL_MAG{index}_"
-    return [*px4_required(index)[:10], p + "ID", *px4_custom_angles(index)]
+    return [*px4_required(index)[:10], dev_id_name(PX4, compass), *px4_custom_angles(index)]
+
+
+def dev_id_name(autopilot: str, compass: int, naming: str = "") -> str:
+    """The parameter holding compass N's device id: COMPASS_DEV_ID, COMPASS_DEV_ID2, ...
+    (ArduPilot), CAL_MAG{N−1}_ID (PX4). 0 means no such compass."""
+    if autopilot == ARDUPILOT:
+        return mapping.ap_param_names(compass, naming or mapping.AP_NAMING_LEGACY)["DEV_ID"]
+    return mapping.px4_param_names(px4_index(compass))["ID"]
 
 
 def ardupilot_custom_angles(slot: int) -> list[str]:
@@ -207,27 +214,38 @@ def px4_required(index: int) -> list[str]:
     p = f"CAL_MAG{index}_"
     names = [f"{p}{a}{k}" for k in ("OFF", "SCALE", "ODIAG") for a in "XYZ"]
     # the level adjustment PX4 applies to every magnetometer's rotation (Magnetometer.cpp)
-    return [*names, p + "ROT", "SENS_BOARD_X_OFF", "SENS_BOARD_Y_OFF", "SENS_BOARD_Z_OFF"]
+    board = ["SENS_BOARD_X_OFF", "SENS_BOARD_Y_OFF", "SENS_BOARD_Z_OFF"]
+    return [*names, p + "ROT", *board, p + "ID"]
 
 
 def px4_custom_angles(index: int) -> list[str]:
     return [f"CAL_MAG{index}_{a}" for a in ("ROLL", "PITCH", "YAW")]
 
 
-#: read(name, tries) → the decoded parameter, or None when the vehicle never answered
-#: (tries None: the reader's default).
-ReadParam = Callable[[str, "int | None"], "params.ParamEntry | None"]
+#: read(name, tries) → the decoded parameter; raises MavlinkTimeoutError when the vehicle
+#: never answered (tries None: the reader's default).
+ReadParam = Callable[[str, "int | None"], "params.ParamEntry"]
+
+
+def read_optional(read: ReadParam, name: str, tries: int | None = None) -> params.ParamEntry | None:
+    """``read(name, tries)``, or None for a parameter that may not exist (no answer)."""
+    try:
+        return read(name, tries)
+    except MavlinkTimeoutError:
+        return None
 
 
 def read_compass_params(
     read: ReadParam, autopilot: str, compass: int, *, custom_angles: bool = False
 ) -> CompassParams:
     """The compass parameters in force, read one by one with ``read(name, tries)`` (a
-    decoded ParamEntry, or None when the vehicle never answered).
+    decoded ParamEntry; MavlinkTimeoutError when the vehicle never answered).
 
     ArduPilot: the naming is detected first (COMPASS_OFS_X, else COMPASS1_OFS_X); the custom
     angles of the slots in use are read when CUST_ROT_ENABLE is 1. PX4: the CAL_MAG{N−1}
-    set, and its custom angles when ``custom_angles``. AutopilotError lists what is missing."""
+    set, and its custom angles when ``custom_angles``. AutopilotError lists what is missing,
+    and refuses a compass whose device id is 0 (not on this vehicle: its stream would carry
+    zeros), naming the compasses that are."""
     check_compass(compass)
     values: dict[str, float] = {}
     types: dict[str, int] = {}
@@ -238,7 +256,7 @@ def read_compass_params(
         for name in names:
             if name in values:
                 continue
-            e = read(name, tries)
+            e = read_optional(read, name, tries)
             if e is None:
                 if required:
                     missing.append(name)
@@ -253,6 +271,7 @@ def read_compass_params(
         if values.get("CUST_ROT_ENABLE", 0.0) != 0.0:
             get([a for s in (1, 2) for a in ardupilot_custom_angles(s)], OPTIONAL_READ_TRIES, False)
         _raise_missing(missing, autopilot, compass)
+        _refuse_absent(read, values, autopilot, compass, naming)
         external = values[mapping.ap_external_name(compass, naming)] != 0.0
         orient = int(values[mapping.ap_param_names(compass, naming)["ORIENT"]])
         if external and orient in mapping.AP_CUSTOM_ORIENT:
@@ -265,10 +284,10 @@ def read_compass_params(
         return CompassParams(autopilot, compass, values, types, naming, external, tuple(notes))
     index = px4_index(compass)
     get(px4_required(index))
-    get([f"CAL_MAG{index}_ID"], OPTIONAL_READ_TRIES, required=False)
     if custom_angles:
         get(px4_custom_angles(index), OPTIONAL_READ_TRIES, required=False)
     _raise_missing(missing, autopilot, compass)
+    _refuse_absent(read, values, autopilot, compass, "")
     external = values[f"CAL_MAG{index}_ROT"] >= 0
     return CompassParams(autopilot, compass, values, types, "", external, tuple(notes))
 
@@ -280,13 +299,40 @@ def _ardupilot_naming(read: ReadParam) -> str:
     legacy = mapping.ap_param_names(1, mapping.AP_NAMING_LEGACY)["OFS_X"]
     per_instance = mapping.ap_param_names(1, mapping.AP_NAMING_PER_INSTANCE)["OFS_X"]
     for _ in range(OPTIONAL_READ_TRIES):
-        if read(legacy, 1) is not None:
+        if read_optional(read, legacy, 1) is not None:
             return mapping.AP_NAMING_LEGACY
-        if read(per_instance, 1) is not None:
+        if read_optional(read, per_instance, 1) is not None:
             return mapping.AP_NAMING_PER_INSTANCE
     raise AutopilotError(
         f"ArduPilot: neither {legacy} nor {per_instance} answered: the vehicle has no compass "
         "parameters, or the link loses every reply (check it and try again)"
+    )
+
+
+def _refuse_absent(
+    read: ReadParam, values: dict[str, float], autopilot: str, compass: int, naming: str
+) -> None:
+    """AutopilotError when compass N's device id is 0: no such compass on this vehicle. The
+    device ids of the others are read (only then) to say which compasses it has."""
+    name = dev_id_name(autopilot, compass, naming)
+    if values[name] != 0.0:
+        return
+    present = []
+    for k in range(1, MAX_COMPASSES + 1):
+        if k == compass:
+            continue
+        e = read_optional(read, dev_id_name(autopilot, k, naming), OPTIONAL_READ_TRIES)
+        if e is not None and e.value != 0.0:
+            present.append(k)
+    if present:
+        which = " and ".join(map(str, present))
+        has = f"this vehicle has compass{'es' if len(present) > 1 else ''} {which}"
+        hint = f"use --compass {present[0]}"
+    else:
+        has, hint = "this vehicle reports no compass", "check its compass wiring and set-up"
+    raise AutopilotError(
+        f"{AUTOPILOT_NAMES[autopilot]} compass {compass} is absent ({name} = 0); {has}: "
+        f"{hint}; nothing was read or written"
     )
 
 

@@ -42,7 +42,7 @@ def run_info(args, out=None) -> int:
             try:
                 cp = _compass_params(ap, n)
             except vehicle.AutopilotError as exc:
-                print(f"compass {n}  not readable: {exc}", file=out)
+                print(f"compass {n}  {exc}", file=out)
                 continue
             naming = cp.naming
             own = set(vehicle.compass_param_names(ap.autopilot, n, naming))
@@ -85,7 +85,6 @@ def _compass_line(cp, rotations, mapping) -> str:
             rot = f"external, rotation {orient} (custom, CUST_ROT{orient - 100}_*)"
         else:
             rot = f"external, rotation {orient} ({_ap_rotation_name(orient, rotations)})"
-        dev = cp.values.get("COMPASS_DEV_ID" if n == 1 else f"COMPASS_DEV_ID{n}")
         naming = f", parameter naming {cp.naming}"
     else:
         rot_value = int(cp.values[f"CAL_MAG{n - 1}_ROT"])
@@ -94,11 +93,10 @@ def _compass_line(cp, rotations, mapping) -> str:
             if not cp.external
             else f"external, CAL_MAG{n - 1}_ROT {rot_value}"
         )
-        dev = cp.values.get(f"CAL_MAG{n - 1}_ID")
         naming = ""
-    present = (
-        "" if dev is None else (f", device id {int(dev)}" if dev else ", absent (device id 0)")
-    )
+    # read_compass_params refuses a compass whose device id is 0: this one is present
+    dev = int(cp.values[vehicle.dev_id_name(cp.autopilot, n, cp.naming)])
+    present = f", device id {dev}"
     stream = vehicle.collect_stream(cp.autopilot, n)
     return f"{rot}{present}{naming}; stream {stream}, field in {cp.unit}"
 
@@ -351,7 +349,17 @@ def run_flash(args) -> int:
             known=known,
         )
         _say("flash", f"backup of the values in force: {', '.join(map(str, backup.paths))}")
-        failed = apflash.write_and_confirm(ap, plan.writes, lambda t: _say("flash", t))
+        try:
+            failed = apflash.write_and_confirm(
+                ap, plan.writes, lambda t: _say("flash", t), old=cp.values
+            )
+        except apflash.WriteInterrupted as exc:
+            return _interrupted(
+                exc,
+                f"flash: {exc}. The old values are in {backup.path}: run flash again, or "
+                f"restore with magcal flash --restore {backup.path} --mavlink URL",
+                backup.path,
+            )
         if failed:
             raise apflash.AutopilotFlashError(
                 f"flash: {len(failed)} of {len(plan.writes)} parameters not confirmed: "
@@ -368,6 +376,19 @@ def run_flash(args) -> int:
         print(f"previous values saved in {backup.path} (magcal flash --restore to put them back)")
         _reboot(ap, plan.reboot_reasons, args.reboot)
     return 0
+
+
+def _interrupted(exc, message: str, backup_path: Path) -> int:
+    """A write phase stopped part-way: Ctrl-C prints the account and exits with
+    EXIT_INTERRUPTED (130, as any interrupted command); any other cause is an
+    AutopilotFlashError carrying the same account and the backup path."""
+    from magcal.autopilot import flash as apflash
+    from magcal.cli import EXIT_INTERRUPTED, refusal
+
+    if exc.by_user:
+        print(refusal("flash", message), file=sys.stderr, flush=True)
+        return EXIT_INTERRUPTED
+    raise apflash.AutopilotFlashError(message, backup_path=backup_path) from exc
 
 
 def _reboot(ap, reasons: tuple[str, ...], reboot: bool) -> None:
@@ -416,7 +437,20 @@ def _run_restore(args) -> int:
             or not params.confirmed(e.value, current[e.name].value, e.param_type)
         )
         _say("flash", f"values in force saved in {backup.path}")
-        failed = apflash.write_and_confirm(ap, writes, lambda t: _say("flash", t))
+        try:
+            failed = apflash.write_and_confirm(
+                ap,
+                writes,
+                lambda t: _say("flash", t),
+                old={n: e.value for n, e in current.items()},
+            )
+        except apflash.WriteInterrupted as exc:
+            return _interrupted(
+                exc,
+                f"flash --restore: {exc}. The values before the restore are in {backup.path}; "
+                f"run the restore of {src} again",
+                backup.path,
+            )
         if failed:
             raise apflash.AutopilotFlashError(
                 f"flash --restore: {len(failed)} of {len(writes)} parameters not confirmed: "

@@ -41,9 +41,8 @@ MIXED_WINDOW_S = 0.5
 #: more than this means the offsets in use were not the parameters the log recorded.
 LOGGED_OFFSET_TOLERANCE_MG = 1.0 + 1e-6
 
-# PX4's CAL_MAGn_* names are mapping.py's (one place for them; it exports no public alias
-# yet, so a rename there shows up here as an import error, not as silently wrong names).
-px4_param_names = mapping._px4_names
+# PX4's CAL_MAGn_* names are mapping.py's (one place for them).
+px4_param_names = mapping.px4_param_names
 
 
 @dataclass(frozen=True)
@@ -120,8 +119,8 @@ def ardupilot_state_index(params: dict[str, float], instance: int) -> int:
     prio = params.get(f"COMPASS_PRIO{instance}_ID")
     if not prio:
         return instance
-    for state, name in enumerate(("COMPASS_DEV_ID", "COMPASS_DEV_ID2", "COMPASS_DEV_ID3"), 1):
-        if params.get(name) == prio:
+    for state in (1, 2, 3):
+        if params.get(mapping.ap_param_names(state)["DEV_ID"]) == prio:
             return state
     return instance
 

@@ -21,9 +21,15 @@ Gaussian approximation of ``v_k``).
    for every sample: ``θ̃* = F̃⁻¹ Σ L̃_kᵀ (z̃_k − μ̃_k)/σ_k²`` with the centred Fisher
    information ``F̃ = Σ L̃_kᵀ L̃_k / σ_k²``.
 2. **Centre correction.** Fisher scoring (Gauss–Newton) on the full cost
-   ``J(θ) = ½ (θ − θ̃*)ᵀ F̃ (θ − θ̃*) + ½ (z̄ − μ̄ − L̄θ + |b(θ)|²)² / σ̄²`` from ``θ̃*``:
-   ``θ ← θ − (F̃ + F̄)⁻¹ ∇J``, ``F̄ = (L̄ − ∂|b|²/∂θ)ᵀ (L̄ − ∂|b|²/∂θ) / σ̄²``, until the step's
+   ``J(θ) = ½ (θ − θ̃*)ᵀ F̃ (θ − θ̃*) + ½ (z̄ − μ̄ − L̄θ + |b(θ)|²)² / σ̄²`` from ``θ = 0``
+   (magcal's start: see :func:`_estimate`):
+   ``θ ← θ − α (F̃ + F̄)⁻¹ ∇J``, ``F̄ = (L̄ − ∂|b|²/∂θ)ᵀ (L̄ − ∂|b|²/∂θ) / σ̄²``, until the step's
    ``ΔθᵀFΔθ`` is below :data:`STEP_TOL` (a tiny fraction of one standard deviation).
+   ``α`` is 1 halved until J does not increase (magcal's addition: the papers' undamped
+   step overshoots and wanders when the noise is large beside the field). Known limit: when
+   the noise is large beside the field (Zhao et al.'s Table 2, σ ≈ 20 %), J keeps falling
+   towards ``θ̃* = [0; −I]``, where the ellipsoid shrinks to a point; the run ends at
+   :data:`MAX_ITER` unconverged, with a warning, and the estimate is no use.
 
 Then ``E = U S Uᵀ``, ``D = U (√(1 + S) − 1) Uᵀ`` and ``b = (I + D)⁻¹ c``. In magcal's terms the
 calibrated field is ``(I + D) B − b``, so ``A = Tᵀ T`` with ``T = (I + D)`` (in the
@@ -57,6 +63,12 @@ from magcal.errors import InsufficientDataError
 
 #: Fisher-scoring iteration cap.
 MAX_ITER = 50
+#: Step halvings tried per Fisher-scoring step before giving up (2⁻³⁰ of the step: below
+#: float64's resolution of J near its minimum).
+MAX_HALVINGS = 30
+#: A step is accepted when it raises J by at most this fraction of J: J's rounding, so the
+#: last steps, whose change of J float64 cannot resolve, are taken as the papers' are.
+COST_RTOL = 1e-12
 #: Stop when the step's ``ΔθᵀFΔθ`` (its size in standard deviations, squared) is below this.
 STEP_TOL = 1e-16
 #: ``F̃`` with a second-smallest/largest eigenvalue ratio below this does not determine θ
@@ -83,7 +95,10 @@ class TwoStepFit:
     iterations : Fisher-scoring steps taken
     converged  : the step fell below :data:`STEP_TOL` before :data:`MAX_ITER`
     noise_std  : float, raw units, the σ used
-    warnings   : tuple of str (forced regularisation)
+    warnings   : tuple of str (forced regularisation, no convergence)
+    costs      : the centre correction's cost J (module docstring) at its start (θ = 0)
+                 and after each accepted step of the final pass: non-increasing (step
+                 halving), the last being the returned θ's
     """
 
     A: np.ndarray
@@ -96,6 +111,7 @@ class TwoStepFit:
     converged: bool
     noise_std: float
     warnings: tuple[str, ...] = ()
+    costs: tuple[float, ...] = ()
 
 
 def _design(B: np.ndarray) -> np.ndarray:
@@ -161,11 +177,29 @@ def _centred(L, z, var, ridge):
     return theta, F, L_bar, z_bar, var_bar
 
 
+def _cost(theta, theta_c, F_c, L_bar, z_bar, mu, var_bar) -> float:
+    """The centre correction's cost ``J(θ)`` (module docstring, step 2); inf where
+    ``I + E`` is singular (``|b|²`` undefined)."""
+    try:
+        bsq = _bsq_and_grad(theta)[0]
+    except np.linalg.LinAlgError:
+        return np.inf
+    d = theta - theta_c
+    resid = z_bar - mu - L_bar @ theta + bsq
+    cost = 0.5 * float(d @ F_c @ d) + 0.5 * resid * resid / var_bar
+    return cost if np.isfinite(cost) else np.inf
+
+
 def _estimate(L, z, mu, var, ridge):
     """Step 1 (centred estimate) and step 2 (Fisher scoring) with weights ``1/var``:
-    (θ, F at θ, iterations, converged)."""
+    (θ, F at θ, iterations, converged, costs: J at the start and after each step)."""
     theta_c, F_c, L_bar, z_bar, var_bar = _centred(L, z, var, ridge)
-    theta = theta_c.copy()
+    # Start from the a-priori sphere (D = 0, b = 0: |B| = 1 about the readings' mean), not
+    # from θ̃*: with noise F̃ has no exact null direction and θ̃* is then [0; −I] exactly
+    # (L_k [0; −I] = |B_k|² = z_k + 1 for any data), where I + E = 0 and |b|² is undefined.
+    theta = np.zeros(9)
+    cost = _cost(theta, theta_c, F_c, L_bar, z_bar, mu, var_bar)
+    costs = [cost]
     iterations, converged = 0, False
     while iterations < MAX_ITER and not converged:
         iterations += 1
@@ -175,12 +209,29 @@ def _estimate(L, z, mu, var, ridge):
         grad = F_c @ (theta - theta_c) - resid * lin / var_bar
         F = F_c + np.outer(lin, lin) / var_bar
         step = np.linalg.solve(F, grad)
-        theta = theta - step
-        converged = float(step @ F @ step) < STEP_TOL
+        if float(step @ F @ step) < STEP_TOL:
+            # At the minimum to rounding: J's change is below what float64 resolves.
+            theta = theta - step
+            converged = True
+            break
+        # Step halving: the Gauss–Newton step is a descent direction of J (F positive
+        # definite) but far from the minimum, where |b(θ)|² is strongly nonlinear (noise of
+        # 20 % of the field), the full step can overshoot and undamped scoring then wanders.
+        # Every accepted iterate lowers J (to rounding), so the last is the lowest seen.
+        for _ in range(MAX_HALVINGS + 1):
+            trial = theta - step
+            trial_cost = _cost(trial, theta_c, F_c, L_bar, z_bar, mu, var_bar)
+            if trial_cost <= cost + COST_RTOL * abs(cost):
+                break
+            step = 0.5 * step
+        else:
+            break  # no lower J along the step: a minimum to rounding, or a stall (warned)
+        theta, cost = trial, trial_cost
+        costs.append(cost)
     bsq, dbsq = _bsq_and_grad(theta)
     lin = L_bar - dbsq
     F = F_c + np.outer(lin, lin) / var_bar
-    return theta, 0.5 * (F + F.T), iterations, converged
+    return theta, 0.5 * (F + F.T), iterations, converged, tuple(costs)
 
 
 def _real(theta: np.ndarray) -> bool:
@@ -240,13 +291,17 @@ def two_step(mag: np.ndarray, *, noise_std: float | None = None, force: bool = F
         )
 
     # Both steps with weights at the a priori, then again with weights at that estimate.
-    theta, F, iterations, converged = _estimate(L, z, mu, _weights(B, None, sigma2), ridge)
+    theta, F, iterations, converged, costs = _estimate(L, z, mu, _weights(B, None, sigma2), ridge)
     if _real(theta):
-        theta, F, iterations, converged = _estimate(L, z, mu, _weights(B, theta, sigma2), ridge)
+        theta, F, iterations, converged, costs = _estimate(
+            L, z, mu, _weights(B, theta, sigma2), ridge
+        )
     if not converged:
         warnings.append(
-            f"two-step: the centre correction did not converge in {MAX_ITER} iterations: the "
-            "estimate may be poor; check that the readings cover all orientations"
+            f"two-step: the centre correction did not converge ({iterations} Fisher-scoring "
+            "steps with step halving; the lowest-cost estimate is kept): the estimate may be "
+            "poor; check that the readings cover all orientations and the noise is small "
+            "beside the field"
         )
     A_n = np.eye(3) + _sym(theta[3:])  # (I + D)² = I + E
     return TwoStepFit(
@@ -260,6 +315,7 @@ def two_step(mag: np.ndarray, *, noise_std: float | None = None, force: bool = F
         converged=converged,
         noise_std=sigma,
         warnings=tuple(warnings),
+        costs=costs,
     )
 
 

@@ -329,3 +329,16 @@ def test_settings_without_the_comparison_record_no_methods():
     settings, notes = make_settings(experiments=("figure8",))
     assert settings.methods == () and settings.scenarios == ()
     assert not any(n.startswith("method(s)") for n in notes)
+
+
+def test_jobs_default_to_the_cpus_this_process_may_use(monkeypatch):
+    import os
+
+    from magcal.commands import study as study_command
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 64)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3}, raising=False)
+    args = cli.build_parser().parse_args(["study", "out"])
+    assert args.jobs == 2  # the affinity mask (a container's or taskset's limit), not 64
+    monkeypatch.delattr(os, "sched_getaffinity")
+    assert study_command.available_cpus() == 64  # platforms without affinity masks

@@ -27,6 +27,16 @@ def _non_negative_int(text: str) -> int:
     return v
 
 
+def available_cpus() -> int:
+    """CPUs this process may run on: its affinity mask where the platform has one (Linux;
+    a container's or ``taskset``'s limit, unlike ``os.cpu_count()``, the machine's), else
+    the machine's count."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except (AttributeError, OSError):
+        return os.cpu_count() or 1
+
+
 def add_parser(sub) -> None:
     p = sub.add_parser(
         "study",
@@ -63,8 +73,8 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--jobs",
         type=positive(int),
-        default=os.cpu_count() or 1,
-        help="worker processes (default: every core)",
+        default=available_cpus(),
+        help="worker processes (default: every CPU this process may use)",
     )
     p.set_defaults(run=run)
 

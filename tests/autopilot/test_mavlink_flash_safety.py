@@ -210,3 +210,29 @@ def test_flash_dry_run_of_compass_2_plans_its_own_parameters(tmp_path, capsys):
     assert not any(n.startswith(("COMPASS_OFS_", "COMPASS_DIA_", "COMPASS_OFS3")) for n in planned)
     truth = emu.truth.compass(2)
     assert np.allclose([planned[f"COMPASS_OFS2_{a}"] for a in "XYZ"], -truth.o, atol=1.0)
+
+
+# ------------------------------------------------------------------------------ restore .parm
+def test_the_parm_twin_restores_on_a_vehicle_of_another_system_id(tmp_path, capsys):
+    with AutopilotEmulator(personality="ardupilot", seed=12, speedup=SPEEDUP, system_id=3) as emu:
+        result = _truth_result(emu, tmp_path)
+        old = emu.params
+        assert cli.main(["flash", result, "--mavlink", emu.url, "--field", _field_arg(emu)]) == 0
+        (backup,) = _backups(tmp_path)
+        assert "-sys3-" in backup.name
+        twin = backup.with_suffix(".parm")
+        assert ap_params.read_param_file(twin).system_id == 3  # from magcal's comment
+        assert cli.main(["flash", "--restore", str(twin), "--mavlink", emu.url]) == 0
+        now = emu.params
+        for name, value in ap_params.read_param_file(twin).as_dict().items():
+            assert np.float32(now[name]) == np.float32(old[name]) == np.float32(value), name
+        # a .parm from elsewhere (Mission Planner's) says no system: not refused for it
+        plain = tmp_path / "mp.parm"
+        plain.write_text(f"COMPASS_OFS_X,{old['COMPASS_OFS_X'] + 1.0}\n")
+        assert cli.main(["flash", "--restore", str(plain), "--mavlink", emu.url]) == 0
+        assert np.float32(emu.params["COMPASS_OFS_X"]) == np.float32(old["COMPASS_OFS_X"] + 1.0)
+    # and a file that names another system is still refused without --force
+    with AutopilotEmulator(personality="ardupilot", seed=12, speedup=SPEEDUP, system_id=4) as emu:
+        capsys.readouterr()
+        assert cli.main(["flash", "--restore", str(twin), "--mavlink", emu.url]) == cli.EXIT_ERROR
+    assert "saved from system 3, this vehicle is system 4" in capsys.readouterr().err

@@ -134,6 +134,8 @@ class AutopilotEmulator:
     path_s           : length of the simulated path, s; the vehicle then holds still
     mag_noise        : magnetometer noise σ in raw units (default ArduPilot SIM_MAG_RND 2 mG,
                        PX4 0.002 G); 0 gives exact fields (up to the int16 truncation)
+    system_id        : its MAVLink system id (SYSID_THISMAV / MAV_SYS_ID; the parameter is
+                       not changed)
     """
 
     def __init__(
@@ -149,6 +151,7 @@ class AutopilotEmulator:
         misalignment_deg: float | None = None,
         path_s: float = PATH_S,
         mag_noise: float | None = None,
+        system_id: int = SYSTEM_ID,
     ) -> None:
         if personality not in STREAMS:
             raise ValueError(f"unknown personality {personality!r}: use 'ardupilot' or 'px4'")
@@ -174,7 +177,8 @@ class AutopilotEmulator:
         with self._lock:
             self._ap.reboot(self._store)
             self._refresh_models()
-        self._mav = mavlink.MAVLink(None, srcSystem=SYSTEM_ID, srcComponent=COMPONENT_ID)
+        self.system_id = int(system_id)
+        self._mav = mavlink.MAVLink(None, srcSystem=self.system_id, srcComponent=COMPONENT_ID)
         self._mav.robust_parsing = True
         self._intervals_us: dict[int, int] = {mid: 0 for mid in STREAMS[personality]}
         self._intervals_us[M.MAVLINK_MSG_ID_HEARTBEAT] = HEARTBEAT_INTERVAL_US
@@ -353,7 +357,7 @@ class AutopilotEmulator:
     def _for_us(self, msg: mavlink.MAVLink_message) -> bool:
         ts = getattr(msg, "target_system", 0)
         tc = getattr(msg, "target_component", 0)
-        return ts in (0, SYSTEM_ID) and tc in (0, COMPONENT_ID)
+        return ts in (0, self.system_id) and tc in (0, COMPONENT_ID)
 
     def _handle(self, msg: mavlink.MAVLink_message) -> None:
         kind = msg.get_type()

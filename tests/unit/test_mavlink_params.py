@@ -119,3 +119,36 @@ def test_new_files_are_never_replaced(tmp_path):
     P.write_new_file(path, "three\n", overwrite=True)
     assert path.read_text() == "three\n"
     assert [p.name for p in tmp_path.iterdir()] == ["b.params"]  # no temporary left behind
+
+
+def test_a_parm_file_says_its_system_only_in_magcals_backup_comment():
+    plain = P.parse_param_text("COMPASS_OFS_X,12.5\n", "m.parm", fmt=P.PARM_SUFFIX)
+    assert plain.system_id is None  # Mission Planner's format carries no system id
+    ours = P.parse_param_text(P.format_parm(_pf_with_backup_comment(3)), "b.parm")
+    assert ours.system_id == 3
+    qgc = P.parse_param_text(P.format_qgc(_pf()), "b.params")
+    assert qgc.system_id == 7
+
+
+def _pf_with_backup_comment(system: int) -> P.ParamFile:
+    comment = f"magcal backup: PX4 system {system}, before magcal flash r.json, read now"
+    return P.ParamFile(_pf().entries, system_id=system, comments=(comment,))
+
+
+def test_new_files_and_their_directory_are_synced(tmp_path, monkeypatch):
+    import os
+    import stat
+
+    synced: list[bool] = []  # one entry per fsync: whether it was a directory
+    real_fsync = os.fsync
+
+    def fsync(fd):
+        synced.append(stat.S_ISDIR(os.fstat(fd).st_mode))
+        real_fsync(fd)
+
+    monkeypatch.setattr(os, "fsync", fsync)
+    P.write_new_file(tmp_path / "a.params", "one\n")
+    assert synced == [False, True]  # the file's data, then the directory entry (the link)
+    synced.clear()
+    P.write_new_file(tmp_path / "a.params", "two\n", overwrite=True)
+    assert synced == [False, True]  # the same for the rename

@@ -37,6 +37,7 @@ from __future__ import annotations
 import contextlib
 import errno
 import os
+import re
 import secrets
 import struct
 from dataclasses import dataclass, field
@@ -154,10 +155,12 @@ class ParamEntry:
 
 @dataclass(frozen=True)
 class ParamFile:
-    """A parameter file's content: entries in file order, and the header facts (QGC)."""
+    """A parameter file's content: entries in file order, and the header facts (QGC).
+    system_id : the vehicle's MAVLink system id (None: the file does not say; a .parm
+    carries it only in magcal's own "magcal backup: ... system N" comment)."""
 
     entries: tuple[ParamEntry, ...]
-    system_id: int = 1
+    system_id: int | None = 1
     component_id: int = 1
     comments: tuple[str, ...] = field(default_factory=tuple)
 
@@ -188,7 +191,7 @@ def format_parm(pf: ParamFile) -> str:
 def format_qgc(pf: ParamFile, stack: str = "", vehicle: str = "", version: str = "") -> str:
     """QGroundControl text (module docstring); entries without a type are written REAL32."""
     lines = [
-        f"# Onboard parameters for Vehicle {pf.system_id}",
+        f"# Onboard parameters for Vehicle {pf.system_id or 1}",
         "#",
         f"# Stack: {stack}",
         f"# Vehicle: {vehicle}",
@@ -200,7 +203,9 @@ def format_qgc(pf: ParamFile, stack: str = "", vehicle: str = "", version: str =
     lines.append(QGC_HEADER_COLUMNS)
     for e in pf.entries:
         t = REAL32 if e.param_type is None else e.param_type
-        lines.append(f"{pf.system_id}\t{pf.component_id}\t{e.name}\t{value_text(e.value, t)}\t{t}")
+        lines.append(
+            f"{pf.system_id or 1}\t{pf.component_id}\t{e.name}\t{value_text(e.value, t)}\t{t}"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -261,7 +266,22 @@ def parse_param_text(text: str, name: str = "parameter file", fmt: str | None = 
         entries.append(entry)
     if not entries:
         raise ParamError(f"{name}: no parameters in the file")
-    return ParamFile(tuple(entries), system_id or 1, component_id or 1, tuple(comments))
+    if system_id is None:
+        system_id = _backup_comment_system(comments)
+    return ParamFile(tuple(entries), system_id, component_id or 1, tuple(comments))
+
+
+_BACKUP_SYSTEM = re.compile(r"^magcal backup: .*? system (\d+),")
+
+
+def _backup_comment_system(comments: list[str]) -> int | None:
+    """The system id in magcal's backup comment ("magcal backup: PX4 system 3, ..."), the
+    only place a .parm file records it; None when there is none."""
+    for c in comments:
+        m = _BACKUP_SYSTEM.match(c)
+        if m:
+            return int(m.group(1))
+    return None
 
 
 def read_param_file(path: str | os.PathLike) -> ParamFile:
@@ -283,6 +303,23 @@ def render_param_file(path: str | os.PathLike, pf: ParamFile, **qgc_header: str)
     return format_qgc(pf, **qgc_header)
 
 
+def _fsync_dir(directory: Path) -> None:
+    """fsync a directory, so that a name just linked or renamed into it survives a power
+    loss (POSIX; where a directory cannot be opened, as on Windows, there is nothing to do)."""
+    try:
+        fd = os.open(directory, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError as exc:
+        # some file systems refuse fsync on a directory (EINVAL): the file itself is synced
+        if exc.errno not in (errno.EINVAL, errno.EBADF):
+            raise
+    finally:
+        os.close(fd)
+
+
 def write_new_file(path: str | os.PathLike, text: str, overwrite: bool = False) -> Path:
     """Write ``text`` to ``path`` atomically: a temporary file in the same directory, fsync,
     then a hard link (fails when ``path`` exists: a backup is never replaced) or, with
@@ -299,6 +336,7 @@ def write_new_file(path: str | os.PathLike, text: str, overwrite: bool = False) 
         if overwrite:
             os.replace(tmp, p)
             tmp = None
+            _fsync_dir(p.parent)
         else:
             try:
                 os.link(tmp, p)
@@ -309,6 +347,7 @@ def write_new_file(path: str | os.PathLike, text: str, overwrite: bool = False) 
                     dst.write(text)
                     dst.flush()
                     os.fsync(dst.fileno())
+            _fsync_dir(p.parent)
     except FileExistsError as exc:
         raise ParamError(f"{p} exists; it is not replaced: give another path") from exc
     except OSError as exc:

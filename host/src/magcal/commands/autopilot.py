@@ -414,7 +414,8 @@ def _run_restore(args) -> int:
     pf = params.read_param_file(src)
     stamp = dt.datetime.now(dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     with open_autopilot(args.mavlink) as ap:
-        if pf.system_id != ap.heartbeat.system and not args.force:
+        # a .parm says its system only in magcal's backup comment: unknown otherwise
+        if pf.system_id is not None and pf.system_id != ap.heartbeat.system and not args.force:
             raise MagcalError(
                 f"flash: {src} was saved from system {pf.system_id}, this vehicle is system "
                 f"{ap.heartbeat.system}: nothing was written (--force writes it anyway)"

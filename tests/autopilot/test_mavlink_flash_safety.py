@@ -236,3 +236,56 @@ def test_the_parm_twin_restores_on_a_vehicle_of_another_system_id(tmp_path, caps
         capsys.readouterr()
         assert cli.main(["flash", "--restore", str(twin), "--mavlink", emu.url]) == cli.EXIT_ERROR
     assert "saved from system 3, this vehicle is system 4" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ PX4 threshold
+def _px4_result(emu, tmp_path, odiag, name) -> str:
+    """A PX4 result whose mapping is CAL_MAG0_ROT in force, scale diag(1.02, 0.98, 1.01) with
+    the off-diagonals ``odiag``, and the true offsets."""
+    F = emu.field_strength
+    R = rotations.px4_matrix(int(emu.params["CAL_MAG0_ROT"]))
+    x, y, z = odiag
+    S = np.array([[1.02, x, y], [x, 0.98, z], [y, z, 1.01]])
+    result = CalibrationResult(
+        method="ml",
+        D=F * np.linalg.inv(R @ S),
+        o=emu.truth.compass(1).o,
+        m_n=emu.truth.m_n,
+        dip_deg=emu.truth.dip_deg,
+        extra={"mag_unit": "gauss"},
+    )
+    path = tmp_path / f"{name}.json"
+    write_result(path, result)
+    return str(path)
+
+
+def test_px4_off_diagonals_within_its_threshold_are_reported_never_applied(tmp_path, capsys):
+    tiny = (0.004, 0.003, -0.005)  # norm 0.0071 ≤ 0.01
+    with AutopilotEmulator(personality="px4", seed=13, speedup=SPEEDUP) as emu:
+        field = ["--field", _field_arg(emu)]
+        assert (
+            cli.main(
+                [
+                    "flash",
+                    _px4_result(emu, tmp_path, (0, 0, 0), "zero"),
+                    "--mavlink",
+                    emu.url,
+                    *field,
+                ]
+            )
+            == 0
+        )
+        emu.reboot()  # every value of that first flash in use
+        without = emu.heading_error_deg()
+        capsys.readouterr()
+        small = _px4_result(emu, tmp_path, tiny, "tiny")
+        assert cli.main(["flash", small, "--mavlink", emu.url, *field, "--reboot"]) == 0
+        assert np.allclose([emu.params[f"CAL_MAG0_{a}ODIAG"] for a in "XYZ"], tiny, atol=1e-6)
+        # the vehicle keeps the reset off-diagonals: the same correction as without them
+        assert emu.heading_error_deg() == pytest.approx(without, abs=1e-9)
+        emu.reboot()
+        assert emu.heading_error_deg() == pytest.approx(without, abs=1e-9)
+    captured = capsys.readouterr()
+    assert "never applies such a small change" in captured.err
+    assert "CAL_MAG0_X/Y/ZODIAG = (0.004, 0.003, -0.005)" in captured.err
+    assert "reboot" not in captured.out  # a reboot would not help: not asked for, not done

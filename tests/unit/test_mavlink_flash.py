@@ -242,3 +242,28 @@ def test_backup_saves_what_is_in_force_and_notes_hidden_custom_angles(tmp_path):
     with pytest.raises(MagcalError, match="no answer for COMPASS_OFS_Q while backing up"):
         F.back_up(fake, ["COMPASS_OFS_Q"], tmp_path / "c.params", what="t")
     assert not (tmp_path / "c.params").exists()
+
+
+def test_px4_never_applied_vectors_are_noted_with_their_cost_and_are_no_reboot_reason():
+    cp = _px4_in_force()
+    F_G = 0.5
+    S = np.array([[1.02, 0.004, 0.003], [0.004, 0.98, -0.005], [0.003, -0.005, 1.03]])
+    o = np.array([0.003, -0.004, 0.002])  # norm 0.0054: never applied either
+    plan = F.plan_flash(S / F_G, o, cp, wmm.Field(F_G * 1e5, 60.0, None, "t"), allow_custom=False)
+    assert plan.never_applied == ("OFF", "ODIAG")
+    assert plan.reboot_reasons == ()
+    (note,) = [n for n in plan.mapped.notes if "never applies" in n]
+    final = cp.values | {e.name: e.value for e in plan.writes + plan.unchanged}
+    cost = mapping.px4_unapplied_heading_rms_deg(final, 0, F_G, 60.0)
+    assert f"costs {cost:.2f}° RMS heading error" in note and cost > 0.1
+    # verify's model of the vehicle: the same as with those vectors at their reset values
+    cp_new = vehicle.CompassParams(vehicle.PX4, 1, final, cp.types, "", True)
+    reset = final | {f"CAL_MAG0_{a}{g}": 0.0 for a in "XYZ" for g in ("OFF", "ODIAG")}
+    cp_reset = vehicle.CompassParams(vehicle.PX4, 1, reset, cp.types, "", True)
+    y = np.random.default_rng(9).normal(size=(20, 3)) * 0.4
+    assert np.array_equal(
+        vehicle.onboard_correction(y, cp_new), vehicle.onboard_correction(y, cp_reset)
+    )
+    # a vector beyond the threshold is applied, and a reboot reason only while it is not in use
+    bigger = F.px4_reboot_reasons(cp.values, (P.ParamEntry("CAL_MAG0_XODIAG", 0.02, P.REAL32),), 0)
+    assert bigger == []

@@ -25,11 +25,15 @@ way (after backing up the values it replaces).
 Some changes take effect only after a reboot (:attr:`Plan.reboot_reasons`): ArduPilot builds
 a custom rotation's matrix when it is first used and marks CUST_ROT_ENABLE "reboot required";
 PX4's Magnetometer takes a new offset, scale or off-diagonal only when it differs from the one
-in use by more than 0.01.
+in use by more than 0.01 (:data:`magcal.autopilot.mapping.PX4_UPDATE_THRESHOLD`). A vector
+within 0.01 of its reset value (offset 0, scale 1, off-diagonal 0) is never applied, not even
+after a reboot: the plan says so with the heading error it costs
+(:attr:`Plan.never_applied`), and does not count it as a reason to reboot.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -50,8 +54,7 @@ PARAM_WRITE_TRIES = 10
 #: After this many parameters in a row without a single echo the link is taken for dead and
 #: the remaining parameters are not sent (they keep their old values).
 DEAD_LINK_PARAMS = 3
-#: PX4 Magnetometer::set_offset/set_scale/set_offdiagonal ignore smaller changes until a reboot.
-PX4_UPDATE_THRESHOLD = 0.01
+PX4_UPDATE_THRESHOLD = mapping.PX4_UPDATE_THRESHOLD
 
 
 class AutopilotFlashError(MagcalError):
@@ -102,6 +105,8 @@ class Plan:
     mapped : the mapping's output (notes, residual rotation, its heading cost)
     field : the field strength used; unit : the autopilot's unit
     reboot_reasons : why a reboot is needed before every value is in use (empty: none)
+    never_applied : PX4 parameter groups ("OFF", "SCALE", "ODIAG") the vehicle will not use,
+        even after a reboot (within PX4_UPDATE_THRESHOLD of the reset value); notes say why
     """
 
     autopilot: str
@@ -112,6 +117,7 @@ class Plan:
     field: wmm.Field
     unit: str
     reboot_reasons: tuple[str, ...] = field(default_factory=tuple)
+    never_applied: tuple[str, ...] = field(default_factory=tuple)
 
     @property
     def all_entries(self) -> tuple[params.ParamEntry, ...]:
@@ -318,8 +324,17 @@ def plan_flash(
         else:
             entries.append(e)
     writes = order_writes(cp.autopilot, tuple(entries), cp.values)
+    never: tuple[str, ...] = ()
     if cp.autopilot == vehicle.PX4:
-        reboot += px4_reboot_reasons(cp.values, writes, vehicle.px4_index(cp.compass))
+        index = vehicle.px4_index(cp.compass)
+        reboot += px4_reboot_reasons(cp.values, writes, index)
+        final = dict(cp.values) | {e.name: e.value for e in (*writes, *unchanged)}
+        never = mapping.px4_unapplied(final, index)
+        if never:
+            cost = mapping.px4_unapplied_heading_rms_deg(final, index, F, incl)
+            mapped = dataclasses.replace(
+                mapped, notes=(*mapped.notes, px4_never_applied_note(final, index, never, cost))
+            )
     return Plan(
         cp.autopilot,
         cp.compass,
@@ -329,34 +344,61 @@ def plan_flash(
         fld,
         unit,
         tuple(reboot),
+        never,
+    )
+
+
+def px4_never_applied_note(
+    final: dict[str, float], index: int, groups: tuple[str, ...], cost_deg: float
+) -> str:
+    """The note on vectors PX4 will not use (pure)."""
+    p = f"CAL_MAG{index}_"
+    parts = []
+    for g in groups:
+        v = mapping.px4_vector(final, index, g)
+        reset = ", ".join(f"{x:g}" for x in mapping.PX4_RESET_VALUES[g])
+        parts.append(
+            f"{p}X/Y/Z{g} = ({', '.join(f'{x:.4g}' for x in v)}) is within "
+            f"{PX4_UPDATE_THRESHOLD} of its reset value ({reset})"
+        )
+    return (
+        f"{'; '.join(parts)}: PX4's Magnetometer never applies such a small change "
+        "(Magnetometer.cpp set_offset/set_scale/set_offdiagonal), not even after a reboot, and "
+        f"keeps the reset value; that costs {cost_deg:.2f}° RMS heading error"
     )
 
 
 def px4_reboot_reasons(
     in_force: dict[str, float], writes: tuple[params.ParamEntry, ...], index: int
 ) -> list[str]:
-    """Why PX4 would not use every new value before a reboot (pure).
+    """Why PX4 would not use every new value before a reboot, when a reboot would (pure).
 
     PX4's Magnetometer::ParametersUpdate (each parameter change) takes an offset, scale or
     off-diagonal vector from the parameters only when it differs from the one in use by more
-    than PX4_UPDATE_THRESHOLD (set_offset/set_scale/set_offdiagonal; newer releases use 0.005
-    for offsets). Written one at a time, the vectors pass through intermediate states; this
-    replays the writes in order, assuming the vehicle acts on each (the worst case), and also
-    flags a whole change within the threshold (an update that sees all writes at once)."""
+    than PX4_UPDATE_THRESHOLD (mapping.PX4_UPDATE_THRESHOLD). The vehicle is taken to use
+    what a boot with ``in_force`` gives (mapping.px4_as_applied). Written one at a time, the
+    vectors pass through intermediate states; this replays the writes in order, assuming the
+    vehicle acts on each (the worst case), and also flags a whole change within the threshold
+    (an update that sees all writes at once). A reason is given only when a reboot puts a
+    different vector in use; one within the threshold of its reset value is never applied,
+    reboot or not (plan_flash's note)."""
     p = f"CAL_MAG{index}_"
     stored = dict(in_force)
-    groups = {g: [f"{p}{a}{g}" for a in "XYZ"] for g in ("OFF", "SCALE", "ODIAG")}
-    in_use = {g: np.array([in_force[n] for n in names]) for g, names in groups.items()}
+    groups = tuple(mapping.PX4_RESET_VALUES)
+    booted = mapping.px4_as_applied(in_force, index)
+    in_use = {g: mapping.px4_vector(booted, index, g) for g in groups}
+    first = dict(in_use)
     for e in writes:
         stored[e.name] = e.value
-        for g, names in groups.items():
-            candidate = np.array([stored[n] for n in names])
+        for g in groups:
+            candidate = mapping.px4_vector(stored, index, g)
             if np.linalg.norm(candidate - in_use[g]) > PX4_UPDATE_THRESHOLD:
                 in_use[g] = candidate
+    after_boot = mapping.px4_as_applied(stored, index)
     out = []
-    for g, names in groups.items():
-        final = np.array([stored[n] for n in names])
-        whole = float(np.linalg.norm(final - np.array([in_force[n] for n in names])))
+    for g in groups:
+        final = mapping.px4_vector(after_boot, index, g)
+        whole = float(np.linalg.norm(final - first[g]))
         if np.any(in_use[g] != final) or 0.0 < whole <= PX4_UPDATE_THRESHOLD:
             out.append(
                 f"PX4 ignores a change of {p}*{g} up to {PX4_UPDATE_THRESHOLD} until a reboot, "

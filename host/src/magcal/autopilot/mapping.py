@@ -59,6 +59,15 @@ AP_CUSTOM_ORIENT = (101, 102)
 PX4_SCALE_MIN, PX4_SCALE_MAX = 0.1, 3.0
 PX4_OFFSET_WARN_GAUSS = 1.3
 PX4_CUSTOM_ROT = 100
+#: PX4 takes a CAL_MAGn_ vector from the parameters only when it differs from the one in use
+#: by more than this (``Vector3f(in_use − new).longerThan(0.01f)`` in
+#: src/lib/sensor_calibration/Magnetometer.cpp): set_offset, set_scale and set_offdiagonal in
+#: the 2021 sources (the release the test emulator models); the 2022 sources load the offsets
+#: and scales exactly (ParametersLoad) and keep the rule for the off-diagonals only. At boot
+#: the one in use is Reset()'s, PX4_RESET_VALUES, so a vector within the threshold of it is
+#: never applied, even after a reboot.
+PX4_UPDATE_THRESHOLD = 0.01
+PX4_RESET_VALUES = {"OFF": (0.0, 0.0, 0.0), "SCALE": (1.0, 1.0, 1.0), "ODIAG": (0.0, 0.0, 0.0)}
 #: Field inclination used for the heading error of a dropped rotation (a mid latitude).
 DEFAULT_INCLINATION_DEG = 60.0
 
@@ -461,16 +470,73 @@ def _px4_offset_scale(params: dict[str, float], index: int) -> tuple[np.ndarray,
     return off, S
 
 
-def px4_correct(raw: np.ndarray, params: dict[str, float], index: int = 0) -> np.ndarray:
-    """PX4 Magnetometer::Correct (no power compensation) on raw (N, 3) gauss."""
+def px4_vector(params: dict[str, float], index: int, group: str) -> np.ndarray:
+    """(3,) CAL_MAG{index}_X/Y/Z{group} (group "OFF", "SCALE" or "ODIAG")."""
+    n = px4_param_names(index)
+    return np.array([params[n[f"{a}{group}"]] for a in "XYZ"], dtype=float)
+
+
+def px4_unapplied(params: dict[str, float], index: int = 0) -> tuple[str, ...]:
+    """The groups ("OFF", "SCALE", "ODIAG") PX4 does not apply after a boot with ``params``:
+    within PX4_UPDATE_THRESHOLD of the reset value but not equal to it (pure)."""
+    out = []
+    for g, reset in PX4_RESET_VALUES.items():
+        d = float(np.linalg.norm(px4_vector(params, index, g) - np.array(reset)))
+        if 0.0 < d <= PX4_UPDATE_THRESHOLD:
+            out.append(g)
+    return tuple(out)
+
+
+def px4_as_applied(params: dict[str, float], index: int = 0) -> dict[str, float]:
+    """``params`` as a PX4 Magnetometer uses them after a boot (see PX4_UPDATE_THRESHOLD):
+    each vector within the threshold of its reset value replaced by that value."""
+    out = dict(params)
+    n = px4_param_names(index)
+    for g in px4_unapplied(params, index):
+        out |= {n[f"{a}{g}"]: v for a, v in zip("XYZ", PX4_RESET_VALUES[g], strict=True)}
+    return out
+
+
+def px4_unapplied_heading_rms_deg(
+    params: dict[str, float],
+    index: int,
+    field_gauss: float,
+    inclination_deg: float = DEFAULT_INCLINATION_DEG,
+) -> float:
+    """RMS heading error (deg) of PX4's correction as applied (:func:`px4_as_applied`) on
+    the field that ``params``' full correction makes exact (the same SO(3) grid metric as
+    :func:`_heading_rms_deg`, offsets included)."""
+    R = px4_rotation(params, index)
+    off_i, S_i = _px4_offset_scale(params, index)
+    off_a, S_a = _px4_offset_scale(px4_as_applied(params, index), index)
+    m_n = frames.field_direction(np.deg2rad(inclination_deg))
+    # y = F (R S)⁻¹ m + off is what the full correction turns into the field F m exactly
+    D_i = field_gauss * np.linalg.inv(R @ S_i)
+    D_a = field_gauss * np.linalg.inv(R @ S_a)
+    return quality.rms_deg(quality.calibration_heading_errors(D_i, off_i, m_n, D_a, off_a))
+
+
+def px4_correct(
+    raw: np.ndarray, params: dict[str, float], index: int = 0, *, as_applied: bool = False
+) -> np.ndarray:
+    """PX4 Magnetometer::Correct (no power compensation) on raw (N, 3) gauss: the formula
+    with ``params``, or with ``as_applied`` the correction a vehicle booted with them uses
+    (:func:`px4_as_applied`)."""
     raw = np.atleast_2d(np.asarray(raw, dtype=float))
+    if as_applied:
+        params = px4_as_applied(params, index)
     off, S = _px4_offset_scale(params, index)
     return (raw - off) @ S.T @ px4_rotation(params, index).T
 
 
-def px4_uncorrect(corrected: np.ndarray, params: dict[str, float], index: int = 0) -> np.ndarray:
+def px4_uncorrect(
+    corrected: np.ndarray, params: dict[str, float], index: int = 0, *, as_applied: bool = False
+) -> np.ndarray:
     """The raw sensor-frame field (N, 3) gauss behind PX4's corrected field (HIGHRES_IMU,
-    the ``vehicle_magnetometer`` topic): the inverse of :func:`px4_correct`."""
+    the ``vehicle_magnetometer`` topic): the inverse of :func:`px4_correct` (``as_applied``
+    as there)."""
+    if as_applied:
+        params = px4_as_applied(params, index)
     off, S = _px4_offset_scale(params, index)
     corrected = np.atleast_2d(np.asarray(corrected, dtype=float))
     if np.linalg.cond(S) > 1e12:

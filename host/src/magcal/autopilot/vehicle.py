@@ -376,7 +376,8 @@ def onboard_correction(
     """What the vehicle makes of a session's magnetometer y (N, 3) with the parameters in
     force now (``cp``): ArduPilot ``M·s·(R_now R_recᵀ y + OFS)`` (R_rec: the rotation in
     force when y was recorded, from ``recorded``; an internal compass is not turned by its
-    parameters), PX4 ``L · Rot · S · (y − off)`` (L: SENS_BOARD_X/Y/Z_OFF)."""
+    parameters), PX4 ``L · Rot · S · (y − off)`` (L: SENS_BOARD_X/Y/Z_OFF) with S and off as
+    a booted PX4 applies them (:func:`magcal.autopilot.mapping.px4_as_applied`)."""
     y = np.atleast_2d(np.asarray(y, dtype=float))
     if cp.autopilot == ARDUPILOT:
         if cp.external:
@@ -391,7 +392,8 @@ def onboard_correction(
     L = rotations.euler_deg_to_matrix(
         v["SENS_BOARD_X_OFF"], v["SENS_BOARD_Y_OFF"], v["SENS_BOARD_Z_OFF"]
     )
-    return mapping.px4_correct(y, v, px4_index(cp.compass)) @ L.T
+    # as a booted vehicle applies them: a vector within 0.01 of its reset value is not
+    return mapping.px4_correct(y, v, px4_index(cp.compass), as_applied=True) @ L.T
 
 
 def mag_frame_text(cp: CompassParams) -> str:

@@ -374,7 +374,7 @@ def run_flash(args) -> int:
             f"({len(plan.unchanged)} already held their value)"
         )
         print(f"previous values saved in {backup.path} (magcal flash --restore to put them back)")
-        _reboot(ap, plan.reboot_reasons, args.reboot)
+        _reboot(ap, plan.reboot_reasons, args.reboot, plan.never_applied)
     return 0
 
 
@@ -391,13 +391,17 @@ def _interrupted(exc, message: str, backup_path: Path) -> int:
     raise apflash.AutopilotFlashError(message, backup_path=backup_path) from exc
 
 
-def _reboot(ap, reasons: tuple[str, ...], reboot: bool) -> None:
+def _reboot(ap, reasons: tuple[str, ...], reboot: bool, never: tuple[str, ...] = ()) -> None:
     if not reasons:
         return
     if reboot:
         _say("flash", f"rebooting the vehicle ({'; '.join(reasons)})")
         ap.reboot()
-        print("vehicle rebooted: every value is in use")
+        if never:
+            groups = ", ".join(f"*{g}" for g in never)
+            print(f"vehicle rebooted: every value is in use except {groups} (see the note)")
+        else:
+            print("vehicle rebooted: every value is in use")
     else:
         print(f"reboot the vehicle before flying: {'; '.join(reasons)} (or pass --reboot)")
 

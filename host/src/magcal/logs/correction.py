@@ -279,7 +279,8 @@ def undo_px4(
             p[rot] = p["SENS_BOARD_ROT"]
         # row vectors: c @ L is Lᵀ c
         field = np.asarray(corrected[i0:i1], dtype=float) @ px4_level_adjustment(p)
-        mag[i0:i1] = mapping.px4_uncorrect(field, p, index)
+        # as PX4 applies them after a boot: a vector within 0.01 of its reset value is not
+        mag[i0:i1] = mapping.px4_uncorrect(field, p, index, as_applied=True)
     notes = []
     if changes.size:
         notes.append(

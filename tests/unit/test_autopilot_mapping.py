@@ -295,3 +295,66 @@ def test_uncorrect_refuses_a_singular_scale_matrix():
     params |= {"COMPASS_ORIENT": 0, "COMPASS_SCALE": 0.0}
     with pytest.raises(mapping.AutopilotMappingError, match="singular"):
         mapping.ardupilot_uncorrect(np.ones((2, 3)), params)
+
+
+# --- the same round trips against the emulator's independent formulas ---------------------------
+# tests/autopilot_emulator/onboard.py transcribes each autopilot's on-board correction on its
+# own (rotate_field + correct_field; Magnetometer Reset + ParametersUpdate + Correct), so these
+# do not share magcal's mapping.ardupilot_correct / px4_correct. Float64 parameters must agree
+# to 1e-9; parameters written to a .parm/.params file and read back (float32, as the vehicle
+# holds them) to float32 precision.
+from magcal.autopilot import flash as _flash  # noqa: E402
+from magcal.autopilot import params as _params  # noqa: E402
+from tests.autopilot_emulator import onboard  # noqa: E402
+
+#: Float32 parameters: relative rounding 6e-8 on each, raw fields about 1.2 F.
+FLOAT32_ATOL_PER_F = 1e-6  # measured: up to 1.6e-7 F (ArduPilot seed 400)
+
+
+def _through_file(values: dict[str, float], path) -> dict[str, float]:
+    entries = tuple(
+        _params.ParamEntry(n, _params.held_value(v, t, n), t)
+        for n, v in values.items()
+        for t in [_flash._type_of(n, {})]
+    )
+    text = _params.render_param_file(path, _params.ParamFile(entries, 1, 1, ("round trip",)))
+    path.write_text(text)
+    return _params.read_param_file(path).as_dict()
+
+
+@pytest.mark.parametrize("seed", range(10))
+@pytest.mark.parametrize("suffix", [".parm", ".params"])
+def test_ardupilot_round_trip_against_the_independent_formula(seed, suffix, tmp_path):
+    rng = np.random.default_rng(400 + seed)
+    F = 500.0
+    D_inv, o = _random_calibration(rng, F)
+    R_old = rot.ardupilot_matrix(6)
+    out = mapping.to_ardupilot(D_inv, o, F, R_old, compass=2)
+    values = out.params | {mapping.ap_external_name(2): 1.0}
+    raw = rng.normal(scale=600, size=(50, 3))
+    ours = F * (raw @ R_old.T - o) @ D_inv.T
+    assert np.allclose(onboard.ardupilot_correct(raw, values, compass=2), ours, atol=1e-9 * F)
+    held = _through_file(values, tmp_path / f"ap{suffix}")
+    got = onboard.ardupilot_correct(raw, held, compass=2)
+    assert np.allclose(got, ours, rtol=0, atol=FLOAT32_ATOL_PER_F * F)
+
+
+@pytest.mark.parametrize("seed", range(10))
+@pytest.mark.parametrize("suffix", [".parm", ".params"])
+def test_px4_round_trip_against_the_independent_formula(seed, suffix, tmp_path):
+    rng = np.random.default_rng(500 + seed)
+    F = 0.45
+    _, o = _random_calibration(rng, F)
+    B = rng.normal(scale=0.05, size=(3, 3))
+    P = np.eye(3) + (B + B.T) / 2
+    target = rot.px4_matrix(int(rng.integers(0, 41)))
+    D_inv = target @ P / F
+    out = mapping.to_px4(D_inv, o, F)
+    # vectors within PX4's 0.01 of their reset values would not be applied (flash notes it)
+    assert mapping.px4_unapplied(out.params) == ()
+    raw = rng.normal(scale=0.6, size=(50, 3))
+    ours = F * (raw - o) @ D_inv.T
+    assert np.allclose(onboard.px4_correct(raw, out.params), ours, atol=1e-9 * F)
+    held = _through_file(out.params, tmp_path / f"px4{suffix}")
+    got = onboard.px4_correct(raw, held)
+    assert np.allclose(got, ours, rtol=0, atol=FLOAT32_ATOL_PER_F * F)

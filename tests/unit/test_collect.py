@@ -5,6 +5,7 @@ reading back."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -410,3 +411,64 @@ def test_verify_measures_a_session_from_collect():
     s = _collect(FakeClient(_samples(1000)), max_samples=1000).session
     r = verify(VerifyClient(range(5)), _info(), n_samples=5, heading=False, session=s)
     assert r.session_heading is not None and r.session_heading.n > 900
+
+
+# ---------------------------------------------------------------- the command's handling
+# (commands/collect.py, shared by the serial and the MAVLink paths)
+
+
+class _Progress:
+    def __init__(self):
+        self.done_calls = 0
+
+    def __call__(self, p):
+        pass
+
+    def done(self):
+        self.done_calls += 1
+
+
+def test_command_keeps_the_samples_of_a_collection_that_failed(tmp_path):
+    from magcal.commands.collect import collect_saving_partial
+
+    client = FakeClient(_samples(500), error_at=77)
+    path = tmp_path / "s.csv"
+    progress = _Progress()
+    with pytest.raises(MagcalError, match=f"the 77 samples collected were written to {path}"):
+        collect_saving_partial(lambda: _collect(client, duration_s=100.0), str(path), progress)
+    assert len(read_session(path)) == 77 and progress.done_calls >= 1
+
+
+def test_command_writes_nothing_when_a_failed_collection_received_nothing(tmp_path):
+    from magcal.commands.collect import collect_saving_partial
+
+    client = FakeClient(_samples(500), error_at=0)
+    path = tmp_path / "s.csv"
+    with pytest.raises(MagcalError, match="no samples were received, nothing written"):
+        collect_saving_partial(lambda: _collect(client, duration_s=100.0), str(path), _Progress())
+    assert not path.exists()
+
+
+def test_command_exit_codes_after_a_collection(tmp_path, capsys):
+    import argparse
+
+    from magcal.cli import EXIT_INTERRUPTED
+    from magcal.commands.collect import finish_collect
+
+    path = tmp_path / "s.csv"
+    args = argparse.Namespace(output=str(path), coverage=None)
+    interrupted = _collect(FakeClient(_samples(500), interrupt_at=123), duration_s=100.0)
+    assert finish_collect(args, interrupted, 100, "on fake", "check it", None) == EXIT_INTERRUPTED
+    assert len(read_session(path)) == 123
+    assert "interrupted; the partial session is in" in capsys.readouterr().err
+    # Interrupted, a short session is kept without complaint; stopped otherwise, it is an error.
+    assert finish_collect(args, interrupted, 200, "on fake", "check it", None) == EXIT_INTERRUPTED
+    short = dataclasses.replace(interrupted, stopped="duration")
+    with pytest.raises(MagcalError, match="has 123 samples; calibration needs at least 200"):
+        finish_collect(args, short, 200, "on fake", "check it", None)
+    assert finish_collect(args, short, 100, "on fake", "check it", None) == 0
+    empty = col.CollectResult(None, 0, "duration", 0, 0, 0, 0, interrupted.coverage, 1.0)
+    path.unlink()
+    with pytest.raises(MagcalError, match="collect on fake: no samples were received.*; check it"):
+        finish_collect(args, empty, 100, "on fake", "check it", None)
+    assert not path.exists()

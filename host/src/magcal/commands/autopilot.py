@@ -106,10 +106,8 @@ def run_collect(args, out=None) -> int:
     from magcal.autopilot.collect import collect
     from magcal.autopilot.connection import open_autopilot
     from magcal.calib import observability
-    from magcal.cli import EXIT_INTERRUPTED
-    from magcal.commands.collect import progress_printer, write_collected
-    from magcal.device.collect import CollectError
-    from magcal.io.session import check_writable, write_session
+    from magcal.commands.collect import collect_saving_partial, finish_collect, progress_printer
+    from magcal.io.session import check_writable
 
     out = out or sys.stdout
     if args.duration is None and args.coverage is None and args.max_samples is None:
@@ -126,8 +124,8 @@ def run_collect(args, out=None) -> int:
             f"{ap.describe()}, firmware {fw or 'unknown'}; compass {compass} "
             f"({'external' if cp.external else 'internal'}), field in {cp.unit}",
         )
-        try:
-            result = collect(
+        result = collect_saving_partial(
+            lambda: collect(
                 ap,
                 cp,
                 rate_hz=args.rate,
@@ -137,41 +135,18 @@ def run_collect(args, out=None) -> int:
                 min_samples=min_samples,
                 progress=progress,
                 firmware=fw,
-            )
-        except CollectError as exc:
-            progress.done()
-            if exc.result.session is None:
-                raise MagcalError(f"{exc}; no samples were received, nothing written") from exc
-            write_session(args.output, exc.result.session)
-            raise MagcalError(
-                f"{exc}; the {exc.result.samples} samples collected were written to {args.output}"
-            ) from exc
-        finally:
-            progress.done()
-    if result.session is None:
-        raise MagcalError(
-            f"collect on {args.mavlink}: no samples were received, nothing written; check that "
-            "the vehicle streams its IMU"
+            ),
+            args.output,
+            progress,
         )
-    write_collected(args.output, result, out)
-    if result.interrupted:
-        print(
-            f"magcal collect: interrupted; the partial session is in {args.output}", file=sys.stderr
-        )
-        return EXIT_INTERRUPTED
-    if result.samples < min_samples:
-        raise MagcalError(
-            f"collect: {args.output} has {result.samples} samples; calibration needs at least "
-            f"{min_samples}: collect longer"
-        )
-    if args.coverage is not None and result.coverage.coverage < args.coverage / 100.0:
-        print(
-            f"magcal collect: warning: coverage {100 * result.coverage.coverage:.1f} % is below "
-            f"the target {args.coverage:g} % ({result.coverage.hint}); the calibration may be "
-            "poorly determined: collect again with more rotation",
-            file=sys.stderr,
-        )
-    return 0
+    return finish_collect(
+        args,
+        result,
+        min_samples,
+        f"on {args.mavlink}",
+        "check that the vehicle streams its IMU",
+        out,
+    )
 
 
 # ------------------------------------------------------------------------------ flash

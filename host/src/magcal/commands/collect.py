@@ -117,50 +117,33 @@ def write_collected(path: str, result: CollectResult, out) -> None:
     )
 
 
-def run(args, out=None) -> int:
+def collect_saving_partial(run_collect, path: str, progress) -> CollectResult:
+    """``run_collect()``, the progress line ended however it stops. On a CollectError the
+    samples received so far are written to ``path`` and the error names the file."""
+    try:
+        return run_collect()
+    except CollectError as exc:
+        progress.done()  # the message goes on its own line
+        if exc.result.session is None:
+            raise MagcalError(f"{exc}; no samples were received, nothing written") from exc
+        write_session(path, exc.result.session)
+        raise MagcalError(
+            f"{exc}; the {exc.result.samples} samples collected were written to {path}"
+        ) from exc
+    finally:
+        progress.done()
+
+
+def finish_collect(
+    args, result: CollectResult, min_samples: int, source: str, hint: str, out
+) -> int:
+    """Write a finished collection to ``args.output`` and return the exit code: interrupted
+    (the partial session kept), too short, or below the coverage target (a warning).
+    ``source`` and ``hint`` name the link and what to check when nothing arrived."""
     from magcal.cli import EXIT_INTERRUPTED
 
-    check_link_options(args, ("rate",))
-    if args.mavlink:
-        from magcal.commands import autopilot
-
-        if args.rate is None:
-            from magcal.autopilot.collect import DEFAULT_RATE_HZ
-
-            args.rate = DEFAULT_RATE_HZ
-        return autopilot.run_collect(args, out)
-    out = out or sys.stdout
-    if args.duration is None and args.coverage is None and args.max_samples is None:
-        raise MagcalError("collect: --coverage off needs --duration or --max-samples")
-    check_writable(args.output, "writing session")  # before collecting, not after
-    min_samples = observability.MIN_SAMPLES
-    progress = progress_printer()
-    with open_device(args.port) as dev:
-        try:
-            result = collect(
-                dev.client,
-                dev.info,
-                duration_s=args.duration,
-                coverage_target=None if args.coverage is None else args.coverage / 100.0,
-                max_samples=args.max_samples,
-                min_samples=min_samples,
-                progress=progress,
-            )
-        except CollectError as exc:
-            progress.done()  # the message goes on its own line
-            if exc.result.session is None:
-                raise MagcalError(f"{exc}; no samples were received, nothing written") from exc
-            write_session(args.output, exc.result.session)
-            raise MagcalError(
-                f"{exc}; the {exc.result.samples} samples collected were written to {args.output}"
-            ) from exc
-        finally:
-            progress.done()
     if result.session is None:
-        raise MagcalError(
-            f"collect on {args.port}: no samples were received, nothing written; check that "
-            "the device is acquiring"
-        )
+        raise MagcalError(f"collect {source}: no samples were received, nothing written; {hint}")
     write_collected(args.output, result, out)
     if result.interrupted:
         print(
@@ -180,3 +163,38 @@ def run(args, out=None) -> int:
             file=sys.stderr,
         )
     return 0
+
+
+def run(args, out=None) -> int:
+    check_link_options(args, ("rate",))
+    if args.mavlink:
+        from magcal.commands import autopilot
+
+        if args.rate is None:
+            from magcal.autopilot.collect import DEFAULT_RATE_HZ
+
+            args.rate = DEFAULT_RATE_HZ
+        return autopilot.run_collect(args, out)
+    out = out or sys.stdout
+    if args.duration is None and args.coverage is None and args.max_samples is None:
+        raise MagcalError("collect: --coverage off needs --duration or --max-samples")
+    check_writable(args.output, "writing session")  # before collecting, not after
+    min_samples = observability.MIN_SAMPLES
+    progress = progress_printer()
+    with open_device(args.port) as dev:
+        result = collect_saving_partial(
+            lambda: collect(
+                dev.client,
+                dev.info,
+                duration_s=args.duration,
+                coverage_target=None if args.coverage is None else args.coverage / 100.0,
+                max_samples=args.max_samples,
+                min_samples=min_samples,
+                progress=progress,
+            ),
+            args.output,
+            progress,
+        )
+    return finish_collect(
+        args, result, min_samples, f"on {args.port}", "check that the device is acquiring", out
+    )

@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT := out
 
-.PHONY: setup demo test test-native lint accuracy bench clean firmware-lib
+.PHONY: setup demo test test-native lint accuracy cramer-rao bench clean firmware-lib
 
 # The portable library is every file in firmware/src; ports (POSIX SIL device, Cortex-M4
 # target) live in firmware/port/ and are built by their own targets.
@@ -75,6 +75,10 @@ build/libmagcal_fw.so: $(FW_SRC) $(FW_HDR)
 
 accuracy: setup
 	$(PY) tools/accuracy_report.py --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy
+
+# The Cramér–Rao bound of the MEMS checks with unknown translational accelerations.
+cramer-rao: setup
+	$(PY) tools/cramer_rao_report.py --runs 20 --out bench/cramer_rao.md
 
 bench: setup sil
 	$(PY) bench/run_bench.py --out bench/results.json

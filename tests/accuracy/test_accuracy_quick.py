@@ -34,9 +34,9 @@ QUICK_SEEDS = {
 #: the test fails as soon as the bound is met, so this list cannot go stale.
 NOT_MET_YET = {
     "mems-acc": (
-        "issue 2, open: with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the ML "
-        "misalignment sits at about 2× the known-attitude floor (20 seeds 2.04×, 60 seeds "
-        "1.98×; bound 2×); re-weighting Σ_a and a Gauss-Markov acceleration state did not help"
+        "issue 2, blocked: with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the "
+        "ML misalignment sits at about 2× the known-attitude floor (20 seeds 2.04×; bound 2×), "
+        "below the scenario's Cramér-Rao bound of 2.29× (make cramer-rao)"
     ),
 }
 

@@ -27,7 +27,8 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from magcal.calib import ml, params  # noqa: E402
+from magcal.calib import params  # noqa: E402
+from magcal.calib.evaluation import likelihood_problem  # noqa: E402
 from magcal.calib.pipeline import calibrate  # noqa: E402
 from magcal.report import accuracy  # noqa: E402
 from magcal.report import cramer_rao as cr  # noqa: E402
@@ -37,27 +38,20 @@ from magcal.sim.scenarios import simulate  # noqa: E402
 #: process of the bound: per-axis RMS 0.3/√3, centred in the band, about critically damped.
 ACC_PROCESS = cr.AccelerationProcess(rms_m_s2=0.3 / np.sqrt(3.0), f0_hz=1.0, zeta=0.7)
 OFF = cr.AccelerationProcess(rms_m_s2=0.0, f0_hz=1.0, zeta=0.7)
-SCENARIOS = {
-    "mems": (accuracy._mems, OFF, "b. MEMS, 100 Hz, 1 min tumbling"),
-    "mems-acc": (accuracy._mems_acc, ACC_PROCESS, "c. MEMS + 0.3 m/s² acc. + 20 bumps"),
-}
+#: The accuracy checks (their sessions and titles) and the process of each one's bound.
+PROCESSES = {"mems": OFF, "mems-acc": ACC_PROCESS}
 
 
 def run(job: tuple[str, int]) -> dict:
     name, seed = job
-    config, process, _ = SCENARIOS[name]
-    session, truth = simulate(config(False), seed)
+    session, truth = simulate(accuracy.CHECKS[name].scenario(False), seed)
     cal = calibrate(session, "ml")
-    init = cal.init
-    norm = ml.normalisation_for(init.params)
-    p0 = init.params.scaled_magnetometer(norm.centre, norm.scale)
-    data = ml.filter_data_for(session, init, p0, norm)
+    # The ML step's filter data and gyroscope-noise prior, set up around init's parameters.
+    problem = likelihood_problem(session, cal.init.params)
+    norm = problem.norm
     theta = params.pack(truth.sensor.scaled_magnetometer(norm.centre, norm.scale))
-    still = init.noise.stationary
-    _, precision = ml.gyro_noise_prior(
-        params.pack(p0), 0 if still is None else still.stop - still.start
-    )
-    info = cr.fisher_information(theta, data, process) + np.diag(precision)
+    info = cr.fisher_information(theta, problem.data, PROCESSES[name])
+    info += np.diag(problem.prior_precision)
     s = truth.sensor
     jac = cr.heading_error_jacobian(s.D, s.o, s.m_n, norm.centre, norm.scale)
     return {
@@ -75,7 +69,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", required=True, help="Markdown report to write")
     ap.add_argument("--workers", type=int, default=len(os.sched_getaffinity(0)))
     args = ap.parse_args(argv)
-    jobs = [(name, seed) for name in SCENARIOS for seed in range(1, args.runs + 1)]
+    jobs = [(name, seed) for name in PROCESSES for seed in range(1, args.runs + 1)]
     t0 = time.perf_counter()
     rows = []
     with multiprocessing.Pool(args.workers) as pool:
@@ -105,7 +99,8 @@ def main(argv: list[str] | None = None) -> int:
         "bound/floor: median of ratios | bound/floor: ratio of medians | ML/bound: median |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    for name, (_, _, label) in SCENARIOS.items():
+    for name in PROCESSES:
+        label = accuracy.CHECKS[name].title
         sel = [r for r in rows if r["scenario"] == name]
         fl = np.array([r["floor"] for r in sel])
         mlv = np.array([r["ml"] for r in sel])

@@ -10,7 +10,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from magcal.calib import cost, ml, params, uncertainty
+from magcal.calib import cost, evaluation, params, uncertainty
 from magcal.calib.pipeline import calibrate
 from magcal.errors import MagcalError
 from magcal.report import accuracy
@@ -23,16 +23,11 @@ OFF = cr.AccelerationProcess(rms_m_s2=0.0, f0_hz=1.0, zeta=0.7)
 def _problem(config, seed):
     """(session, truth, filter data, θ_true normalised, prior precision, normalisation)."""
     session, truth = simulate(config, seed)
-    cal = calibrate(session, "init", force=True)  # short sessions: fast tests
-    norm = ml.normalisation_for(cal.init.params)
-    p0 = cal.init.params.scaled_magnetometer(norm.centre, norm.scale)
-    data = ml.filter_data_for(session, cal.init, p0, norm)
+    init = calibrate(session, "init", force=True).init  # short sessions: fast tests
+    problem = evaluation.likelihood_problem(session, init.params)
+    norm = problem.norm
     theta = params.pack(truth.sensor.scaled_magnetometer(norm.centre, norm.scale))
-    still = cal.init.noise.stationary
-    _, precision = ml.gyro_noise_prior(
-        params.pack(p0), 0 if still is None else still.stop - still.start
-    )
-    return session, truth, data, theta, precision, norm
+    return session, truth, problem.data, theta, problem.prior_precision, norm
 
 
 @pytest.fixture(scope="module")

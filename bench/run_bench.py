@@ -8,7 +8,7 @@ Four measurements, each in a fresh subprocess of this script (``--worker NAME``)
 OMP/OPENBLAS/MKL_NUM_THREADS=1 set before numpy is imported and the process pinned to one
 CPU with ``os.sched_setaffinity``:
 
-1. ``calibrate``: the full ML calibration (``pipeline.calibrate``: checks, initial estimate,
+1. ``calibrate``: the full ML calibration (``calibrate.calibrate``: checks, initial estimate,
    ML optimisation, diagnostics) of a simulated 10-minute 100 Hz MEMS session, in a cold
    process as a user gets it. Imports and the simulation are timed but kept out of the
    total. Peak RSS (``ru_maxrss``) is read in the same process, which does nothing else.
@@ -17,9 +17,9 @@ CPU with ``os.sched_setaffinity``:
 3. ``compare``: exact against finite-difference gradients on a shorter session, both ML
    optimisations from the same initial estimate θ₀ in one process.
 4. ``scaling``: one cost+gradient and one cost-only evaluation at 6k, 60k and 600k samples.
-5. ``ckf``: Zhao et al.'s cubature Kalman filter (``magcal.calib.ckf``), time per sample: the
-   filter step alone, ``update`` returning the estimate and covariance, the live estimate as
-   ``magcal collect`` runs it, and a whole session through ``--method ckf``'s filter and
+5. ``ckf``: Zhao et al.'s cubature Kalman filter (``magcal.calib.norm_only.ckf``), time per
+   sample: the filter step alone, ``update`` returning the estimate and covariance, the live
+   estimate as ``magcal collect`` runs it, and a whole session through ``--method ckf``'s filter and
    through TWO-STEP for comparison.
 
 Progress goes to stderr, the table (formatted by bench/report.py) to stdout, the
@@ -69,7 +69,7 @@ TARGET_PEAK_RSS_MB = 1024.0
 TARGET_SPEEDUP = 20.0
 TARGET_COST_REL_DIFF = 1e-6
 
-#: Keys of ``result.extra["seconds"]`` in the order ``pipeline.calibrate`` writes them: the
+#: Keys of ``result.extra["seconds"]`` in the order ``calibrate.calibrate`` writes them: the
 #: observability checks; the initial estimate (Algorithm 1 step 1), whose ellipsoid fit the
 #: pipeline runs first (to judge it) and ``initial_estimate`` then adds noise and alignment;
 #: ml (step 2); diagnostics.
@@ -140,9 +140,10 @@ def _session(duration_s: float, seed: int):
 
 def _ml_problem(session):
     """(init, normalised θ₀ params, FilterData, θ₀) as ml.maximum_likelihood builds them."""
-    from magcal.calib import initial, ml, params
+    from magcal.calib.initial import estimate
+    from magcal.calib.likelihood import ml, params
 
-    init = initial.initial_estimate(session)
+    init = estimate.initial_estimate(session)
     norm = ml.normalisation_for(init.params)
     p0 = init.params.scaled_magnetometer(norm.centre, norm.scale)
     data = ml.filter_data_for(session, init, p0, norm)
@@ -152,7 +153,7 @@ def _ml_problem(session):
 def work_calibrate(duration_s: float, seed: int, warm: bool) -> dict:
     """One full calibration in this (cold) process; with ``warm`` a second one afterwards."""
     t0 = time.perf_counter()
-    from magcal.calib import pipeline
+    from magcal.calib import calibrate
 
     import_s = time.perf_counter() - t0
     cvxpy_loaded = "cvxpy" in sys.modules
@@ -164,7 +165,7 @@ def work_calibrate(duration_s: float, seed: int, warm: bool) -> dict:
 
     cpu0 = _cpu_seconds()
     t0 = time.perf_counter()
-    cal = pipeline.calibrate(session, "ml", gradient="exact")
+    cal = calibrate.calibrate(session, "ml", gradient="exact")
     wall_s = time.perf_counter() - t0
     out = {
         "samples": len(session),
@@ -180,7 +181,7 @@ def work_calibrate(duration_s: float, seed: int, warm: bool) -> dict:
     }
     if warm:
         t0 = time.perf_counter()
-        cal = pipeline.calibrate(session, "ml", gradient="exact")
+        cal = calibrate.calibrate(session, "ml", gradient="exact")
         out["warm_wall_s"] = time.perf_counter() - t0
         out["warm_stages_s"] = _stage_seconds(cal)
     return out
@@ -203,7 +204,7 @@ def _optimizer_summary(opt: dict) -> dict:
 def work_imports() -> dict:
     """Import time of magcal's pipeline, then of cvxpy on top of it."""
     t0 = time.perf_counter()
-    from magcal.calib import pipeline  # noqa: F401
+    from magcal.calib import calibrate  # noqa: F401
 
     magcal_s = time.perf_counter() - t0
     t0 = time.perf_counter()
@@ -223,8 +224,8 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
     (see :data:`COMPARE_RUNS`)."""
     import numpy as np
 
-    from magcal.calib import cost, ml
-    from magcal.calib.optimize import OptimizeOptions
+    from magcal.calib.likelihood import cost, ml
+    from magcal.calib.likelihood.optimize import OptimizeOptions
 
     session = _session(duration_s, seed)
     # Import cvxpy first so that init_s is the initial estimate's computation only (in a
@@ -329,7 +330,7 @@ def _median_seconds(fn, reps: int) -> float:
 
 
 class _InstrumentError(RuntimeError):
-    """magcal.calib.ml no longer has what :func:`_instrument_ml` wraps."""
+    """magcal.calib.likelihood.ml no longer has what :func:`_instrument_ml` wraps."""
 
 
 @contextlib.contextmanager
@@ -341,7 +342,7 @@ def _instrument_ml(ml_module):
     captured: dict = {}
     names = ("penalised_cost_functions", "minimize_bfgs")
     if not all(hasattr(ml_module, name) for name in names):
-        raise _InstrumentError(f"magcal.calib.ml lacks {' or '.join(names)}")
+        raise _InstrumentError(f"magcal.calib.likelihood.ml lacks {' or '.join(names)}")
     original_pcf, original_min = (getattr(ml_module, name) for name in names)
 
     def pcf(*args, **kwargs):
@@ -366,7 +367,7 @@ def work_scaling(durations_s: list[float], reps: list[int], seed: int) -> dict:
 
     import numpy as np
 
-    from magcal.calib import cost, native
+    from magcal.calib.likelihood import cost, mekf
 
     rows = []
     for duration_s, n_rep in zip(durations_s, reps, strict=True):
@@ -374,7 +375,7 @@ def work_scaling(durations_s: list[float], reps: list[int], seed: int) -> dict:
         _, _, data, theta0 = _ml_problem(session)
         n = len(data)
         _log(f"  {n} samples: {n_rep} repetitions")
-        tape = native.new_tape(n)
+        tape = mekf.new_tape(n)
         cost.cost_and_gradient(theta0, data, tape)  # warm-up: page in the tape and the data
         t_cg, t_c = [], []
         for _ in range(n_rep):
@@ -437,7 +438,7 @@ def work_ckf(duration_s: float, seed: int, reps: int) -> dict:
     - ``run_ckf_s``: a whole session as ``--method ckf`` filters it (start included);
       ``two_step_s``: TWO-STEP on the same readings.
     """
-    from magcal.calib import ckf, live, twostep
+    from magcal.calib.norm_only import ckf, live, twostep
 
     session = _session(duration_s, seed)
     mag = session.mag

@@ -5,7 +5,7 @@ from setuptools import Extension, setup
 setup(
     ext_modules=[
         Extension(
-            "magcal.calib._mekf",
+            "magcal.calib.likelihood._mekf",
             sources=["csrc/mekf_likelihood.c", "csrc/_mekf_module.c"],
             include_dirs=["csrc"],
             # No auto-vectorisation: on the kernel's 3×3 arithmetic GCC 12 produces packed

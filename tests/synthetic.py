@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from magcal.calib import ekf, frames, params
+from magcal.calib import frames
+from magcal.calib.likelihood import mekf, params
 
 
 def synthetic_filter_problem(n=400, seed=0, rate_hz=100.0, inflation="mixed"):
@@ -41,5 +42,5 @@ def synthetic_filter_problem(n=400, seed=0, rate_hz=100.0, inflation="mixed"):
     elif inflation != "all":
         raise ValueError(f"unknown inflation pattern {inflation!r}")
     q0 = frames.quat_multiply(frames.rotvec_to_quat([0.05, -0.03, 0.1]), q[0])
-    data = ekf.make_filter_data(t, gyr, acc, mag, q0, acc_extra_var=extra, g=9.81)
+    data = mekf.make_filter_data(t, gyr, acc, mag, q0, acc_extra_var=extra, g=9.81)
     return p, data, q

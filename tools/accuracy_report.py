@@ -36,7 +36,7 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from magcal.calib import quality  # noqa: E402
+from magcal.calib.diagnostics import quality  # noqa: E402
 from magcal.report import accuracy  # noqa: E402
 from magcal.report.plots import plot_heading_rmse_histograms  # noqa: E402
 

@@ -27,9 +27,9 @@ import time  # noqa: E402
 
 import numpy as np  # noqa: E402
 
-from magcal.calib import params  # noqa: E402
-from magcal.calib.evaluation import likelihood_problem  # noqa: E402
-from magcal.calib.pipeline import calibrate  # noqa: E402
+from magcal.calib.calibrate import calibrate  # noqa: E402
+from magcal.calib.diagnostics.replay import likelihood_problem  # noqa: E402
+from magcal.calib.likelihood import params  # noqa: E402
 from magcal.report import accuracy  # noqa: E402
 from magcal.report import cramer_rao as cr  # noqa: E402
 from magcal.sim.scenarios import simulate  # noqa: E402

@@ -1,5 +1,5 @@
 /*
- * CPython glue for mekf_likelihood.c: magcal.calib._mekf. Arrays arrive through the buffer
+ * CPython glue for mekf_likelihood.c: magcal.calib.likelihood._mekf. Arrays arrive through the buffer
  * protocol (no numpy headers needed to build this) and must be C-contiguous native float64:
  * the format and item size are checked, not just the byte count, so an int64 or float32
  * array is an error rather than a wrong result. The Python wrapper in

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.calib import pipeline
-from magcal.calib.ellipsoid import fit_ellipsoid_algebraic
+from magcal.calib import calibrate
+from magcal.calib.initial.ellipsoid import fit_ellipsoid_algebraic
 from magcal.report import accuracy
 from magcal.sim.scenarios import preset, simulate
 
@@ -107,7 +107,7 @@ def test_algebraic_eigenvalues_see_a_hyperboloid():
 
 def test_alignment_warning_is_recognised():
     session, _ = simulate(preset("mems", duration_s=30.0, translational_acc_rms=3.0), 1)
-    texts = pipeline.calibrate(session, "init").result.warnings
+    texts = calibrate.calibrate(session, "init").result.warnings
     assert any(accuracy.is_alignment_warning(t) for t in texts), texts
     assert not accuracy.is_alignment_warning(
         "no stationary stretch found: gyro bias and noise levels start from conservative priors"

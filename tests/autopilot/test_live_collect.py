@@ -15,7 +15,7 @@ from magcal import cli
 from magcal.autopilot import vehicle
 from magcal.autopilot.collect import collect
 from magcal.autopilot.connection import open_autopilot
-from magcal.calib import live as live_mod
+from magcal.calib.norm_only import live as live_mod
 from magcal.io.session import read_session
 from tests.autopilot.test_mavlink_end_to_end import SPEEDUP
 from tests.autopilot_emulator import AutopilotEmulator

@@ -25,7 +25,7 @@ import pytest
 from matplotlib import image as mpimg
 from matplotlib.colors import to_rgb
 
-from magcal.calib.pipeline import calibrate
+from magcal.calib.calibrate import calibrate
 from magcal.cli import main
 from magcal.io.result import write_result
 from magcal.io.session import read_session, session_from_arrays, write_session

@@ -5,14 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.calib import align
-from magcal.calib.align import (
-    Alignment,
-    acceleration_weights,
-    estimate_alignment,
-    estimate_alignment_from_vertical,
-    vertical_from_accelerometer,
-)
 from magcal.calib.frames import (
     field_direction,
     gravity_n,
@@ -20,6 +12,14 @@ from magcal.calib.frames import (
     quat_normalize,
     quat_to_matrix,
     rotvec_to_quat,
+)
+from magcal.calib.initial import alignment
+from magcal.calib.initial.alignment import (
+    Alignment,
+    acceleration_weights,
+    estimate_alignment,
+    estimate_alignment_from_vertical,
+    vertical_from_accelerometer,
 )
 from magcal.errors import CalibrationError, InsufficientDataError
 
@@ -44,6 +44,20 @@ def _scenario(rng, n=5000, dip=1.0, det_sign=1.0):
     return q_nb, mag, o, D_tilde, D, U
 
 
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("dip_deg", [0.0, 0.02, -0.02, 4.0, -4.0])
+def test_dip_sign_judged_against_its_noise(seed, dip_deg):
+    """A dip within its noise of 0° is not called negative; a clearly negative one is."""
+    rng = np.random.default_rng(100 + seed)
+    q_nb, mag, o, D_tilde, _D, _U = _scenario(rng, n=3000, dip=np.radians(dip_deg))
+    mag = mag + 0.02 * rng.normal(size=mag.shape)
+    al = estimate_alignment(mag, o, D_tilde, q_nb)
+    # 2 % noise on 3000 samples: m_z has a standard error of ≈ 0.02/√3000 (0.02° of dip), so
+    # ±0.02° is within the noise and ±4° is 200 standard errors away.
+    negative = any("negative" in w for w in al.warnings)
+    assert negative == (dip_deg < -1.0)
+
+
 @pytest.mark.parametrize("seed", range(4))
 @pytest.mark.parametrize("dip_deg", [65.0, 0.0, -40.0, 85.0])
 def test_true_attitude_recovers_D(seed, dip_deg):
@@ -61,7 +75,7 @@ def test_true_attitude_recovers_D(seed, dip_deg):
     assert al.m_z == pytest.approx(-np.sin(dip), abs=1e-6)
     assert np.allclose(al.m_n, field_direction(dip), atol=1e-6)
     assert al.residual_rms < 1e-6
-    assert al.hessian_min_eig > align.MIN_HESSIAN_EIG
+    assert al.hessian_min_eig > alignment.MIN_HESSIAN_EIG
     if dip_deg < 0:
         assert any("negative" in w for w in al.warnings)
     else:
@@ -136,7 +150,7 @@ def test_yaw_only_warns():
     D = np.diag([1.1, 0.9, 1.0])
     mag = (R_bn @ field_direction(1.0)) @ D.T
     al = estimate_alignment(mag, np.zeros(3), D, q_nb)
-    assert al.hessian_min_eig < align.MIN_HESSIAN_EIG
+    assert al.hessian_min_eig < alignment.MIN_HESSIAN_EIG
     assert any("poorly determined" in w for w in al.warnings)
 
 
@@ -190,14 +204,14 @@ def test_jacobian_matches_finite_differences():
     rng = np.random.default_rng(9)
     L = rng.normal(size=(9, 9))
     R = _random_rotation(rng)
-    J = align._jacobian(L, R)
+    J = alignment._jacobian(L, R)
     h = 1e-6
     fd = np.empty((9, 3))
     for k in range(3):
         e = np.zeros(3)
         e[k] = h
-        plus = L @ (align._rotation_exp(e) @ R).ravel()
-        minus = L @ (align._rotation_exp(-e) @ R).ravel()
+        plus = L @ (alignment._rotation_exp(e) @ R).ravel()
+        minus = L @ (alignment._rotation_exp(-e) @ R).ravel()
         fd[:, k] = (plus - minus) / (2 * h)
     assert np.allclose(J, fd, atol=1e-8)
 

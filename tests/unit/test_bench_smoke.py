@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from magcal.calib import native
+from magcal.calib.likelihood import mekf
 
 BENCH_DIR = Path(__file__).resolve().parents[2] / "bench"
 
@@ -78,7 +78,7 @@ def test_smoke_scaling_rows_and_tape_size(smoke_results, bench):
     assert len(rows) == len(bench.SMOKE_CONFIG.scaling_durations_s)
     assert rows[0]["samples"] < rows[1]["samples"]
     for r in rows:
-        tape_bytes = 8 * native.TAPE_DOUBLES_PER_SAMPLE * r["samples"]
+        tape_bytes = 8 * mekf.TAPE_DOUBLES_PER_SAMPLE * r["samples"]
         assert r["tape_mb"] == pytest.approx(tape_bytes / 1e6)
         assert r["repetitions"] == len(r["cost_grad_all_s"])
     assert res["scaling"]["loglog_slope_cost_grad"] is not None

@@ -9,7 +9,7 @@ import json
 import pytest
 
 from magcal import cli
-from magcal.calib import pipeline
+from magcal.calib import calibrate
 from magcal.cli import EXIT_ERROR, main
 from magcal.io.result import REQUIRED_KEYS, read_result
 
@@ -58,7 +58,7 @@ def test_unobservable_session_is_refused_unless_forced(sessions, tmp_path, capsy
 
 
 def test_method_help_lists_every_method(capsys):
-    assert cli.CALIBRATION_METHODS == pipeline.METHODS
+    assert cli.CALIBRATION_METHODS == calibrate.METHODS
     with pytest.raises(SystemExit):
         main(["calibrate", "--help"])
     text = " ".join(capsys.readouterr().out.split())

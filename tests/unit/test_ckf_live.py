@@ -1,4 +1,4 @@
-"""The live CKF while collecting (magcal.calib.live and its use in magcal.device.collect):
+"""The live CKF while collecting (magcal.calib.norm_only.live and its use in magcal.device.collect):
 "ok to stop" on a good session and not on a partial or a too noisy one, block means at high
 rates, and collect's progress line with the estimate (and without it should it fail)."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.calib import live as live_mod
-from magcal.calib.live import LiveCalibration, LiveState
+from magcal.calib.norm_only import live as live_mod
+from magcal.calib.norm_only.live import LiveCalibration, LiveState
 from magcal.device import collect as col
 from magcal.device.coverage import CoverageTracker
 from magcal.sim.scenarios import preset, simulate

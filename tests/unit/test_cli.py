@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-import magcal.calib.pipeline
+import magcal.calib.calibrate
 from magcal import cli
 from magcal.cli import EXIT_ERROR, main, refusal
 from magcal.errors import MagcalError
@@ -40,7 +40,7 @@ def no_calibration(monkeypatch):
     def calibrate(*args, **kwargs):
         raise AssertionError("calibrate() ran although the command should have stopped before")
 
-    monkeypatch.setattr(magcal.calib.pipeline, "calibrate", calibrate)
+    monkeypatch.setattr(magcal.calib.calibrate, "calibrate", calibrate)
 
 
 def refused(capsys, argv: list[str], *patterns: str) -> str:

@@ -10,8 +10,9 @@ import dataclasses
 import numpy as np
 import pytest
 
-from magcal.calib import cost, evaluation, params, uncertainty
-from magcal.calib.pipeline import calibrate
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import replay, uncertainty
+from magcal.calib.likelihood import cost, params
 from magcal.errors import MagcalError
 from magcal.report import accuracy
 from magcal.report import cramer_rao as cr
@@ -24,7 +25,7 @@ def _problem(config, seed):
     """(session, truth, filter data, θ_true normalised, prior precision, normalisation)."""
     session, truth = simulate(config, seed)
     init = calibrate(session, "init", force=True).init  # short sessions: fast tests
-    problem = evaluation.likelihood_problem(session, init.params)
+    problem = replay.likelihood_problem(session, init.params)
     norm = problem.norm
     theta = params.pack(truth.sensor.scaled_magnetometer(norm.centre, norm.scale))
     return session, truth, problem.data, theta, problem.prior_precision, norm

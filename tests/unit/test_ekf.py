@@ -3,14 +3,15 @@
 import numpy as np
 import pytest
 
-from magcal.calib import ekf, frames, native
+from magcal.calib import frames
+from magcal.calib.likelihood import mekf
 
 
 @pytest.mark.parametrize("use_mag", [True, False])
 def test_native_filter_matches_reference(filter_problem, use_mag):
     p, data, _ = filter_problem
-    ref = ekf.run_filter_reference(p, data, use_mag)
-    nat = ekf.run_filter(p, data, use_mag)
+    ref = mekf.run_filter_reference(p, data, use_mag)
+    nat = mekf.run_filter(p, data, use_mag)
     assert nat.cost == pytest.approx(ref.cost, rel=1e-12)
     np.testing.assert_allclose(
         frames.quat_to_matrix(nat.q_filt), frames.quat_to_matrix(ref.q_filt), atol=1e-10
@@ -21,7 +22,7 @@ def test_native_filter_matches_reference(filter_problem, use_mag):
 
 def test_filter_tracks_true_attitude(filter_problem):
     p, data, q_true = filter_problem
-    out = ekf.run_filter(p, data)
+    out = mekf.run_filter(p, data)
     err = frames.quat_to_rotvec(frames.quat_multiply(out.q_filt, frames.quat_conjugate(q_true)))
     # After the first second, the attitude error is a fraction of a degree.
     assert np.rad2deg(np.abs(err[100:]).max()) < 1.0
@@ -34,8 +35,8 @@ def test_filter_tracks_true_attitude(filter_problem):
 
 def test_gradient_and_cost_kernels_agree_on_cost(filter_problem):
     p, data, _ = filter_problem
-    c, _ = native.cost_and_model_gradient(p, data)
-    assert c == pytest.approx(native.filter_pass(p, data, True), rel=1e-14)
+    c, _ = mekf.cost_and_model_gradient(p, data)
+    assert c == pytest.approx(mekf.filter_pass(p, data, True), rel=1e-14)
 
 
 def test_non_positive_definite_noise_gives_an_error(filter_problem):
@@ -46,18 +47,18 @@ def test_non_positive_definite_noise_gives_an_error(filter_problem):
 
     bad = dataclasses.replace(p, Sigma_mag=-np.eye(3))
     with pytest.raises(CalibrationError, match="diverged"):
-        ekf.run_filter(bad, data)
+        mekf.run_filter(bad, data)
 
 
 def test_acc_inflation_is_zero_at_rest_and_spreads_a_bump_over_its_window():
     rng = np.random.default_rng(0)
     acc = np.tile([0.0, 0.0, 9.81], (200, 1)) + 0.02 * rng.normal(size=(200, 3))
-    assert not np.any(ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0))
+    assert not np.any(mekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0))
     acc[100] += [8.0, 0.0, 5.0]
-    c = ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0)
-    excess = abs(np.linalg.norm(acc[100]) - 9.81) - (3 * 0.02 + ekf.BUMP_THRESHOLD_M_S2)
-    half = round(ekf.BUMP_WINDOW_S * 100.0)
-    np.testing.assert_allclose(c[100 - half : 100 + half + 1], ekf.BUMP_GAIN * excess**2)
+    c = mekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0)
+    excess = abs(np.linalg.norm(acc[100]) - 9.81) - (3 * 0.02 + mekf.BUMP_THRESHOLD_M_S2)
+    half = round(mekf.BUMP_WINDOW_S * 100.0)
+    np.testing.assert_allclose(c[100 - half : 100 + half + 1], mekf.BUMP_GAIN * excess**2)
     assert c[100 - half - 1] == 0.0 and c[100 + half + 1] == 0.0
 
 
@@ -65,4 +66,4 @@ def test_acc_inflation_ignores_smooth_accelerations():
     # 0.3 m/s² of smooth motion is the ML step's Σ_a business, not an outlier.
     t = np.arange(1000) / 100.0
     acc = np.column_stack([0.3 * np.sin(2 * t), 0.3 * np.cos(3 * t), 9.81 + 0.3 * np.sin(t)])
-    assert not np.any(ekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0))
+    assert not np.any(mekf.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0))

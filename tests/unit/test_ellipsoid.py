@@ -6,7 +6,7 @@ import cvxpy as cp
 import numpy as np
 import pytest
 
-from magcal.calib.ellipsoid import (
+from magcal.calib.initial.ellipsoid import (
     EllipsoidFit,
     fit_ellipsoid_algebraic,
     fit_ellipsoid_sdp,

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from magcal.calib import cost, params
+from magcal.calib.likelihood import cost, params
 from tests.synthetic import synthetic_filter_problem
 
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from magcal.autopilot import flash, vehicle, wmm
-from magcal.calib import frames, quality
+from magcal.calib import frames
+from magcal.calib.diagnostics import quality
 from magcal.cli import main
 from magcal.io.session import read_session
 from tests.loggen.dataflash import write_bin

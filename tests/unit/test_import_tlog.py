@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from magcal.autopilot import mapping
-from magcal.calib import quality
-from magcal.calib.pipeline import calibrate
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import quality
 from magcal.logs import LogImportError, import_log, tlog
 from tests.loggen.dataflash import COMPASS_PARAMS
 from tests.loggen.scenario import bench_day

@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.calib import quality
-from magcal.calib.pipeline import calibrate
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import quality
 from magcal.logs import LogImportError, import_log, ulog
 from magcal.logs.correction import MIXED_WINDOW_S
 from tests.loggen.scenario import bench_day

@@ -8,7 +8,7 @@ import ctypes
 import numpy as np
 import pytest
 
-from magcal.calib import _mekf, native
+from magcal.calib.likelihood import _mekf, mekf
 from tests.synthetic import synthetic_filter_problem
 
 N = 50
@@ -20,7 +20,7 @@ MODEL, DT, GYR, ACC, MAG, EXTRA, G, Q0, P0, USE_MAG = range(10)
 @pytest.fixture(scope="module")
 def problem():
     p, data, _ = synthetic_filter_problem(n=N, inflation="mixed")
-    return p, data, (native._model_buffer(p), *native._data_args(data), True)
+    return p, data, (mekf._model_buffer(p), *mekf._data_args(data), True)
 
 
 def with_arg(args, index, value):
@@ -34,8 +34,8 @@ def cost(args, q=None, innov=None, normalised=None):
 
 
 def cost_grad(args, tape=None, grad=None):
-    tape = native.new_tape(N) if tape is None else tape
-    grad = np.empty(native.MODEL_DOUBLES) if grad is None else grad
+    tape = mekf.new_tape(N) if tape is None else tape
+    grad = np.empty(mekf.MODEL_DOUBLES) if grad is None else grad
     return _mekf.cost_grad(*args, tape, grad)
 
 
@@ -44,7 +44,7 @@ def test_valid_arguments_give_the_cost(problem):
     c = cost(args)
     assert np.isfinite(c)
     assert cost_grad(args) == pytest.approx(c, rel=1e-14)
-    assert native.MODEL_DOUBLES == 45
+    assert mekf.MODEL_DOUBLES == 45
 
 
 @pytest.mark.parametrize(
@@ -128,7 +128,7 @@ def test_outputs_must_be_writable_float64_of_the_right_length(problem):
 
 def test_tape_and_gradient_buffers_are_checked(problem):
     _, _, args = problem
-    n_tape = native.TAPE_DOUBLES_PER_SAMPLE * N
+    n_tape = mekf.TAPE_DOUBLES_PER_SAMPLE * N
     with pytest.raises(
         ValueError, match=rf"tape: expected {n_tape} float64 values, got {n_tape - 1}"
     ):
@@ -140,30 +140,30 @@ def test_tape_and_gradient_buffers_are_checked(problem):
     with pytest.raises(ValueError, match="tape: .*read-only"):
         cost_grad(args, tape=read_only)
     with pytest.raises(TypeError, match="grad: expected float64 values, got buffer format 'f'"):
-        cost_grad(args, grad=np.empty(native.MODEL_DOUBLES, dtype=np.float32))
+        cost_grad(args, grad=np.empty(mekf.MODEL_DOUBLES, dtype=np.float32))
     with pytest.raises(ValueError, match=r"grad: expected 45 float64 values, got 46"):
-        cost_grad(args, grad=np.empty(native.MODEL_DOUBLES + 1))
+        cost_grad(args, grad=np.empty(mekf.MODEL_DOUBLES + 1))
 
 
 def test_failed_cost_leaves_a_zero_gradient(problem):
     _, _, args = problem
     model = args[MODEL].copy()
     model[-9:] = -np.eye(3).ravel()  # Σm not positive definite
-    grad = np.full(native.MODEL_DOUBLES, 7.0)
+    grad = np.full(mekf.MODEL_DOUBLES, 7.0)
     assert np.isnan(cost_grad(with_arg(args, MODEL, model), grad=grad))
     assert np.all(grad == 0.0)
 
 
 def test_wrapper_checks_the_tape(problem):
     p, data, _ = problem
-    n_tape = native.TAPE_DOUBLES_PER_SAMPLE * N
-    c, _ = native.cost_and_model_gradient(p, data, native.new_tape(N))
+    n_tape = mekf.TAPE_DOUBLES_PER_SAMPLE * N
+    c, _ = mekf.cost_and_model_gradient(p, data, mekf.new_tape(N))
     assert np.isfinite(c)
     with pytest.raises(
         ValueError, match=rf"tape: expected shape \({n_tape},\).*got \({n_tape + 1},\)"
     ):
-        native.cost_and_model_gradient(p, data, np.empty(n_tape + 1))
+        mekf.cost_and_model_gradient(p, data, np.empty(n_tape + 1))
     with pytest.raises(TypeError, match="tape: expected a float64 array .* got dtype float32"):
-        native.cost_and_model_gradient(p, data, np.empty(n_tape, dtype=np.float32))
+        mekf.cost_and_model_gradient(p, data, np.empty(n_tape, dtype=np.float32))
     with pytest.raises(TypeError, match="tape: expected a float64 array .* got list"):
-        native.cost_and_model_gradient(p, data, [0.0] * n_tape)
+        mekf.cost_and_model_gradient(p, data, [0.0] * n_tape)

@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.calib import observability as obs
+from magcal.calib.diagnostics import observability as obs
+from magcal.calib.diagnostics.observability import (
+    ObservabilityReport,
+    check_observability,
+    raise_if_unobservable,
+)
 from magcal.calib.frames import (
     field_direction,
     gravity_n,
@@ -14,11 +19,6 @@ from magcal.calib.frames import (
     quat_to_matrix,
     quat_to_rotvec,
     rotvec_to_quat,
-)
-from magcal.calib.observability import (
-    ObservabilityReport,
-    check_observability,
-    raise_if_unobservable,
 )
 from magcal.errors import InsufficientDataError
 

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from magcal.calib.optimize import OptimizeOptions, minimize_bfgs
+from magcal.calib.likelihood.optimize import OptimizeOptions, minimize_bfgs
 from magcal.errors import CalibrationError
 
 

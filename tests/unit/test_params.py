@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from magcal.calib import params
+from magcal.calib.likelihood import params
 
 
 def random_params(rng):

@@ -5,8 +5,8 @@ import dataclasses
 import numpy as np
 import pytest
 
-from magcal.calib import quality
-from magcal.calib.pipeline import calibrate
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import quality
 from magcal.errors import InsufficientDataError, MagcalError
 from magcal.report import accuracy
 from magcal.sim.scenarios import preset, simulate
@@ -93,9 +93,9 @@ def test_unknown_method_is_rejected():
 
 
 def test_likelihood_twins_are_mapped_to_the_canonical_branch():
-    from magcal.calib import cost
-    from magcal.calib.ml import canonical_twin
-    from magcal.calib.params import INDEX_DIP, SLICE_D, pack
+    from magcal.calib.likelihood import cost
+    from magcal.calib.likelihood.ml import canonical_twin
+    from magcal.calib.likelihood.params import INDEX_DIP, SLICE_D, pack
     from tests.synthetic import synthetic_filter_problem
 
     for dip, expected in (
@@ -127,7 +127,7 @@ def test_small_patch_is_refused_not_calibrated_wrongly(seed):
 
 
 def test_noisy_but_covered_ellipsoid_calibrates_with_a_warning_that_says_so():
-    from magcal.calib.pipeline import NOISY_ELLIPSOID_WARNING
+    from magcal.calib.calibrate import NOISY_ELLIPSOID_WARNING
 
     # Of the 150 Table 2 sessions, seed 62 covers well but its noise puts A on the PD
     # boundary (found by scanning them).

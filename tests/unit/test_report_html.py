@@ -12,8 +12,8 @@ from html.parser import HTMLParser
 import numpy as np
 import pytest
 
-from magcal.calib import uncertainty
-from magcal.calib.pipeline import calibrate
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import uncertainty
 from magcal.cli import EXIT_ERROR, main
 from magcal.io.result import read_result, write_result
 from magcal.io.session import read_session, session_from_arrays, write_session

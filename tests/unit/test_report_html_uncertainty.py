@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 
-from magcal.calib import evaluation, frames, uncertainty
-from magcal.calib.pipeline import calibrate
+from magcal.calib import frames
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import replay, uncertainty
 from magcal.io.result import CalibrationResult
 from magcal.sim.scenarios import preset, simulate
 
@@ -189,16 +190,16 @@ def test_a_result_without_noise_covariances_or_gyro_bias_has_no_model(mems):
     r = cal.result
     extra = {k: v for k, v in r.extra.items() if k != "Sigma_mag"}
     no_cov = dataclasses.replace(r, method="ckf", extra=extra)
-    with pytest.raises(evaluation.ModelUnavailableError, match="Sigma_mag"):
-        evaluation.model_params_from_result(no_cov)
+    with pytest.raises(replay.ModelUnavailableError, match="Sigma_mag"):
+        replay.model_params_from_result(no_cov)
     no_bias = CalibrationResult(
         method="two-step", D=r.D, o=r.o, m_n=r.m_n, dip_deg=r.dip_deg, extra=r.extra
     )
-    with pytest.raises(evaluation.ModelUnavailableError, match="gyroscope bias"):
-        evaluation.model_params_from_result(no_bias)
+    with pytest.raises(replay.ModelUnavailableError, match="gyroscope bias"):
+        replay.model_params_from_result(no_bias)
     bad = dataclasses.replace(r, extra={**r.extra, "Sigma_acc": [[1, 0, 0], [0, -1, 0], [0, 0, 1]]})
-    with pytest.raises(evaluation.ModelUnavailableError, match="not positive definite"):
-        evaluation.model_params_from_result(bad)
+    with pytest.raises(replay.ModelUnavailableError, match="not positive definite"):
+        replay.model_params_from_result(bad)
 
 
 def test_inclination_gives_the_dip_at_every_orientation_and_skips_accelerated_samples():
@@ -208,7 +209,7 @@ def test_inclination_gives_the_dip_at_every_orientation_and_skips_accelerated_sa
     field_b = np.einsum("kji,j->ki", R_nb, frames.field_direction(dip))
     acc = np.einsum("kji,j->ki", R_nb, [0.0, 0.0, 9.81])  # specific force at rest: up · g
     acc[:50] *= 1.2  # 2 m/s² off gravity: not a measurement of "up"
-    dips, used = evaluation.inclination_dip_deg(acc, 3.0 * field_b)
+    dips, used = replay.inclination_dip_deg(acc, 3.0 * field_b)
     assert used.sum() == 450 and not used[:50].any()
     np.testing.assert_allclose(dips, 64.0, atol=1e-9)
 

@@ -5,7 +5,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.calib import stationary as st
 from magcal.calib.frames import (
     field_direction,
     gravity_n,
@@ -13,7 +12,8 @@ from magcal.calib.frames import (
     quat_multiply,
     quat_to_matrix,
 )
-from magcal.calib.stationary import NoiseInit, find_stationary, initial_noise_and_bias
+from magcal.calib.initial import rest as st
+from magcal.calib.initial.rest import NoiseInit, find_stationary, initial_noise_and_bias
 from magcal.errors import InsufficientDataError
 
 FS_HZ = 100.0

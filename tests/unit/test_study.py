@@ -293,7 +293,7 @@ def test_bad_settings_are_refused(kwargs, pattern):
 
 
 def test_comparison_methods_follow_what_calibrate_accepts(monkeypatch):
-    import magcal.calib.pipeline as pipeline
+    import magcal.calib.calibrate as pipeline
 
     monkeypatch.setattr(pipeline, "METHODS", ("ml", "init", "ckf"))
     settings, notes = make_settings(experiments=("comparison",))

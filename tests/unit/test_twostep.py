@@ -1,4 +1,4 @@
-"""Alonso & Shuster's TWO-STEP (magcal.calib.twostep): recovery, agreement with a generic
+"""Alonso & Shuster's TWO-STEP (magcal.calib.norm_only.twostep): recovery, agreement with a generic
 least-squares fit of the same norm model, invariance to the data's scale, refusal of
 planar data, and the pipeline's --method two-step (a full D, o through the alignment)."""
 
@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import scipy.optimize
 
-from magcal.calib import twostep
-from magcal.calib.pipeline import calibrate
-from magcal.calib.twostep import two_step
+from magcal.calib.calibrate import calibrate
+from magcal.calib.norm_only import twostep
+from magcal.calib.norm_only.twostep import two_step
 from magcal.errors import InsufficientDataError
 from magcal.report.accuracy import heading_rms_deg
 from magcal.sim.scenarios import preset, simulate

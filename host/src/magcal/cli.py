@@ -93,7 +93,7 @@ def _run_simulate(args) -> int:
     return 0
 
 
-#: ``calibrate --method`` choices, as ``magcal.calib.pipeline.METHODS`` (not imported here: the
+#: ``calibrate --method`` choices, as ``magcal.calib.calibrate.METHODS`` (not imported here: the
 #: parser is built for every command, and the pipeline loads the numerical stack).
 CALIBRATION_METHODS = ("ml", "init", "ckf", "two-step")
 
@@ -183,7 +183,7 @@ def _read_matching_truth(truth_path: str, session_path: str, session):
 
 def _print_truth_comparison(cal, truth, session, out=None) -> None:
     out = out or sys.stdout
-    from magcal.calib import quality
+    from magcal.calib.diagnostics import quality
 
     st = truth.sensor
     floor = quality.known_attitude_fit(session.mag, truth.q_nb, st.m_n)
@@ -242,8 +242,9 @@ def _write_plots(cal, session, directory: str) -> list[Path]:
 
 
 def _run_calibrate(args) -> int:
-    from magcal.calib import ellipsoid, observability
-    from magcal.calib.pipeline import calibrate
+    from magcal.calib.calibrate import calibrate
+    from magcal.calib.diagnostics import observability
+    from magcal.calib.initial import ellipsoid
     from magcal.io.result import check_result_writable, write_result
     from magcal.io.session import os_error_advice, read_session
 

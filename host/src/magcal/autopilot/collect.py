@@ -37,7 +37,7 @@ import numpy as np
 
 from magcal.autopilot import vehicle
 from magcal.autopilot.connection import Autopilot
-from magcal.calib.live import LiveState
+from magcal.calib.norm_only.live import LiveState
 from magcal.device.collect import (
     COVERAGE_MIN_EXTENT_UT,
     STALL_TIMEOUT_S,

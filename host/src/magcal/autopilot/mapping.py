@@ -48,7 +48,8 @@ import numpy as np
 import scipy.linalg
 
 from magcal.autopilot import rotations
-from magcal.calib import frames, quality
+from magcal.calib import frames
+from magcal.calib.diagnostics import quality
 from magcal.errors import MagcalError
 
 AP_OFFS_MAX_DEFAULT_MG = 1800.0

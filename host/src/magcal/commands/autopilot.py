@@ -105,7 +105,7 @@ def _compass_line(cp, rotations, mapping) -> str:
 def run_collect(args, out=None) -> int:
     from magcal.autopilot.collect import collect
     from magcal.autopilot.connection import open_autopilot
-    from magcal.calib import observability
+    from magcal.calib.diagnostics import observability
     from magcal.commands.collect import collect_saving_partial, finish_collect, progress_printer
     from magcal.io.session import check_writable
 

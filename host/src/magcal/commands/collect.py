@@ -15,7 +15,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from magcal.calib import observability
+from magcal.calib.diagnostics import observability
 from magcal.commands.common import (
     add_link_arguments,
     check_link_options,

@@ -11,7 +11,7 @@ import os
 import sys
 
 from magcal.autopilot.vehicle import AUTOPILOT_NAMES
-from magcal.calib import observability
+from magcal.calib.diagnostics import observability
 from magcal.commands.common import positive
 from magcal.io.session import check_writable, write_session
 from magcal.logs import ImportOptions, import_log

@@ -5,7 +5,7 @@ from __future__ import annotations
 import os
 import sys
 
-from magcal.calib import ellipsoid
+from magcal.calib.initial import ellipsoid
 from magcal.errors import MagcalError
 
 #: Bytes read to tell a session CSV from a result JSON when a file fails to parse.

@@ -15,12 +15,13 @@ returns a :class:`CollectResult` holding a :class:`~magcal.io.session.Session`:
   units, samples, dropped, device_dropped, coverage, stopped (why it stopped).
 
 Live estimate: the magnetometer stream also runs through a
-:class:`~magcal.calib.live.LiveCalibration` (Zhao et al.'s CKF on block means of about 100 Hz;
+:class:`~magcal.calib.norm_only.live.LiveCalibration` (Zhao et al.'s CKF on block means of
+about 100 Hz;
 :class:`CollectMonitor` runs it with the coverage for both recorders, serial and MAVLink),
 whose state goes with every progress report: the calibrated field's norm spread and, once
 the estimate has converged and the coverage reached the target (90 % without one), "ok to
-stop" (:meth:`~magcal.calib.live.LiveState.text`, shown before the coverage hint). It never
-stops the collection by itself and never loses a sample: should it fail, collection goes on
+stop" (:meth:`~magcal.calib.norm_only.live.LiveState.text`, shown before the coverage hint).
+It never stops the collection by itself and never loses a sample: should it fail, collection goes on
 without it (logged).
 
 Dropped samples: the stream's seq is the acquisition counter (+1 per sample modulo 2^32), so
@@ -46,7 +47,7 @@ from typing import Protocol
 
 import numpy as np
 
-from magcal.calib.live import OK_COVERAGE, LiveCalibration, LiveState
+from magcal.calib.norm_only.live import OK_COVERAGE, LiveCalibration, LiveState
 from magcal.device.client import (
     DeviceClient,
     DeviceInfo,

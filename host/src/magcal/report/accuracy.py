@@ -40,11 +40,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.calib import ekf, frames, ml, quality
-from magcal.calib.ellipsoid import fit_ellipsoid_algebraic, symmetric_fit
-from magcal.calib.initial import InitialEstimate
-from magcal.calib.params import ModelParams
-from magcal.calib.pipeline import calibrate
+from magcal.calib import frames
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import quality
+from magcal.calib.initial.ellipsoid import fit_ellipsoid_algebraic, symmetric_fit
+from magcal.calib.initial.estimate import InitialEstimate
+from magcal.calib.likelihood import mekf, ml
+from magcal.calib.likelihood.params import ModelParams
 from magcal.errors import InsufficientDataError
 from magcal.io.session import Session
 from magcal.sim.scenarios import ScenarioConfig, SimTruth, preset, simulate
@@ -108,7 +110,7 @@ def ekf_heading_rmse_deg(
     true attitude (paper Figure 8), over the whole session."""
     norm = ml.normalisation_for(init.params)
     p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
-    out = ekf.run_filter(p_norm, ml.filter_data_for(session, init, p_norm, norm))
+    out = mekf.run_filter(p_norm, ml.filter_data_for(session, init, p_norm, norm))
     return quality.rms_deg(frames.heading_error_between(out.q_filt, q_true_nb))
 
 

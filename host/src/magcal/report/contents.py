@@ -16,8 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.calib import evaluation, quality, uncertainty
-from magcal.calib.uncertainty import CalibrationUncertainty
+from magcal.calib.diagnostics import quality, replay, uncertainty
+from magcal.calib.diagnostics.uncertainty import CalibrationUncertainty
 from magcal.errors import CalibrationError, MagcalError
 from magcal.io.result import CalibrationResult, apply_correction
 from magcal.io.session import Session
@@ -193,11 +193,11 @@ def evaluate_session(
     ]
     innovations = None
     try:
-        model = evaluation.model_params_from_result(result)
-    except evaluation.ModelUnavailableError:
+        model = replay.model_params_from_result(result)
+    except replay.ModelUnavailableError:
         model = None  # build_report notes it once for the whole page
     if model is not None:
-        out = evaluation.run_filter_at(session, model)
+        out = replay.run_filter_at(session, model)
         if np.isfinite(out.normalised).all():
             innovations = quality.innovation_stats(out.normalised)
             figures.append(
@@ -235,15 +235,15 @@ def evaluate_session(
         )
     )
     dip_raw = dip_cal = None
-    raw_dip, used = evaluation.inclination_dip_deg(session.acc, session.mag)
+    raw_dip, used = replay.inclination_dip_deg(session.acc, session.mag)
     if used.any():
-        cal_dip, _ = evaluation.inclination_dip_deg(session.acc, calibrated)
+        cal_dip, _ = replay.inclination_dip_deg(session.acc, calibrated)
         dip_raw, dip_cal = _dip_stats(raw_dip), _dip_stats(cal_dip)
         figures.append(
             Figure(
                 "Inclination consistency",
                 "The dip angle between the field and the accelerometer's up at each sample "
-                f"whose acceleration norm is within {evaluation.INCLINATION_ACC_TOL_M_S2} m/s² "
+                f"whose acceleration norm is within {replay.INCLINATION_ACC_TOL_M_S2} m/s² "
                 "of gravity. It does not depend on the heading: a calibration that fits "
                 "gives the same angle at every orientation.",
                 _png(
@@ -257,7 +257,7 @@ def evaluate_session(
     else:
         notes.append(
             f"no inclination check on the {label}: no sample has an accelerometer norm within "
-            f"{evaluation.INCLINATION_ACC_TOL_M_S2} m/s² of gravity"
+            f"{replay.INCLINATION_ACC_TOL_M_S2} m/s² of gravity"
         )
     duration = float(session.t[-1] - session.t[0])
     return SessionEvaluation(
@@ -318,7 +318,7 @@ def build_report(
             session,
             progress=(lambda done, total: progress("hessian", done, total)) if progress else None,
         )
-    except evaluation.ModelUnavailableError as exc:
+    except replay.ModelUnavailableError as exc:
         notes.append(f"no uncertainty and no innovations: {exc}")
     except CalibrationError as exc:  # the filter breaks down at or next to the result
         notes.append(f"no uncertainty: {exc}")

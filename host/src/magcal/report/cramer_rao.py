@@ -9,7 +9,7 @@ This module computes how much less, as the Cramér–Rao bound of the correctly 
 model, so that a bound on the ML error can be compared with what any unbiased estimator
 can reach.
 
-The model is the calibration MEKF of :mod:`magcal.calib.ekf` with the translational
+The model is the calibration MEKF of :mod:`magcal.calib.likelihood.mekf` with the translational
 acceleration ``a_n`` as extra states: per navigation axis a damped second-order process
 (natural frequency ``f0``, damping ``ζ``, stationary RMS ``σ``) with its rate ``ȧ_n``, so the
 state is ``(η, a_n, ȧ_n)`` (9). The accelerometer measures ``R_bn (a_n − g_n) + e_a``. With
@@ -33,8 +33,10 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from magcal.calib import frames, params, quality
-from magcal.calib.ekf import FilterData
+from magcal.calib import frames
+from magcal.calib.diagnostics import quality
+from magcal.calib.likelihood import params
+from magcal.calib.likelihood.mekf import FilterData
 from magcal.errors import MagcalError
 
 #: Step of the central differences, in θ's units (log-scales, normalised field units, rad,
@@ -84,7 +86,7 @@ def per_sample_costs(
     thetas: np.ndarray, data: FilterData, process: AccelerationProcess
 ) -> np.ndarray:
     """ℓ_t = ½ (ε_tᵀ S_t⁻¹ ε_t + log det S_t) of the augmented MEKF for a batch of parameter
-    vectors: thetas (B, 34) as :mod:`magcal.calib.params` → (B, N) nats (without the
+    vectors: thetas (B, 34) as :mod:`magcal.calib.likelihood.params` → (B, N) nats (without the
     constant 3 log 2π). Their sum over t is V(θ) of eq. (6) when process.rms_m_s2 = 0."""
     thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
     b, n = thetas.shape[0], len(data)

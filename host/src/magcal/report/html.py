@@ -17,7 +17,7 @@ import os
 import numpy as np
 
 from magcal import __version__
-from magcal.calib import uncertainty
+from magcal.calib.diagnostics import uncertainty
 from magcal.io.result import REQUIRED_KEYS, result_to_dict
 from magcal.io.session import check_writable, os_error_advice
 from magcal.report.contents import Figure, Report, ReportError, SessionEvaluation

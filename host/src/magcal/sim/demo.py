@@ -56,7 +56,8 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.calib import frames, quality
+from magcal.calib import frames
+from magcal.calib.diagnostics import quality
 from magcal.device.client import (
     ClientConfig,
     Corrected,

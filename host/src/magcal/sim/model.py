@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.calib import frames
-from magcal.calib.params import ModelParams
+from magcal.calib.likelihood.params import ModelParams
 from magcal.errors import MagcalError
 
 # Dip angle in Linköping, Sweden (58.41° N, 15.62° E). The paper's simulation (Section 8) only
@@ -38,7 +38,7 @@ MEMS_GYRO_BIAS_DEG_S = 1.0  # typical magnitude of the gyroscope bias
 @dataclass(frozen=True)
 class SensorTruth(ModelParams):
     """True parameters of one simulated sensor unit: the calibration model's own
-    quantities (:class:`magcal.calib.params.ModelParams`, same fields and units), with D
+    quantities (:class:`magcal.calib.likelihood.params.ModelParams`, same fields and units), with D
     carrying the field magnitude in magnetometer units."""
 
     @property

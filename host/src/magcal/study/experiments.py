@@ -12,7 +12,7 @@ Three experiments (``magcal study --experiments``):
     their simulation (:mod:`magcal.study.zhao`), and their Figure 1 (field norm before and
     after) from the first run.
 ``comparison``
-    Every calibration method :func:`magcal.calib.pipeline.calibrate` accepts among
+    Every calibration method :func:`magcal.calib.calibrate.calibrate` accepts among
     :data:`STUDY_METHODS`, on the same seeded sessions of each scenario: the
     calibration-induced heading error (:func:`magcal.report.accuracy.heading_rms_deg`), the
     time of the ``calibrate`` call, and its failures (exceptions, and refusals by the
@@ -33,7 +33,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal import __version__
-from magcal.calib import pipeline
+from magcal.calib import calibrate
 from magcal.errors import InsufficientDataError, MagcalError
 from magcal.report import accuracy
 from magcal.sim.scenarios import PRESETS, preset, simulate
@@ -60,7 +60,7 @@ class StudySettingsError(MagcalError):
 
 def available_methods() -> tuple[str, ...]:
     """The methods of :data:`STUDY_METHODS` that ``calibrate`` accepts in this build."""
-    return tuple(m for m in STUDY_METHODS if m in pipeline.METHODS)
+    return tuple(m for m in STUDY_METHODS if m in calibrate.METHODS)
 
 
 def zhao_estimators_available() -> bool:
@@ -125,7 +125,7 @@ def make_settings(
     if missing:
         notes.append(
             f"method(s) {', '.join(missing)} not compared: calibrate() in this build accepts "
-            f"only {', '.join(pipeline.METHODS)}"
+            f"only {', '.join(calibrate.METHODS)}"
         )
     if experiments is None:
         experiments = tuple(
@@ -134,7 +134,7 @@ def make_settings(
         if "zhao-table1" not in experiments:
             notes.append(
                 "zhao-table1 not run: this build has no incremental CKF and TWO-STEP "
-                "(magcal.calib.ckf, magcal.calib.twostep)"
+                "(magcal.calib.norm_only.ckf, magcal.calib.norm_only.twostep)"
             )
     unknown = [e for e in experiments if e not in EXPERIMENTS]
     if unknown:
@@ -148,8 +148,9 @@ def make_settings(
         )
     if "zhao-table1" in experiments and not zhao_estimators_available():
         raise StudySettingsError(
-            "study: zhao-table1 needs the incremental CKF and TWO-STEP (magcal.calib.ckf, "
-            "magcal.calib.twostep), which this build does not have; leave it out"
+            "study: zhao-table1 needs the incremental CKF and TWO-STEP "
+            "(magcal.calib.norm_only.ckf, magcal.calib.norm_only.twostep), which this build does "
+            "not have; leave it out"
         )
     bad = [s for s in scenarios if s not in PRESETS]
     if bad or not scenarios:
@@ -226,7 +227,7 @@ def run_comparison(scenario: str, method: str, seed: int) -> dict:
     out: dict = {"floor_deg": accuracy.floor_heading_rms_deg(session, truth), "failed": False}
     t0 = time.perf_counter()
     try:
-        cal = pipeline.calibrate(session, method)
+        cal = calibrate.calibrate(session, method)
     except InsufficientDataError as exc:
         out.update(failed=True, refused=True, reason=f"refused: {exc}")
     except Exception as exc:  # a method's failure is what the comparison counts
@@ -271,19 +272,19 @@ def _zhao_estimators() -> dict | None:
     """{"ckf": y ↦ (A, b), "two-step": y ↦ (A, b)} in the paper's units (gauss, ``(y − b)ᵀ A
     (y − b) = B_m²``), or None when this build lacks the CKF and TWO-STEP modules.
 
-    The CKF is the incremental :class:`~magcal.calib.ckf.CubatureCalibrator`, fed one sample
-    at a time; TWO-STEP is :func:`~magcal.calib.twostep.two_step`. Both get the simulation's
-    σ, as the paper's filter is given ``N_k``: their own estimate from second differences
-    assumes consecutive samples of a smooth motion, which the paper's independent random
-    attitudes are not. The CKF starts from the sphere of its first
-    :data:`ZHAO_CKF_START_SAMPLES` samples (a :class:`~magcal.calib.ckf.CkfPrior`): its
+    The CKF is the incremental :class:`~magcal.calib.norm_only.ckf.CubatureCalibrator`, fed one
+    sample at a time; TWO-STEP is :func:`~magcal.calib.norm_only.twostep.two_step`. Both get the
+    simulation's σ, as the paper's filter is given ``N_k``: their own estimate from second
+    differences assumes consecutive samples of a smooth motion, which the paper's independent
+    random attitudes are not. The CKF starts from the sphere of its first
+    :data:`ZHAO_CKF_START_SAMPLES` samples (a :class:`~magcal.calib.norm_only.ckf.CkfPrior`): its
     default start waits for readings spread by ≥ 5σ in every direction, which at the paper's
     σ (10 % of the field) never comes. magcal's ``A`` is for a unit field norm; the paper's
     is ``B_m²`` times it.
     """
     try:
-        ckf = importlib.import_module("magcal.calib.ckf")
-        twostep = importlib.import_module("magcal.calib.twostep")
+        ckf = importlib.import_module("magcal.calib.norm_only.ckf")
+        twostep = importlib.import_module("magcal.calib.norm_only.twostep")
     except ImportError:
         return None
     scale = zhao.field_norm_g() ** 2

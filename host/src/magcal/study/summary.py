@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.calib import quality
+from magcal.calib.diagnostics import quality
 from magcal.report import plots
 from magcal.study import zhao
 from magcal.study.experiments import StudySettings, seeds

@@ -13,7 +13,7 @@ Inverting (``shared/docs/algorithm.md`` corrects the paper's eq. 24): for any co
     D̃ D̃ᵀ  = β A⁻¹                   (= D Dᵀ),
 
 and ``D̃`` is taken lower-triangular by Cholesky. ``D = D̃ U`` for some orthogonal ``U``;
-:mod:`magcal.calib.align` finds the rotation.
+:mod:`magcal.calib.initial.alignment` finds the rotation.
 
 Numerical choices:
 
@@ -86,7 +86,7 @@ class EllipsoidFit:
     D_tilde    : (3, 3) float, lower-triangular Cholesky factor, ``D̃ D̃ᵀ = D Dᵀ``, raw units
                  (``D̃⁻¹(y − o)`` has unit norm on the ellipsoid)
     method     : ``"sdp"`` or ``"algebraic"`` (or ``"ckf"``, ``"two-step"``: see
-                 :func:`magcal.calib.attitude_free.ellipsoid_fit_from`)
+                 :func:`magcal.calib.norm_only.norm_ellipsoid.ellipsoid_fit_from`)
     radius_rms : float, dimensionless, RMS of ``‖D̃⁻¹(y_t − o)‖ − 1`` over the data
     a_eig_ratio: float, smallest/largest eigenvalue of ``A`` in the normalised coordinates
                  (1 for a sphere; near 0 for data on a plane)

@@ -20,10 +20,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib import ekf, params, stationary
-from magcal.calib.initial import starting_attitude
-from magcal.calib.ml import Normalisation, gyro_noise_prior, parameter_scales
-from magcal.calib.params import ModelParams
+from magcal.calib.initial import rest
+from magcal.calib.initial.estimate import starting_attitude
+from magcal.calib.likelihood import mekf, params
+from magcal.calib.likelihood.ml import Normalisation, gyro_noise_prior, parameter_scales
+from magcal.calib.likelihood.params import ModelParams
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
@@ -99,7 +100,7 @@ class LikelihoodProblem:
     prior_precision  : (34,) its diagonal precision (zero outside the gyroscope noise)
     """
 
-    data: ekf.FilterData
+    data: mekf.FilterData
     norm: Normalisation
     theta: np.ndarray
     scales: np.ndarray
@@ -119,14 +120,12 @@ def likelihood_problem(session: Session, p: ModelParams) -> LikelihoodProblem:
     the accelerometer noise of the stationary stretch (or the prior), and the gyroscope
     noise prior centred on its measurement.
     """
-    still = stationary.find_stationary(session.t, session.gyr, session.acc, session.mag)
-    noise = stationary.initial_noise_and_bias(
-        session.t, session.gyr, session.acc, session.mag, still
-    )
+    still = rest.find_stationary(session.t, session.gyr, session.acc, session.mag)
+    noise = rest.initial_noise_and_bias(session.t, session.gyr, session.acc, session.mag, still)
     g = float(np.median(np.linalg.norm(session.acc, axis=1)))
     rate_hz = (len(session) - 1) / float(session.t[-1] - session.t[0])
     sigma_acc = float(np.sqrt(np.trace(noise.Sigma_acc) / 3.0))
-    acc_extra_var = ekf.accelerometer_extra_variance(session.acc, g, sigma_acc, rate_hz)
+    acc_extra_var = mekf.accelerometer_extra_variance(session.acc, g, sigma_acc, rate_hz)
 
     norm = Normalisation(
         centre=np.asarray(p.o, dtype=float).copy(),
@@ -135,7 +134,7 @@ def likelihood_problem(session: Session, p: ModelParams) -> LikelihoodProblem:
     p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
     mag_n = norm.apply(session.mag)
     q0 = starting_attitude(session.acc, mag_n, p_norm)
-    data = ekf.make_filter_data(
+    data = mekf.make_filter_data(
         session.t, session.gyr, session.acc, mag_n, q0, acc_extra_var=acc_extra_var, g=g
     )
     theta = params.pack(p_norm)
@@ -154,10 +153,10 @@ def likelihood_problem(session: Session, p: ModelParams) -> LikelihoodProblem:
     )
 
 
-def run_filter_at(session: Session, p: ModelParams) -> ekf.FilterOutput:
+def run_filter_at(session: Session, p: ModelParams) -> mekf.FilterOutput:
     """The ML filter at ``p`` on ``session``: innovations and normalised innovations."""
     problem = likelihood_problem(session, p)
-    return ekf.run_filter(params.unpack(problem.theta), problem.data)
+    return mekf.run_filter(params.unpack(problem.theta), problem.data)
 
 
 def inclination_dip_deg(

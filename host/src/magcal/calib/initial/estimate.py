@@ -1,10 +1,10 @@
 """Algorithm 1, step 1: the initial estimate θ₀ (paper Section 6).
 
-a. gyro bias and noise covariances (``stationary.py``): from a detected stationary
+a. gyro bias and noise covariances (``rest.py``): from a detected stationary
    stretch, or conservative priors when there is none;
 b. ellipsoid fit as an SDP (``ellipsoid.py``) → ``o``, ``D̃``;
-c. misalignment ``R_D`` and ``m_z`` (``align.py``) using the inclination from the
-   inertial-only EKF (``ekf.py`` with the magnetometer switched off).
+c. misalignment ``R_D`` and ``m_z`` (``alignment.py``) using the inclination from the
+   inertial-only EKF (``mekf.py`` with the magnetometer switched off).
 
 Everything here works in raw magnetometer units; ``ml.py`` normalises.
 """
@@ -16,9 +16,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.calib import align, ekf, frames, stationary
-from magcal.calib.ellipsoid import EllipsoidFit, fit_ellipsoid_sdp
-from magcal.calib.params import ModelParams
+from magcal.calib import frames
+from magcal.calib.initial import rest
+from magcal.calib.initial.alignment import Alignment, acceleration_weights, estimate_alignment
+from magcal.calib.initial.ellipsoid import EllipsoidFit, fit_ellipsoid_sdp
+from magcal.calib.likelihood import mekf
+from magcal.calib.likelihood.params import ModelParams
 from magcal.io.session import Session
 
 #: Samples averaged for the starting attitude of a filter (≈ 0.05 s at 100 Hz): enough to
@@ -32,8 +35,8 @@ class InitialEstimate:
 
     params: ModelParams
     ellipsoid: EllipsoidFit
-    alignment: align.Alignment
-    noise: stationary.NoiseInit
+    alignment: Alignment
+    noise: rest.NoiseInit
     g: float
     acc_extra_var: np.ndarray
     seconds: dict = field(default_factory=dict)
@@ -49,7 +52,7 @@ def starting_attitude(acc: np.ndarray, mag: np.ndarray, p: ModelParams) -> np.nd
 
 
 def inertial_attitude(
-    session: Session, noise: stationary.NoiseInit, g: float, acc_extra_var: np.ndarray
+    session: Session, noise: rest.NoiseInit, g: float, acc_extra_var: np.ndarray
 ) -> np.ndarray:
     """(N, 4) attitude from gyro + accelerometer only (heading free, inclination good)."""
     k = min(INITIAL_ATTITUDE_SAMPLES, len(session))
@@ -59,7 +62,7 @@ def inertial_attitude(
         np.array([1.0, 0.0, 0.0]) if abs(up_b[0]) < 0.9 * np.linalg.norm(up_b) else np.eye(3)[1]
     )
     q0 = frames.triad(up_b, helper, np.array([1.0, 0.0, 0.0]))
-    data = ekf.make_filter_data(
+    data = mekf.make_filter_data(
         session.t, session.gyr, session.acc, session.mag, q0, acc_extra_var=acc_extra_var, g=g
     )
     p = ModelParams(
@@ -71,7 +74,7 @@ def inertial_attitude(
         Sigma_acc=noise.Sigma_acc,
         Sigma_mag=np.eye(3),
     )
-    return ekf.run_filter(p, data, use_mag=False).q_filt
+    return mekf.run_filter(p, data, use_mag=False).q_filt
 
 
 def initial_estimate(session: Session, fit: EllipsoidFit | None = None) -> InitialEstimate:
@@ -80,20 +83,18 @@ def initial_estimate(session: Session, fit: EllipsoidFit | None = None) -> Initi
     raises on data that cannot determine it."""
     seconds = {}
     t0 = time.perf_counter()
-    still = stationary.find_stationary(session.t, session.gyr, session.acc, session.mag)
-    noise = stationary.initial_noise_and_bias(
-        session.t, session.gyr, session.acc, session.mag, still
-    )
+    still = rest.find_stationary(session.t, session.gyr, session.acc, session.mag)
+    noise = rest.initial_noise_and_bias(session.t, session.gyr, session.acc, session.mag, still)
     g = float(np.median(np.linalg.norm(session.acc, axis=1)))
     rate_hz = (len(session) - 1) / float(session.t[-1] - session.t[0])
     sigma_acc = float(np.sqrt(np.trace(noise.Sigma_acc) / 3.0))
-    acc_extra_var = ekf.accelerometer_extra_variance(session.acc, g, sigma_acc, rate_hz)
+    acc_extra_var = mekf.accelerometer_extra_variance(session.acc, g, sigma_acc, rate_hz)
     # The ML step starts with e_a as sensor noise plus the acceleration of the motion (its
     # share on top of the noise measured at rest, isotropic). The inertial attitude below
     # keeps the noise alone: it down-weights accelerated samples itself, and with the
     # larger Σ_a its misalignment was worse on accelerated MEMS sessions (`make accuracy`,
     # init 0.11° → 0.16°) though better on hand-held ones (1.19° → 0.89°).
-    shake = stationary.motion_acceleration_variance(session.acc, g, noise.stationary)
+    shake = rest.motion_acceleration_variance(session.acc, g, noise.stationary)
     Sigma_acc = noise.Sigma_acc + max(0.0, shake - sigma_acc**2) * np.eye(3)
     seconds["noise"] = time.perf_counter() - t0
 
@@ -104,8 +105,8 @@ def initial_estimate(session: Session, fit: EllipsoidFit | None = None) -> Initi
 
     t0 = time.perf_counter()
     q_inertial = inertial_attitude(session, noise, g, acc_extra_var)
-    weights = align.acceleration_weights(session.acc, g=g)
-    alignment = align.estimate_alignment(session.mag, fit.o, fit.D_tilde, q_inertial, weights)
+    weights = acceleration_weights(session.acc, g=g)
+    alignment = estimate_alignment(session.mag, fit.o, fit.D_tilde, q_inertial, weights)
     seconds["alignment"] = time.perf_counter() - t0
 
     params = ModelParams(

@@ -53,6 +53,11 @@ MIN_HESSIAN_EIG = 1e-4
 ACC_WEIGHT_SCALE_M_S2 = 0.5
 #: Fewest samples.
 MIN_SAMPLES = 10
+#: A dip is called negative (or of the unexpected sign) only when m_z is further than this
+#: many standard errors from 0.
+DIP_SIGN_SIGMAS = 5.0
+#: m_z below this is 0 to rounding (the same margin as the |m_z| < 1 clip below).
+DIP_SIGN_FLOOR = 1e-9
 
 
 @dataclass(frozen=True, eq=False)
@@ -253,13 +258,21 @@ def estimate_alignment_from_vertical(
 
     warnings: list[str] = []
     m_z = float(p_mean @ R_D.ravel())
-    if expected_dip_sign is not None and expected_dip_sign * (-m_z) < 0.0:
+    # m_z is the weighted mean of the per-sample projections m̃_t · R_D v_t, whose weighted
+    # variance is the cost: its standard error decides whether the dip's sign is known. A
+    # dip within a few standard errors of 0° (at the magnetic equator) has no sign to
+    # check. The samples' effective count comes from the weights; neighbouring samples are
+    # correlated, so this error is a lower bound and the margin is generous.
+    n_eff = 1.0 / float(np.sum(w * w))
+    # The floor is rounding: noise-free data give a cost at the level of ε².
+    m_z_margin = max(DIP_SIGN_SIGMAS * np.sqrt(max(cost, 0.0) / n_eff), DIP_SIGN_FLOOR)
+    if expected_dip_sign is not None and expected_dip_sign * (-m_z) < -m_z_margin:
         R_D, m_z = -R_D, -m_z
         warnings.append(
             "alignment: the magnetometer axes appear mirrored against the inertial axes "
             "(det D < 0) given the expected sign of the dip; check the axis mapping"
         )
-    elif expected_dip_sign is None and m_z > 0.0:
+    elif expected_dip_sign is None and m_z > m_z_margin:
         warnings.append(
             f"alignment: the estimated dip is negative ({np.degrees(-np.arcsin(min(m_z, 1.0))):.1f}"
             "°, field pointing up: southern magnetic hemisphere); if the recording was made "

@@ -12,12 +12,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib import ckf, ekf, observability, quality, twostep
-from magcal.calib.ellipsoid import fit_ellipsoid_sdp
-from magcal.calib.initial import InitialEstimate, initial_estimate
-from magcal.calib.ml import MLEstimate, filter_data_for, maximum_likelihood, normalisation_for
-from magcal.calib.optimize import OptimizeOptions
-from magcal.calib.params import ModelParams
+from magcal.calib.diagnostics import observability, quality
+from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
+from magcal.calib.initial.estimate import InitialEstimate, initial_estimate
+from magcal.calib.likelihood import mekf
+from magcal.calib.likelihood.ml import (
+    MLEstimate,
+    filter_data_for,
+    maximum_likelihood,
+    normalisation_for,
+)
+from magcal.calib.likelihood.optimize import OptimizeOptions
+from magcal.calib.likelihood.params import ModelParams
+from magcal.calib.norm_only import ckf, twostep
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
@@ -56,14 +63,14 @@ class Calibration:
     result: CalibrationResult
     init: InitialEstimate
     ml: MLEstimate | None
-    filter_output: ekf.FilterOutput
+    filter_output: mekf.FilterOutput
     calibrated: np.ndarray  # (N, 3) D⁻¹(y − o), unit norm when good
 
 
-def _filter_at(session: Session, init: InitialEstimate, p: ModelParams) -> ekf.FilterOutput:
+def _filter_at(session: Session, init: InitialEstimate, p: ModelParams) -> mekf.FilterOutput:
     norm = normalisation_for(init.params)
     p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
-    return ekf.run_filter(p_norm, filter_data_for(session, init, p_norm, norm))
+    return mekf.run_filter(p_norm, filter_data_for(session, init, p_norm, norm))
 
 
 def _alignment_warnings(session: Session, g: float) -> list[str]:

@@ -41,7 +41,7 @@ magcal's choices:
   ``B = (y − ȳ)/s``, ``s`` the readings' RMS distance from their mean: the problem is O(1)
   whatever the unit, and exactly invariant to the data's scale and offset.
 * ``Σ = σ² I`` with σ from second differences of the readings
-  (:func:`~magcal.calib.attitude_free.noise_std_from_differences`), unless given.
+  (:func:`~magcal.calib.norm_only.norm_ellipsoid.noise_std_from_differences`), unless given.
 * The weights ``σ_k²`` depend on ``D`` and ``b``. They are evaluated at the a-priori
   ``D = 0, b = 0`` for a first centred estimate, then once more at that estimate for the
   final centred estimate (with a field of constant norm they become nearly equal, as they
@@ -57,8 +57,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib import attitude_free
-from magcal.calib.ellipsoid import EllipsoidFit
+from magcal.calib.initial.ellipsoid import EllipsoidFit
+from magcal.calib.norm_only import norm_ellipsoid
 from magcal.errors import InsufficientDataError
 
 #: Fisher-scoring iteration cap.
@@ -250,7 +250,7 @@ def two_step(mag: np.ndarray, *, noise_std: float | None = None, force: bool = F
 
     Returns a :class:`TwoStepFit` in raw units.
     """
-    mag = attitude_free.check_readings(mag, "two-step")
+    mag = norm_ellipsoid.check_readings(mag, "two-step")
     centre = mag.mean(axis=0)
     scale = float(np.sqrt(np.mean(np.sum((mag - centre) ** 2, axis=1))))
     if not scale > 0.0:
@@ -259,7 +259,7 @@ def two_step(mag: np.ndarray, *, noise_std: float | None = None, force: bool = F
             "working and rotate the sensor through all orientations"
         )
     B = (mag - centre) / scale
-    sigma = attitude_free.noise_std_from_differences(mag) if noise_std is None else noise_std
+    sigma = norm_ellipsoid.noise_std_from_differences(mag) if noise_std is None else noise_std
     sigma = max(float(sigma), MIN_NOISE_FRACTION * scale)
     sigma2 = (sigma / scale) ** 2
     L = _design(B)
@@ -273,7 +273,7 @@ def two_step(mag: np.ndarray, *, noise_std: float | None = None, force: bool = F
     # determine the ellipsoid, and so do readings close to a plane.
     Lc = L - L.mean(axis=0)
     eig = np.linalg.eigvalsh(Lc.T @ Lc)
-    problem = attitude_free.planarity_problem(mag, "two-step")
+    problem = norm_ellipsoid.planarity_problem(mag, "two-step")
     if problem is None and not eig[1] > MIN_FISHER_RATIO * eig[-1]:
         problem = (
             "two-step: the readings do not determine the ellipsoid (Fisher information "
@@ -323,7 +323,7 @@ def calibration_ellipsoid(mag: np.ndarray, *, force: bool = False) -> tuple[Elli
     """The session's ellipsoid by TWO-STEP in Algorithm 1's form, for the alignment step, and
     what the result file records about the run (JSON-ready dict)."""
     ts = two_step(mag, force=force)
-    fit = attitude_free.ellipsoid_fit_from(ts.A, ts.b, mag, "two-step", ts.warnings)
+    fit = norm_ellipsoid.ellipsoid_fit_from(ts.A, ts.b, mag, "two-step", ts.warnings)
     details = {
         "A": ts.A.tolist(),
         "b": ts.b.tolist(),

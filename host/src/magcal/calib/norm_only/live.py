@@ -1,6 +1,6 @@
 """Live calibration while a session is being recorded: is it good enough to stop?
 
-:class:`LiveCalibration` runs Zhao et al.'s CKF (:mod:`magcal.calib.ckf`) on the
+:class:`LiveCalibration` runs Zhao et al.'s CKF (:mod:`magcal.calib.norm_only.ckf`) on the
 magnetometer stream and, when asked with the coverage of field directions the recorder
 measures, says how good the current estimate is (:class:`LiveState`). It knows nothing about
 links or devices: the serial ``collect`` (``magcal.device.collect``) feeds it, and a MAVLink
@@ -40,7 +40,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib.ckf import CkfEstimate, CubatureCalibrator
+from magcal.calib.norm_only.ckf import CkfEstimate, CubatureCalibrator
 
 #: The CKF runs on block means of the stream at about this rate, Hz.
 CKF_RATE_HZ = 100.0

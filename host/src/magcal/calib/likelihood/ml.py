@@ -25,10 +25,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib import cost, ekf, native, params
-from magcal.calib.initial import InitialEstimate, starting_attitude
-from magcal.calib.optimize import OptimizeOptions, OptimizeReport, minimize_bfgs
-from magcal.calib.params import ModelParams
+from magcal.calib.initial.estimate import InitialEstimate, starting_attitude
+from magcal.calib.likelihood import cost, mekf, params
+from magcal.calib.likelihood.optimize import OptimizeOptions, OptimizeReport, minimize_bfgs
+from magcal.calib.likelihood.params import ModelParams
 from magcal.io.session import Session
 
 #: 1-σ width of the prior on log σ_ω when a stationary stretch did not measure it: the
@@ -71,10 +71,10 @@ def normalisation_for(p: ModelParams) -> Normalisation:
 
 def filter_data_for(
     session: Session, init: InitialEstimate, p_norm: ModelParams, norm: Normalisation
-) -> ekf.FilterData:
+) -> mekf.FilterData:
     mag_n = norm.apply(session.mag)
     q0 = starting_attitude(session.acc, mag_n, p_norm)
-    return ekf.make_filter_data(
+    return mekf.make_filter_data(
         session.t,
         session.gyr,
         session.acc,
@@ -131,11 +131,11 @@ def gyro_noise_prior(theta0: np.ndarray, stationary_samples: int) -> tuple[np.nd
 
 
 def penalised_cost_functions(
-    data: ekf.FilterData, theta0: np.ndarray, stationary_samples: int, gradient: str = "exact"
+    data: mekf.FilterData, theta0: np.ndarray, stationary_samples: int, gradient: str = "exact"
 ) -> tuple[Callable, Callable]:
     """(θ ↦ (V + prior, ∇), θ ↦ V + prior) with the gradient exact or finite-difference."""
     mean, precision = gyro_noise_prior(theta0, stationary_samples)
-    tape = native.new_tape(len(data))
+    tape = mekf.new_tape(len(data))
     typical = np.maximum(np.abs(theta0), 1e-3)
 
     def penalty(theta):

@@ -59,12 +59,12 @@ Filter (eq. 15–18): cubature points ``x̂ ± √n S e_j`` (n = 9, 2n = 18 poin
   (an ellipsoid or a sphere, and the noise) starts the filter at once. For a whole session
   that ends before the start, :func:`run_ckf` runs the filter in a pseudo-random order.
 * **Noise level.** ``σ`` is estimated from second differences of the samples seen before the
-  start (:func:`~magcal.calib.attitude_free.noise_std_from_differences`) unless given, floored
-  at :data:`MIN_NOISE_FRACTION` of the field (noise-free data).
+  start (:func:`~magcal.calib.norm_only.norm_ellipsoid.noise_std_from_differences`) unless
+  given, floored at :data:`MIN_NOISE_FRACTION` of the field (noise-free data).
 
 At the end, ``T = Q √Σ Qᵀ`` from ``A = Q Σ Qᵀ`` (eq. 19–20): ``D_sym = T⁻¹``, ``o = b``.
 The rotation between magnetometer and inertial axes is invisible to this model; ``pipeline``
-adds it with Algorithm 1's alignment step (see :mod:`magcal.calib.attitude_free`).
+adds it with Algorithm 1's alignment step (see :mod:`magcal.calib.norm_only.norm_ellipsoid`).
 
 Cost: one update is a fixed number of 9-vector and 9 × 9 operations: constant time and
 memory per sample (``bench/run_bench.py`` reports µs per sample).
@@ -77,8 +77,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _potrf
 
-from magcal.calib import attitude_free
-from magcal.calib.ellipsoid import EllipsoidFit
+from magcal.calib.initial.ellipsoid import EllipsoidFit
+from magcal.calib.norm_only import norm_ellipsoid
 from magcal.errors import InsufficientDataError
 
 N_STATE = 9
@@ -168,8 +168,8 @@ class CkfPrior:
         """The readings' algebraic ellipsoid when it is a real one, else Kåsa's sphere when
         they span three dimensions, else their mean and RMS distance from it; the noise from
         second differences. mag : (N, 3) raw units."""
-        mag = attitude_free.check_readings(mag, "ckf")
-        sigma = attitude_free.noise_std_from_differences(mag)
+        mag = norm_ellipsoid.check_readings(mag, "ckf")
+        sigma = norm_ellipsoid.noise_std_from_differences(mag)
         ellipsoid = algebraic_ellipsoid(mag)
         if ellipsoid is not None:
             return cls(ellipsoid[0], ellipsoid[1], sigma)
@@ -269,7 +269,7 @@ def spread_problem(mag: np.ndarray, noise_std: float) -> str | None:
 def algebraic_ellipsoid(y: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """A quick ellipsoid ``(y − b)ᵀ A (y − b) = 1`` through readings y (N, 3): the plain
     algebraic fit (smallest eigenvector of the normalised design's Gram matrix, as
-    :func:`magcal.calib.ellipsoid.fit_ellipsoid_algebraic` but without its checks and
+    :func:`magcal.calib.initial.ellipsoid.fit_ellipsoid_algebraic` but without its checks and
     packaging). Returns (A (3, 3) in (raw units)⁻², b (3,) raw units), or None when the fit
     is not a real ellipsoid (A not positive definite, empty quadric)."""
     mu = y.mean(axis=0)
@@ -375,7 +375,7 @@ class CkfEstimate:
 
     @property
     def T(self) -> np.ndarray:
-        return attitude_free.symmetric_root(self.A)[0]
+        return norm_ellipsoid.symmetric_root(self.A)[0]
 
     def normalise(self, y: np.ndarray) -> np.ndarray:
         """Raw readings (…, 3) → the filter's coordinates."""
@@ -388,7 +388,7 @@ class CkfEstimate:
     def points(self, directions: np.ndarray) -> np.ndarray:
         """Points (K, 3), normalised coordinates, of this ellipsoid in the calibrated unit
         ``directions`` (K, 3): ``b + T⁻¹ d``."""
-        T, _ = attitude_free.symmetric_root(_sym(self.x[:6]))
+        T, _ = norm_ellipsoid.symmetric_root(_sym(self.x[:6]))
         return self.x[6:] + np.linalg.solve(T, np.asarray(directions, dtype=float).T).T
 
     def norm_std(self, points: np.ndarray) -> np.ndarray:
@@ -609,13 +609,13 @@ def run_ckf(mag: np.ndarray, *, force: bool = False) -> CkfFit:
     from being taken for a sphere, and at σ ≈ 20 % of the field the filter's linearised
     start is outside what it was tested on.
     """
-    mag = attitude_free.check_readings(mag, "ckf")
+    mag = norm_ellipsoid.check_readings(mag, "ckf")
     ckf = CubatureCalibrator()
     ckf.update_many(mag)
     if ckf.started:
         return CkfFit(ckf.estimate, "time", ckf.start_sample)
     prior = CkfPrior.from_readings(mag)
-    problem = attitude_free.planarity_problem(mag, "ckf") or spread_problem(mag, prior.noise_std)
+    problem = norm_ellipsoid.planarity_problem(mag, "ckf") or spread_problem(mag, prior.noise_std)
     if problem is not None and not force:
         raise InsufficientDataError(problem)
     ckf = CubatureCalibrator(prior)
@@ -637,7 +637,7 @@ def calibration_ellipsoid(mag: np.ndarray, *, force: bool = False) -> tuple[Elli
             "pseudo-random order instead. Live, this recording would have shown no estimate: "
             "rotate through more orientations sooner",
         )
-    fit = attitude_free.ellipsoid_fit_from(e.A, e.b, mag, "ckf", notes)
+    fit = norm_ellipsoid.ellipsoid_fit_from(e.A, e.b, mag, "ckf", notes)
     details = {
         "A": e.A.tolist(),
         "b": e.b.tolist(),

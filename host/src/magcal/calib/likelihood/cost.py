@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from magcal.calib import native, params
-from magcal.calib.ekf import FilterData
+from magcal.calib.likelihood import mekf, params
+from magcal.calib.likelihood.mekf import FilterData
 
 # Forward differences have truncation error O(h) and rounding error O(ε|V|/h); h ∝ √ε
 # balances them. Central differences: O(h²) against O(ε|V|/h), so h ∝ ∛ε.
@@ -24,7 +24,7 @@ _CENTRAL_REL_STEP = np.cbrt(np.finfo(float).eps)
 
 def cost(theta: np.ndarray, data: FilterData) -> float:
     """V(θ) (float, nats). NaN when the filter's covariances break down."""
-    return native.filter_pass(params.unpack(theta), data, True)
+    return mekf.filter_pass(params.unpack(theta), data, True)
 
 
 def cost_and_gradient(
@@ -32,7 +32,7 @@ def cost_and_gradient(
 ) -> tuple[float, np.ndarray]:
     """V(θ) and ∂V/∂θ (34,), exact (reverse mode through the filter)."""
     theta = np.asarray(theta, dtype=float)
-    value, mg = native.cost_and_model_gradient(params.unpack(theta), data, tape=tape)
+    value, mg = mekf.cost_and_model_gradient(params.unpack(theta), data, tape=tape)
     grad = params.model_grad_to_theta(
         theta, mg.D, mg.o, mg.m, mg.gyro_bias, mg.Sigma_gyr, mg.Sigma_acc, mg.Sigma_mag
     )

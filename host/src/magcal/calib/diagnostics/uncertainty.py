@@ -33,9 +33,11 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from magcal.calib import cost, evaluation, frames, native, params
-from magcal.calib.evaluation import LikelihoodProblem
-from magcal.calib.ml import Normalisation
+from magcal.calib import frames
+from magcal.calib.diagnostics import replay
+from magcal.calib.diagnostics.replay import LikelihoodProblem
+from magcal.calib.likelihood import cost, mekf, params
+from magcal.calib.likelihood.ml import Normalisation
 from magcal.errors import CalibrationError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
@@ -307,7 +309,7 @@ class CalibrationUncertainty:
 
 def penalised_gradient(problem: LikelihoodProblem) -> Callable[[np.ndarray], np.ndarray]:
     """θ ↦ ∇(V + gyroscope noise prior) (34,), exact, on ``problem``'s data."""
-    tape = native.new_tape(problem.n_samples)
+    tape = mekf.new_tape(problem.n_samples)
 
     def gradient(theta: np.ndarray) -> np.ndarray:
         value, g = cost.cost_and_gradient(theta, problem.data, tape)
@@ -326,13 +328,13 @@ def calibration_uncertainty(
     """σ of a result's quantities from the Hessian of the ML cost at its parameters on the
     session it was fitted on (2·34 exact gradient passes; ``progress(done, total)``).
 
-    Raises ``evaluation.ModelUnavailableError`` when the result lacks the noise covariances
+    Raises ``replay.ModelUnavailableError`` when the result lacks the noise covariances
     or the gyroscope bias the cost needs, and :class:`CalibrationError` when the cost is not
     finite there.
     """
     t0 = time.perf_counter()
-    p = evaluation.model_params_from_result(result)
-    problem = evaluation.likelihood_problem(session, p)
+    p = replay.model_params_from_result(result)
+    problem = replay.likelihood_problem(session, p)
     gradient = penalised_gradient(problem)
     g0 = gradient(problem.theta)
     if not np.isfinite(g0).all():

@@ -9,8 +9,8 @@ symmetric square root of ``A`` (Zhao et al. eq. 19–20): the correction
 ``D_sym⁻¹ (y − b)`` with ``D_sym = T⁻¹``, which cannot see the rotation between the
 magnetometer and the inertial axes. To give a full ``D``, ``o`` like Algorithm 1, the
 ellipsoid is handed to the same alignment step as the initial estimate
-(:func:`magcal.calib.initial.initial_estimate`, which runs ``align.py``) in the form of an
-:class:`~magcal.calib.ellipsoid.EllipsoidFit` (:func:`ellipsoid_fit_from`).
+(:func:`magcal.calib.initial.estimate.initial_estimate`, which runs ``align.py``) in the form of an
+:class:`~magcal.calib.initial.ellipsoid.EllipsoidFit` (:func:`ellipsoid_fit_from`).
 
 Units: ``A`` in (raw magnetometer units)⁻², ``b`` in raw units, the field norm is 1.
 """
@@ -19,8 +19,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from magcal.calib import ellipsoid
-from magcal.calib.ellipsoid import EllipsoidFit
+from magcal.calib.initial import ellipsoid
+from magcal.calib.initial.ellipsoid import EllipsoidFit
 from magcal.errors import CalibrationError, InsufficientDataError
 
 #: Eigenvalues of ``A`` are floored at this fraction of the largest before taking ``T``: only
@@ -50,7 +50,7 @@ def check_readings(mag: np.ndarray, who: str) -> np.ndarray:
 
 def planarity_problem(mag: np.ndarray, who: str) -> str | None:
     """A message if the readings (N, 3) lie close to a plane or a line, by the ellipsoid fit's
-    own criterion (:data:`magcal.calib.ellipsoid.MIN_DATA_EIG_RATIO`), else None."""
+    own criterion (:data:`magcal.calib.initial.ellipsoid.MIN_DATA_EIG_RATIO`), else None."""
     eig = np.linalg.eigvalsh(np.cov(np.asarray(mag, dtype=float), rowvar=False))
     if eig[-1] > 0.0 and eig[0] >= ellipsoid.MIN_DATA_EIG_RATIO * eig[-1]:
         return None

@@ -24,14 +24,14 @@ include $(sort $(wildcard mk/*.mk))
 
 setup: $(STAMP)
 
-# Re-install when the package definition or the native kernel changes (the editable
-# install compiles host/csrc into magcal/calib/likelihood/_mekf*.so).
-$(STAMP): host/pyproject.toml host/setup.py $(wildcard host/csrc/*.c host/csrc/*.h)
+# Re-install when the package definition, the lock (mk/deps.mk) or the native kernel changes
+# (the editable install compiles host/csrc into magcal/calib/likelihood/_mekf*.so).
+$(STAMP): host/pyproject.toml host/setup.py host/requirements.lock $(wildcard host/csrc/*.c host/csrc/*.h)
 	@$(PYTHON) -c "import sysconfig,os,sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()['include'],'Python.h')))" \
 		|| { echo "make setup: $(PYTHON) has no C headers (Python.h), needed to build the native kernel: install python3-dev (Debian/Ubuntu) or python3-devel (Fedora)" >&2; exit 1; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e 'host[dev]'
+	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet --upgrade pip
+	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet -e 'host[dev]'
 	touch $@
 
 # The end-to-end demo (magcal.sim.demo): the SIL device with a random distortion, tumbled by the

@@ -1,0 +1,59 @@
+# Python dependencies: installs come from a lock file, so that CI, the team and users of a
+# checkout get the versions CI tested. host/pyproject.toml keeps its ranges for people who
+# install the package into an environment of their own.
+#
+#   make lock          refresh host/requirements.lock: the newest versions the ranges allow,
+#                      resolved in a clean virtual environment (commit the result)
+#   make test-latest   install the newest allowed versions into build/latest-venv and run the
+#                      pytest suite there; reports what they break, never fails
+#
+# PIP_CONSTRAINT (not -c) so that the lock also holds in pip's isolated build environment:
+# the native kernel is compiled with the locked setuptools too.
+
+.PHONY: lock test-latest
+
+LOCK := host/requirements.lock
+LOCK_VENV := build/lock-venv
+LATEST_VENV := build/latest-venv
+LATEST_LOG := build/latest/pytest.log
+# Packages of this repository, left out of the lock.
+LOCK_OWN := magcal magcal-evaluation
+# pip's own output names its index and find-links locations; keep only what matters.
+PIP_QUIET := --quiet --disable-pip-version-check
+
+lock:
+	rm -rf $(LOCK_VENV)
+	$(PYTHON) -m venv $(LOCK_VENV)
+	$(LOCK_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
+	$(LOCK_VENV)/bin/python -m pip install $(PIP_QUIET) './host[dev]' $(wildcard ./evaluation)
+	@{ echo "# The versions make setup installs (pip install with PIP_CONSTRAINT=$(LOCK))."; \
+	   echo "# Made by \`make lock\` from host/pyproject.toml's ranges with $$($(LOCK_VENV)/bin/python -V)"; \
+	   echo "# on $$(date -u +%Y-%m-%d); refresh with \`make lock\`, run \`make test\`, commit."; \
+	   $(LOCK_VENV)/bin/python -m pip freeze --all $(addprefix --exclude ,$(LOCK_OWN)); } > $(LOCK).new
+	mv $(LOCK).new $(LOCK)
+	@echo "lock: wrote $(LOCK) ($$(grep -vc '^#' $(LOCK)) packages)"
+
+$(LATEST_VENV)/.installed: host/pyproject.toml host/setup.py
+	rm -rf $(LATEST_VENV)
+	$(PYTHON) -m venv $(LATEST_VENV)
+	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
+	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade --upgrade-strategy eager \
+		'./host[dev]' $(wildcard ./evaluation)
+	touch $@
+
+# The suite runs against the non-editable install in LATEST_VENV (tests import magcal from
+# there, the tests package from the checkout). Its verdict is printed, not returned, and not
+# as pytest's closing line, so that a CI log's verdict stays `make test`'s.
+test-latest: firmware-lib sil
+	@mkdir -p $(dir $(LATEST_LOG))
+	@if ! $(MAKE) --no-print-directory $(LATEST_VENV)/.installed > $(dir $(LATEST_LOG))install.log 2>&1; then \
+		echo "test-latest: installing the newest allowed versions failed (see $(dir $(LATEST_LOG))install.log):"; \
+		grep -v 'WARNING: Location' $(dir $(LATEST_LOG))install.log | tail -5; exit 0; fi
+	@$(LATEST_VENV)/bin/python -m pip freeze --all $(addprefix --exclude ,$(LOCK_OWN)) 2>/dev/null \
+		| grep -vxFf $(LOCK) | sed 's/^/test-latest: newer than the lock: /' || true
+	@status=0; timeout 900 $(LATEST_VENV)/bin/python -m pytest -q -p no:cacheprovider \
+		tests --ignore=tests/target > $(LATEST_LOG) 2>&1 || status=$$?; \
+	summary=$$(tail -1 $(LATEST_LOG)); \
+	echo "test-latest: with the newest allowed versions the suite ended with status $$status ($$summary)"; \
+	grep -E '^(FAILED|ERROR) ' $(LATEST_LOG) | head -20 | sed 's/^/test-latest:   /'; \
+	echo "test-latest: full log in $(LATEST_LOG); this target never fails"

@@ -22,7 +22,7 @@ LOCK_OWN := magcal magcal-evaluation
 PIP_QUIET := --quiet --disable-pip-version-check
 
 lock:
-	rm -rf $(LOCK_VENV)
+	rm -rf $(LOCK_VENV) host/build
 	$(PYTHON) -m venv $(LOCK_VENV)
 	$(LOCK_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
 	$(LOCK_VENV)/bin/python -m pip install $(PIP_QUIET) './host[dev]' $(wildcard ./evaluation)
@@ -33,8 +33,10 @@ lock:
 	mv $(LOCK).new $(LOCK)
 	@echo "lock: wrote $(LOCK) ($$(grep -vc '^#' $(LOCK)) packages)"
 
+# host/build is removed first: setuptools copies into it without deleting, and a module that
+# moved would otherwise be installed twice.
 $(LATEST_VENV)/.installed: host/pyproject.toml host/setup.py
-	rm -rf $(LATEST_VENV)
+	rm -rf $(LATEST_VENV) host/build
 	$(PYTHON) -m venv $(LATEST_VENV)
 	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
 	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade --upgrade-strategy eager \
@@ -42,9 +44,10 @@ $(LATEST_VENV)/.installed: host/pyproject.toml host/setup.py
 	touch $@
 
 # The suite runs against the non-editable install in LATEST_VENV (tests import magcal from
-# there, the tests package from the checkout). Its verdict is printed, not returned, and not
-# as pytest's closing line, so that a CI log's verdict stays `make test`'s.
-test-latest: firmware-lib sil
+# there, the tests package from the checkout; the few tests that run host/magcal use .venv).
+# Its verdict is printed, not returned, and not as pytest's closing line, so that a CI log's
+# verdict stays `make test`'s.
+test-latest: setup firmware-lib sil
 	@mkdir -p $(dir $(LATEST_LOG))
 	@if ! $(MAKE) --no-print-directory $(LATEST_VENV)/.installed > $(dir $(LATEST_LOG))install.log 2>&1; then \
 		echo "test-latest: installing the newest allowed versions failed (see $(dir $(LATEST_LOG))install.log):"; \

@@ -1,9 +1,9 @@
-"""Quick versions of issue 2's accuracy checks (the full report is ``make accuracy``).
+"""Quick versions of the accuracy checks (the full report is ``make accuracy``).
 
 Each check runs a few fixed seeds (1..n, never chosen by outcome) through the same
 functions as ``tools/accuracy_report.py`` (:mod:`magcal.report.accuracy`) and asserts the
 same bound on the median. Sessions are shorter only where the check does not fix their
-length (noise-free, small noise, scale, hand-held); the MEMS checks keep the issue's minute.
+length (noise-free, small noise, scale, hand-held); the MEMS checks keep the scenario's minute.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ QUICK_SEEDS = {
     "noise-free": 3,
     "small-noise": 3,
     # The ratio checks use the report's full 20 seeds (≈0.7 s a run): a median of 5 is
-    # too noisy to hold to the issue's bound either way.
+    # too noisy to hold to the check's bound either way.
     "mems": 20,
     "mems-acc": 20,
     "table2": 50,  # a third of the full 150: the runs are 400 samples
@@ -30,11 +30,11 @@ QUICK_SEEDS = {
 }
 
 
-#: Checks whose bound the library does not meet yet; issue 2 stays open on them. Strict:
-#: the test fails as soon as the bound is met, so this list cannot go stale.
+#: Checks whose bound the library does not meet (the README's "Known limit"). Strict: the
+#: test fails as soon as the bound is met, so this list cannot go stale.
 NOT_MET_YET = {
     "mems-acc": (
-        "issue 2, blocked: with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the "
+        "with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the "
         "ML misalignment sits at about 2× the known-attitude floor (20 seeds 2.04×; bound 2×), "
         "below the scenario's Cramér-Rao bound of 2.29× (make cramer-rao)"
     ),
@@ -54,7 +54,7 @@ def test_every_check_has_a_quick_version():
         for k in QUICK_SEEDS
     ],
 )
-def test_quick_check_meets_the_issue_bound(key):
+def test_quick_check_meets_its_bound(key):
     runs = [accuracy.run_check(key, seed, quick=True) for seed in range(1, QUICK_SEEDS[key] + 1)]
     v = accuracy.verdict(key, runs)
     assert v.n_runs == QUICK_SEEDS[key]

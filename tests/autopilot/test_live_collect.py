@@ -1,4 +1,4 @@
-"""The live CKF in ``magcal collect --mavlink`` (issue 7) against the autopilot emulator: the
+"""The live CKF in ``magcal collect --mavlink`` against the autopilot emulator: the
 progress shows the estimate's norm spread, says "ok to stop" once coverage and convergence
 are both good enough, and the session records the final estimate as ``live_estimate``, as the
 serial collect does (tests/unit/test_ckf_live.py). Both personalities: ArduPilot's field in

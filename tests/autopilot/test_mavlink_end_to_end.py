@@ -1,4 +1,4 @@
-"""End to end over MAVLink with the autopilot emulator (issue 6), through the real CLI:
+"""End to end over MAVLink with the autopilot emulator, through the real CLI:
 collect → calibrate → flash → the emulator's own corrected field; backups, dry runs, restores
 and a lossy parameter link.
 

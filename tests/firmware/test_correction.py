@@ -9,7 +9,7 @@ and extreme parameter sets, with default and arbitrary output exponents:
 - the design property: |out - ref| <= 1/2 LSB (+ 2^-20) whenever ref is inside the range,
   since the device rounds the exact value once.
 
-And issue 5's requirement, on about 10^6 more samples (random, near the offset and every
+And the product requirement, on about 10^6 more samples (random, near the offset and every
 int16 corner) over random calibrations given as floats (unit-scale, counts-scale with a field
 of 3400 counts and offsets of thousands of counts, any field of 30..30000 counts, ~60-scale, a
 session in uT, extreme matrices and offsets) converted with the default output exponent: the
@@ -188,7 +188,7 @@ def test_default_sets_never_saturate_and_use_the_range(lib):
         assert np.max(np.abs(out.astype(np.int64))) >= 2 ** (29 - steps)
 
 
-# ------------------------------------------------- issue 5: against the unquantised float
+# ----------------------------------------- the requirement: against the unquantised float
 
 CORNERS = np.array(
     [[x, y, z] for x in (-32768, 32767) for y in (-32768, 32767) for z in (-32768, 32767)]
@@ -246,7 +246,7 @@ KINDS = ("unit", "counts3400", "counts", "sixty", "session_uT", "extreme")
 
 
 def test_output_within_one_lsb_of_the_unquantised_float_correction(lib):
-    """Issue 5: |device - float64 D_inv (y - o)| <= 1 LSB unrounded, with the calibration's
+    """|device - float64 D_inv (y - o)| <= 1 LSB unrounded, with the calibration's
     own (unquantised) D_inv and o, for every tested int16 input; and what the default output
     exponent costs over the one that only avoids saturation."""
     rng = np.random.default_rng(55)

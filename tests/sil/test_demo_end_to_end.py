@@ -1,4 +1,4 @@
-"""Issue 5 ("End to end") in CI: the demo's flow against the SIL device, seeded and shorter.
+"""End to end in CI: the demo's flow against the SIL device, seeded and shorter.
 
 magcal-sil starts on a fresh flash file; the world (a MEMS sensor with a random distortion in
 a 50 uT field, seed 11) tumbles it, sped up, while the real command line (host/magcal) runs
@@ -8,7 +8,7 @@ noise-free readings of the same motion is streamed (magcal.sim.demo, as ``make d
 After flashing:
 - the heading error of the device's corrected output (each sample rotated to north with the
   attitude the world fed it with) is at most 0.5 deg RMS, and so is the calibration-induced
-  heading error of the result over the SO(3) grid (issue 2's metric);
+  heading error of the result over the SO(3) grid (the accuracy report's metric);
 - for every streamed sample, the device's fixed-point output equals the host's float64
   correction ``D_inv (y - o)`` of result.json (its unquantised D_inv and o), in the device's
   output LSBs, within 1 LSB, unrounded: the output's rounding (1/2 LSB) plus the parameter

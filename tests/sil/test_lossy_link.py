@@ -1,4 +1,4 @@
-"""The host against the REAL SIL device (build/sil/magcal-sil) over a bad link (issue 5):
+"""The host against the REAL SIL device (build/sil/magcal-sil) over a bad link:
 a seeded :class:`tests.sil.lossy_proxy.LossyProxy` between the DeviceClient and the SIL's
 protocol port flips bits, drops, duplicates and delays bytes and splits frames, in both
 directions, while the client runs hello, info, a raw stream of a world fed through the feed

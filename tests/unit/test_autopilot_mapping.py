@@ -1,4 +1,4 @@
-"""Tests of magcal.autopilot: enumerated rotations and the parameter mapping (issue 6)."""
+"""Tests of magcal.autopilot: enumerated rotations and the parameter mapping."""
 
 from __future__ import annotations
 

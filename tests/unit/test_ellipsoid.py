@@ -65,7 +65,7 @@ def test_quadric_coefficients_describe_the_data():
     assert np.all(np.linalg.eigvalsh(fit.A) > 0)
     resid = np.einsum("ni,ij,nj->n", y, fit.A, y) + y @ fit.b + fit.c
     assert np.max(np.abs(resid)) < 1e-8 * abs(fit.c)
-    # eq. 20 up to scale: A ∝ D⁻ᵀD⁻¹, b = −2Ao, and the corrected formulas of algorithm.md.
+    # eq. 20 up to scale: A ∝ D⁻ᵀD⁻¹, b = −2Ao, and the corrected formulas of docs/algorithm.md.
     Dinv = np.linalg.inv(D)
     A_true = Dinv.T @ Dinv
     assert _rel(fit.A, A_true / np.trace(A_true)) < 1e-6

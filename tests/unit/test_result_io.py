@@ -53,7 +53,7 @@ def written(tmp_path, data) -> str:
 
 
 def test_required_keys_are_the_contracts():
-    # Pinned: shared/docs/contracts.md, "Calibration result". Change only with the contract.
+    # Pinned: docs/contracts.md, "Result file". Change only with the contract.
     assert REQUIRED_KEYS == (
         "format",
         "method",

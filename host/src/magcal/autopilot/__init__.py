@@ -1,4 +1,4 @@
-"""ArduPilot and PX4: compass parameters and MAVLink (issue 6).
+"""ArduPilot and PX4: compass parameters and MAVLink.
 
 magcal gives ``m_b = D⁻¹ (y − o)`` with unit norm. This package turns ``(D, o)``, the local
 field strength and the rotation in force into each autopilot's compass parameters, and back,

@@ -5,7 +5,7 @@ it is the field in physical units. ``y`` is the magnetometer vector in the autop
 units (ArduPilot mG, PX4 gauss) *after* the rotation in force (``R_old``/``Rot0``, identity when
 ``y`` is in the sensor frame) and before any offset or scale correction.
 
-On-board corrections, as in the sources (checked with the code search tool):
+On-board corrections, as in the sources:
 
 - ArduPilot ``libraries/AP_Compass/AP_Compass_Backend.cpp`` (commit 20172681):
   ``rotate_field`` (driver/board rotation, then ``COMPASS_ORIENTn`` for an external compass,
@@ -14,8 +14,8 @@ On-board corrections, as in the sources (checked with the code search tool):
   [COMPASS_MIN_SCALE_FACTOR, COMPASS_MAX_SCALE_FACTOR]); ``mag = M · mag`` with
   ``M = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]]`` (all-zero
   diagonals → 1); then motor compensation (not modelled here: zero when disarmed/idle).
-  So ``B = M · s · (R · raw + OFS)``, as autopilots.md says. An *internal* compass is rotated
-  by AHRS_ORIENTATION, not COMPASS_ORIENT: its rotation cannot be changed by us.
+  So ``B = M · s · (R · raw + OFS)``, as ``docs/autopilots.md`` says. An *internal* compass is
+  rotated by AHRS_ORIENTATION, not COMPASS_ORIENT: its rotation cannot be changed by us.
   The custom matrix is ``Matrix3::from_euler(roll, pitch, yaw)`` (3-2-1); in the commit read,
   ROTATION_CUSTOM = 100 with the compass's own custom angles; newer releases use 101/102 with
   ``CUST_ROT1_*``/``CUST_ROT2_*`` (AP_CustomRotations.cpp: "euler 321 (yaw, pitch, roll)
@@ -25,17 +25,17 @@ On-board corrections, as in the sources (checked with the code search tool):
   (commit 033e9cee) builds ``_scale`` from SCALE (diagonal) and ODIAG (0,1), (0,2), (1,2)
   symmetric, and ``_rotation = get_rot_matrix(CAL_MAGn_ROT)``; an external ROT outside
   [0, ROTATION_MAX) is reset to 0 and an internal one is −1 (board rotation). That commit has
-  **no** custom rotation: ROT = 100 with ``CAL_MAGn_ROLL/PITCH/YAW`` (autopilots.md) is not
+  **no** custom rotation: ROT = 100 with ``CAL_MAGn_ROLL/PITCH/YAW`` (docs/autopilots.md) is not
   in that commit (an external ROT of 100 is reset to 0 there); newer releases have it, so
   :func:`to_px4` writes it only when asked (``flash --px4-custom-rotation``, which checks
   that the vehicle reports ``CAL_MAGn_ROLL``).
 - Limits: ArduPilot |OFS| < COMPASS_OFFS_MAX (default 1800 mG), DIA 0.2–5.0, |ODI| < 1
-  (autopilots.md, ArduPilot's own calibrator); SCALE used only in [0.85, 1.4]
-  (CompassCalibrator.h COMPASS_MIN/MAX_SCALE_FACTOR). PX4 scales 0.1–3.0 (autopilots.md);
+  (docs/autopilots.md, ArduPilot's own calibrator); SCALE used only in [0.85, 1.4]
+  (CompassCalibrator.h COMPASS_MIN/MAX_SCALE_FACTOR). PX4 scales 0.1–3.0 (docs/autopilots.md);
   offsets beyond 1.3 G only draw a warning on board (mag_calibration.cpp
   MAG_MAX_OFFSET_LEN) and here too; no off-diagonal limit was found in the sources read.
 
-Mapping (autopilots.md): ArduPilot ``F·D⁻¹ = P'·U'`` (left polar) ⇒ ``R_new = U'·R_old``,
+Mapping (``docs/autopilots.md``): ArduPilot ``F·D⁻¹ = P'·U'`` (left polar) ⇒ ``R_new = U'·R_old``,
 ``OFS = −U'·o``, ``M·s = P'``. PX4 ``F·D⁻¹ = U·P`` (right polar) ⇒ ``Rot = U·Rot0``,
 ``S = Rot0ᵀ·P·Rot0``, ``off = Rot0ᵀ·o``.
 """

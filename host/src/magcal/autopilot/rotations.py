@@ -95,7 +95,7 @@ PX4_TABLE: tuple[tuple[str, float, float, float], ...] = ARDUPILOT_TABLE[:38] + 
     ("ROLL_270_YAW_315", 270, 0, 315),
 )
 
-#: Highest PX4 index that autopilots.md and MAV_SENSOR_ORIENTATION agree on.
+#: Highest PX4 index that docs/autopilots.md and MAV_SENSOR_ORIENTATION agree on.
 PX4_MAX_COMMON_INDEX = 40
 ARDUPILOT_MAX_INDEX = len(ARDUPILOT_TABLE) - 1
 

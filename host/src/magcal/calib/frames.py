@@ -1,6 +1,6 @@
 """Frames, quaternions and rotations: the one place for attitude conventions.
 
-Conventions (see also ``shared/docs/contracts.md``):
+Conventions (see also ``docs/contracts.md``):
 
 * Quaternions are scalar-first, ``q = (w, x, y, z)``, Hamilton product ``⊙``.
 * ``q_nb`` rotates body-frame vectors into the navigation frame: ``v_n = R(q_nb) v_b``.

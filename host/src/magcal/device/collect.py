@@ -10,7 +10,7 @@ returns a :class:`CollectResult` holding a :class:`~magcal.io.session.Session`:
 - ``t`` seconds of the device clock (``t_us / 1e6``; t_us is a 64-bit microsecond counter that
   never wraps), ``gyr`` rad/s, ``acc`` m/s², ``mag`` µT (``# mag_unit: uT``). Each value is
   the exact rational count scale (for µT: times 10^6) rounded once to a float64;
-- metadata (``# key: value``, see ``shared/docs/contracts.md``): source, device_uid,
+- metadata (``# key: value``, see ``docs/contracts.md``): source, device_uid,
   firmware, firmware_build, protocol_version, port, each sensor's name and exact count scale,
   units, samples, dropped, device_dropped, coverage, stopped (why it stopped).
 

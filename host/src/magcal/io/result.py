@@ -1,6 +1,6 @@
 """Calibration results (``"format": "magcal-result/1"`` JSON): in memory, reading, writing.
 
-See ``shared/docs/contracts.md``. A result file is one JSON object with the required keys
+See ``docs/contracts.md``. A result file is one JSON object with the required keys
 ``format, method, D, o, D_inv, m_n, dip_deg, gyro_bias, warnings``; any other key is optional
 and is kept, unchanged, in :attr:`CalibrationResult.extra` (forward compatibility: a newer
 writer's keys survive a read/write by an older reader).

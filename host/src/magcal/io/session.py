@@ -1,6 +1,6 @@
 """Session files (``magcal-session: 1`` CSV): the in-memory form, reading and writing.
 
-See ``shared/docs/contracts.md`` for the format::
+See ``docs/contracts.md`` for the format::
 
     # magcal-session: 1
     # source: ...

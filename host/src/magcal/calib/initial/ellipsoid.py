@@ -5,7 +5,7 @@ ellipsoid ``‖D⁻¹(y − o)‖ = 1``, i.e. (paper eq. 19–20, all up to one 
 
     yᵀ A y + bᵀ y + c = 0,   A = D⁻ᵀ D⁻¹,   b = −2 A o,   c = oᵀ A o − 1.
 
-Inverting (``shared/docs/algorithm.md`` corrects the paper's eq. 24): for any common scale
+Inverting (the paper's eq. 24 has two misprints; see ``docs/algorithm.md``): for any common scale
 ``s`` of ``(A, b, c)``,
 
     o      = −½ A⁻¹ b,

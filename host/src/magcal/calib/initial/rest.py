@@ -359,7 +359,7 @@ def motion_acceleration_variance(acc: np.ndarray, g: float, stationary: slice | 
 
     The model's e_a must carry the hand's acceleration as well as the sensor noise: a
     filter that starts with only the noise measured at rest reads a 0.3 m/s² shake as a
-    10σ tilt at every sample, and the ML search starts a million nats from home (issue 2,
+    10σ tilt at every sample, and the ML search starts a million nats from home (seen on
     accelerated MEMS sessions). ``‖y_a‖ − g`` sees the acceleration's component along
     gravity, one axis' worth when it is isotropic; a robust spread (1.4826 × median absolute
     deviation) ignores knocks. The stationary stretch is left out; with no motion, 0.

@@ -1,7 +1,7 @@
 """Real-time magnetometer calibration with a cubature Kalman filter (Zhao et al.).
 
 Zhao, Lin, Zhang, Zhai, *Real-time Calibration Algorithm for Three-axis Magnetometer*
-(``shared/papers/zhao-realtime-ckf-magnetometer-calibration.txt``; ``algorithm.md`` §2).
+(``docs/algorithm.md`` §2).
 
 Model (paper eq. 5–14). The readings lie on ``(y − b)ᵀ A (y − b) = B_m²`` with
 ``A = Tᵀ T``. The state is constant (eq. 7, 15),
@@ -12,7 +12,7 @@ and every sample is the scalar pseudo-measurement (eq. 8–12)
 
     z = B_m² = h(x; y) + v,   h(x; y) = (y − b)ᵀ A (y − b).
 
-magcal normalises the field to ``B_m = 1`` (contracts.md: ``D⁻¹(y − o)`` has unit norm), so
+magcal normalises the field to ``B_m = 1`` (``docs/contracts.md``: ``D⁻¹(y − o)`` has unit norm), so
 ``A = D⁻ᵀ D⁻¹`` in the session's unit. With sensor noise ``n ~ N(0, σ² I)`` on ``y``, eq. 13's
 ``v = 2(b − y)ᵀ A n + nᵀ A n`` (``y`` the reading, which carries ``n`` itself:
 ``y − b = (y − n − b) + n``) has mean ``−σ² tr A`` and variance
@@ -63,8 +63,9 @@ Filter (eq. 15–18): cubature points ``x̂ ± √n S e_j`` (n = 9, 2n = 18 poin
   given, floored at :data:`MIN_NOISE_FRACTION` of the field (noise-free data).
 
 At the end, ``T = Q √Σ Qᵀ`` from ``A = Q Σ Qᵀ`` (eq. 19–20): ``D_sym = T⁻¹``, ``o = b``.
-The rotation between magnetometer and inertial axes is invisible to this model; ``pipeline``
-adds it with Algorithm 1's alignment step (see :mod:`magcal.calib.norm_only.norm_ellipsoid`).
+The rotation between magnetometer and inertial axes is invisible to this model;
+:mod:`magcal.calib.calibrate` adds it with Algorithm 1's alignment step (see
+:mod:`magcal.calib.norm_only.norm_ellipsoid`).
 
 Cost: one update is a fixed number of 9-vector and 9 × 9 operations: constant time and
 memory per sample (``bench/run_bench.py`` reports µs per sample).

@@ -31,7 +31,6 @@ See bench/README.md for what each figure means.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime
 import importlib.metadata
 import json
@@ -139,15 +138,12 @@ def _session(duration_s: float, seed: int):
 
 
 def _ml_problem(session):
-    """(init, normalised θ₀ params, FilterData, θ₀) as ml.maximum_likelihood builds them."""
+    """(init, the likelihood problem ml.maximum_likelihood minimises, from the one builder)."""
     from magcal.calib.initial import estimate
-    from magcal.calib.likelihood import ml, params
+    from magcal.calib.likelihood.problem import LikelihoodProblem
 
     init = estimate.initial_estimate(session)
-    norm = ml.normalisation_for(init.params)
-    p0 = init.params.scaled_magnetometer(norm.centre, norm.scale)
-    data = ml.filter_data_for(session, init, p0, norm)
-    return init, p0, data, params.pack(p0)
+    return init, LikelihoodProblem.for_ml_step(session, init)
 
 
 def work_calibrate(duration_s: float, seed: int, warm: bool) -> dict:
@@ -224,7 +220,7 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
     (see :data:`COMPARE_RUNS`)."""
     import numpy as np
 
-    from magcal.calib.likelihood import cost, ml
+    from magcal.calib.likelihood import ml
     from magcal.calib.likelihood.optimize import OptimizeOptions
 
     session = _session(duration_s, seed)
@@ -235,13 +231,12 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
 
     cvxpy_import_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    init, p0, data, theta0 = _ml_problem(session)
+    init, problem = _ml_problem(session)
     init_s = time.perf_counter() - t0
-    scales = ml.parameter_scales(p0, len(data))
+    scales = problem.scales
     options = OptimizeOptions(max_iter=max_iter)
     runs: dict = {}
     thetas = {}
-    objectives = {}
     for key in COMPARE_RUNS:
         gradient = key
         _log(f"  {key}: optimising ({len(session)} samples)")
@@ -250,11 +245,9 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
             if it % 25 == 0:
                 _log(f"    {key} iteration {it}: cost {v:.6f}, decrement {dec:.2e}")
 
-        with _instrument_ml(ml) as objective:
-            t0, c0 = time.perf_counter(), time.process_time()
-            est = ml.maximum_likelihood(session, init, gradient, options, progress)
-            wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
-        objectives.setdefault(gradient, objective)
+        t0, c0 = time.perf_counter(), time.process_time()
+        est = ml.maximum_likelihood(session, init, gradient, options, progress)
+        wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
         r = est.report
         thetas[key] = est.theta
         runs[key] = {
@@ -265,34 +258,30 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
             "gradient_evaluations": r.gradient_evaluations,
             "seconds_per_gradient_evaluation": wall_s / max(r.gradient_evaluations, 1),
             "final_cost": float(r.cost),
-            "final_cost_without_prior": float(cost.cost(est.theta, data)),
+            "final_cost_without_prior": float(problem.negative_log_likelihood(est.theta)),
             "stopping_rule": r.stopping_rule,
             "converged": bool(r.converged),
-            "theta0_identical": bool(np.array_equal(est.theta0, theta0)),
+            "theta0_identical": bool(np.array_equal(est.theta0, problem.theta0)),
         }
         _log(f"  {key}: {wall_s:.2f} s, {r.iterations} iterations, '{r.stopping_rule}'")
 
     # How stationary each end point is, judged by the exact gradient of the objective the
-    # optimiser minimised (V plus its prior), in scaled variables: the optimiser's gradient
-    # rule compares this with OptimizeOptions.gradient_tol.
-    fg_exact = objectives["exact"].get("fun_and_grad")
-    fg_numeric = objectives["numeric"].get("fun_and_grad")
+    # optimiser minimised (V plus its prior, from the same builder), in scaled variables:
+    # the optimiser's gradient rule compares this with OptimizeOptions.gradient_tol.
+    fg_exact, fg_numeric = problem.cost_and_gradient, problem.cost_and_numeric_gradient
     for key, theta in thetas.items():
-        g_max = None
-        if fg_exact is not None:
-            g_max = float(np.max(np.abs(fg_exact(theta)[1] * scales)))
-        runs[key]["max_scaled_exact_gradient_at_end"] = g_max
+        runs[key]["max_scaled_exact_gradient_at_end"] = float(
+            np.max(np.abs(fg_exact(theta)[1] * scales))
+        )
     # The finite-difference gradient's own error at the exact optimum, same units: where
     # the true gradient is smaller than this, the numeric optimiser is steering by noise.
     # And the price of one gradient evaluation each way (median of a few), which is what
     # the speed-up would be if both needed the same number of evaluations.
-    fd_error = t_exact = t_numeric = None
-    if fg_exact is not None and fg_numeric is not None:
-        g_e = fg_exact(thetas["exact"])[1]
-        g_n = fg_numeric(thetas["exact"])[1]
-        fd_error = float(np.max(np.abs((g_n - g_e) * scales)))
-        t_exact = _median_seconds(lambda: fg_exact(thetas["exact"]), GRADIENT_TIMING_REPS)
-        t_numeric = _median_seconds(lambda: fg_numeric(thetas["exact"]), GRADIENT_TIMING_REPS)
+    g_e = fg_exact(thetas["exact"])[1]
+    g_n = fg_numeric(thetas["exact"])[1]
+    fd_error = float(np.max(np.abs((g_n - g_e) * scales)))
+    t_exact = _median_seconds(lambda: fg_exact(thetas["exact"]), GRADIENT_TIMING_REPS)
+    t_numeric = _median_seconds(lambda: fg_numeric(thetas["exact"]), GRADIENT_TIMING_REPS)
 
     e, n = runs["exact"], runs["numeric"]
 
@@ -312,7 +301,7 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
         "max_scaled_fd_gradient_error_at_optimum": fd_error,
         "gradient_evaluation_exact_s": t_exact,
         "gradient_evaluation_numeric_s": t_numeric,
-        "speedup_per_gradient_evaluation": None if t_exact is None else t_numeric / t_exact,
+        "speedup_per_gradient_evaluation": t_numeric / t_exact,
         "speedup_ml": n["wall_s"] / e["wall_s"],
         "speedup_ml_cpu": n["cpu_s"] / e["cpu_s"],
         "speedup_with_init": (init_s + n["wall_s"]) / (init_s + e["wall_s"]),
@@ -329,69 +318,44 @@ def _median_seconds(fn, reps: int) -> float:
     return statistics.median(times)
 
 
-class _InstrumentError(RuntimeError):
-    """magcal.calib.likelihood.ml no longer has what :func:`_instrument_ml` wraps."""
-
-
-@contextlib.contextmanager
-def _instrument_ml(ml_module):
-    """Record the objective ``ml.maximum_likelihood`` builds (``fun_and_grad`` and the
-    cost-only ``fun`` from ``penalised_cost_functions``), so that end points are judged by
-    the very objective that was minimised, prior included, without restating how ml builds
-    it. Raises _InstrumentError if the names are gone."""
-    captured: dict = {}
-    names = ("penalised_cost_functions", "minimize_bfgs")
-    if not all(hasattr(ml_module, name) for name in names):
-        raise _InstrumentError(f"magcal.calib.likelihood.ml lacks {' or '.join(names)}")
-    original_pcf, original_min = (getattr(ml_module, name) for name in names)
-
-    def pcf(*args, **kwargs):
-        fg, f = original_pcf(*args, **kwargs)
-        captured["fun_and_grad"], captured["fun"] = fg, f
-        return fg, f
-
-    def minimize(fun_and_grad, *args, **kwargs):
-        captured.setdefault("fun_and_grad", fun_and_grad)
-        return original_min(fun_and_grad, *args, **kwargs)
-
-    ml_module.penalised_cost_functions, ml_module.minimize_bfgs = pcf, minimize
-    try:
-        yield captured
-    finally:
-        ml_module.penalised_cost_functions, ml_module.minimize_bfgs = original_pcf, original_min
-
-
 def work_scaling(durations_s: list[float], reps: list[int], seed: int) -> dict:
     """Median time of one cost+gradient and one cost evaluation at θ₀ per session size."""
     import tracemalloc
 
     import numpy as np
 
-    from magcal.calib.likelihood import cost, mekf
+    from magcal.calib.likelihood import mekf
+    from magcal.calib.likelihood.problem import (
+        negative_log_likelihood,
+        negative_log_likelihood_and_gradient,
+    )
 
     rows = []
     for duration_s, n_rep in zip(durations_s, reps, strict=True):
         session = _session(duration_s, seed)
-        _, _, data, theta0 = _ml_problem(session)
+        _, problem = _ml_problem(session)
+        data, theta0 = problem.data, problem.theta0
         n = len(data)
         _log(f"  {n} samples: {n_rep} repetitions")
         tape = mekf.new_tape(n)
-        cost.cost_and_gradient(theta0, data, tape)  # warm-up: page in the tape and the data
+        negative_log_likelihood_and_gradient(
+            theta0, data, tape
+        )  # warm-up: page in the tape and the data
         t_cg, t_c = [], []
         for _ in range(n_rep):
             t0 = time.perf_counter()
-            cost.cost_and_gradient(theta0, data, tape)
+            negative_log_likelihood_and_gradient(theta0, data, tape)
             t_cg.append(time.perf_counter() - t0)
             t0 = time.perf_counter()
-            cost.cost(theta0, data)
+            negative_log_likelihood(theta0, data)
             t_c.append(time.perf_counter() - t0)
         # What one evaluation allocates on the Python/numpy side (the C kernel has no heap
         # allocations): with no tape passed in, this includes the tape itself.
         tracemalloc.start()
-        cost.cost_and_gradient(theta0, data)
+        negative_log_likelihood_and_gradient(theta0, data)
         cg_alloc = tracemalloc.get_traced_memory()[1]
         tracemalloc.reset_peak()
-        cost.cost(theta0, data)
+        negative_log_likelihood(theta0, data)
         c_alloc = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
         fields = (data.dt, data.gyr, data.acc, data.mag, data.acc_extra_var)

@@ -28,8 +28,8 @@ import time  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magcal.calib.calibrate import calibrate  # noqa: E402
-from magcal.calib.diagnostics.replay import likelihood_problem  # noqa: E402
 from magcal.calib.likelihood import params  # noqa: E402
+from magcal.calib.likelihood.problem import LikelihoodProblem  # noqa: E402
 from magcal.report import accuracy  # noqa: E402
 from magcal.report import cramer_rao as cr  # noqa: E402
 from magcal.sim.scenarios import simulate  # noqa: E402
@@ -47,7 +47,7 @@ def run(job: tuple[str, int]) -> dict:
     session, truth = simulate(accuracy.CHECKS[name].scenario(False), seed)
     cal = calibrate(session, "ml")
     # The ML step's filter data and gyroscope-noise prior, set up around init's parameters.
-    problem = likelihood_problem(session, cal.init.params)
+    problem = LikelihoodProblem.for_ml_step(session, cal.init)
     norm = problem.norm
     theta = params.pack(truth.sensor.scaled_magnetometer(norm.centre, norm.scale))
     info = cr.fisher_information(theta, problem.data, PROCESSES[name])

@@ -11,8 +11,13 @@ import numpy as np
 import pytest
 
 from magcal.calib.calibrate import calibrate
-from magcal.calib.diagnostics import replay, uncertainty
-from magcal.calib.likelihood import cost, params
+from magcal.calib.diagnostics import uncertainty
+from magcal.calib.likelihood import params
+from magcal.calib.likelihood.problem import (
+    LikelihoodProblem,
+    negative_log_likelihood,
+    negative_log_likelihood_and_gradient,
+)
 from magcal.errors import MagcalError
 from magcal.report import accuracy
 from magcal.report import cramer_rao as cr
@@ -25,7 +30,7 @@ def _problem(config, seed):
     """(session, truth, filter data, θ_true normalised, prior precision, normalisation)."""
     session, truth = simulate(config, seed)
     init = calibrate(session, "init", force=True).init  # short sessions: fast tests
-    problem = replay.likelihood_problem(session, init.params)
+    problem = LikelihoodProblem.for_ml_step(session, init)
     norm = problem.norm
     theta = params.pack(truth.sensor.scaled_magnetometer(norm.centre, norm.scale))
     return session, truth, problem.data, theta, problem.prior_precision, norm
@@ -42,7 +47,7 @@ def test_with_the_process_off_it_is_the_calibration_filter(short_acc):
     other = theta + 0.01 * np.random.default_rng(0).standard_normal(theta.size)
     costs = cr.per_sample_costs(np.stack([theta, other]), data, OFF)
     for row, th in zip(costs, (theta, other), strict=True):
-        assert row.sum() == pytest.approx(cost.cost(th, data), rel=1e-12)
+        assert row.sum() == pytest.approx(negative_log_likelihood(th, data), rel=1e-12)
 
 
 def test_accelerations_change_the_costs(short_acc):
@@ -56,7 +61,7 @@ def test_outer_product_information_agrees_with_the_hessian():
     info = cr.fisher_information(theta, data, OFF) + np.diag(precision)
 
     def gradient(th):
-        return cost.cost_and_gradient(th, data)[1] + precision * (th - theta)
+        return negative_log_likelihood_and_gradient(th, data)[1] + precision * (th - theta)
 
     hess = uncertainty.central_difference_hessian(gradient, theta, np.full(theta.size, 1e-5))
     s = truth.sensor

@@ -35,7 +35,7 @@ def linear_gaussian(seed=0, n_obs=200, n_par=5):
 
 def test_hessian_inverse_equals_the_known_covariance_of_a_linear_gaussian_problem():
     gradient, theta_hat, cov_true, _, _ = linear_gaussian()
-    scales = np.sqrt(np.diag(cov_true)) * 3.0  # rough scales, as ml.parameter_scales are
+    scales = np.sqrt(np.diag(cov_true)) * 3.0  # rough scales, as problem.parameter_scales are
     calls = []
     H = uncertainty.central_difference_hessian(
         gradient, theta_hat, 1e-2 * scales, progress=lambda done, total: calls.append((done, total))

@@ -16,14 +16,10 @@ from magcal.calib.diagnostics import observability, quality
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
 from magcal.calib.initial.estimate import InitialEstimate, initial_estimate
 from magcal.calib.likelihood import mekf
-from magcal.calib.likelihood.ml import (
-    MLEstimate,
-    filter_data_for,
-    maximum_likelihood,
-    normalisation_for,
-)
+from magcal.calib.likelihood.ml import MLEstimate, maximum_likelihood
 from magcal.calib.likelihood.optimize import OptimizeOptions
 from magcal.calib.likelihood.params import ModelParams
+from magcal.calib.likelihood.problem import LikelihoodProblem
 from magcal.calib.norm_only import ckf, twostep
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult
@@ -68,9 +64,9 @@ class Calibration:
 
 
 def _filter_at(session: Session, init: InitialEstimate, p: ModelParams) -> mekf.FilterOutput:
-    norm = normalisation_for(init.params)
-    p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
-    return mekf.run_filter(p_norm, filter_data_for(session, init, p_norm, norm))
+    """The ML step's filter (normalised as from ``init``) at ``p``, starting from the
+    attitude ``p`` gives."""
+    return LikelihoodProblem.for_ml_step(session, init, at=p).run_filter_raw(p)
 
 
 def _alignment_warnings(session: Session, g: float) -> list[str]:
@@ -126,14 +122,14 @@ def calibrate(
     init = initial_estimate(session, fit)
     seconds.update(init.seconds)
     warnings += list(init.warnings)
-    warnings += _alignment_warnings(session, init.g)
+    warnings += _alignment_warnings(session, init.levels.g)
 
     extra: dict = {
         "initial": {
             "D": init.params.D,
             "o": init.params.o,
             "dip_deg": float(np.rad2deg(init.params.dip_rad)),
-            "noise_source": init.noise.source,
+            "noise_source": init.levels.noise.source,
         },
         "observability": {
             "gravity_eigenvalues": report.gravity_eigenvalues,

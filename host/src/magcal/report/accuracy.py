@@ -45,8 +45,8 @@ from magcal.calib.calibrate import calibrate
 from magcal.calib.diagnostics import quality
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_algebraic, symmetric_fit
 from magcal.calib.initial.estimate import InitialEstimate
-from magcal.calib.likelihood import mekf, ml
 from magcal.calib.likelihood.params import ModelParams
+from magcal.calib.likelihood.problem import LikelihoodProblem
 from magcal.errors import InsufficientDataError
 from magcal.io.session import Session
 from magcal.sim.scenarios import ScenarioConfig, SimTruth, preset, simulate
@@ -108,9 +108,7 @@ def ekf_heading_rmse_deg(
 ) -> float:
     """Heading RMSE (degrees) of the calibration EKF run with parameters ``p`` against the
     true attitude (paper Figure 8), over the whole session."""
-    norm = ml.normalisation_for(init.params)
-    p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
-    out = mekf.run_filter(p_norm, ml.filter_data_for(session, init, p_norm, norm))
+    out = LikelihoodProblem.for_ml_step(session, init, at=p).run_filter_raw(p)
     return quality.rms_deg(frames.heading_error_between(out.q_filt, q_true_nb))
 
 

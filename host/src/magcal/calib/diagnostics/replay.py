@@ -3,12 +3,9 @@
 The calibration is *fixed* here (nothing is estimated): this is what a report shows for the
 session a result was fitted on and for a second, validation session.
 
-* :func:`likelihood_problem` sets up the ML cost V(θ) of eq. (6) at a result's parameters on
-  a session, with the same data-only ingredients ``ml.py`` used (gravity magnitude,
-  accelerometer outlier inflation, gyroscope noise prior). Only the magnetometer
-  normalisation differs (centred on the result's ``o``, divided by ``|det D|^⅓``, instead of
-  the initial estimate's): V changes by a constant and θ by an affine map, so gradients and
-  curvature carry over exactly.
+* :func:`model_params_from_result` is a result's ML model (D, o, dip, gyroscope bias, noise
+  covariances); ``likelihood.problem.LikelihoodProblem.at_parameters`` sets up the ML cost
+  there, and :func:`run_filter_at` runs its filter.
 * :func:`inclination_dip_deg` is the dip angle each sample implies, a heading-free check of a
   calibration against the accelerometer: a good one gives the same angle at every
   orientation.
@@ -16,15 +13,11 @@ session a result was fitted on and for a second, validation session.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from magcal.calib.initial import rest
-from magcal.calib.initial.estimate import starting_attitude
-from magcal.calib.likelihood import mekf, params
-from magcal.calib.likelihood.ml import Normalisation, gyro_noise_prior, parameter_scales
+from magcal.calib.likelihood import mekf
 from magcal.calib.likelihood.params import ModelParams
+from magcal.calib.likelihood.problem import LikelihoodProblem
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
@@ -88,75 +81,15 @@ def model_params_from_result(result: CalibrationResult) -> ModelParams:
     )
 
 
-@dataclass(frozen=True)
-class LikelihoodProblem:
-    """The ML cost at a result's parameters on one session.
-
-    data             : the filter's input, magnetometer normalised by ``norm``
-    norm             : y' = (y − centre) / scale
-    theta            : (34,) the result's parameters in the normalised units (params.py)
-    scales           : (34,) rough 1-σ uncertainty of each θ component (``ml.parameter_scales``)
-    prior_mean       : (34,) mean of the gyroscope noise prior ML used
-    prior_precision  : (34,) its diagonal precision (zero outside the gyroscope noise)
-    """
-
-    data: mekf.FilterData
-    norm: Normalisation
-    theta: np.ndarray
-    scales: np.ndarray
-    prior_mean: np.ndarray
-    prior_precision: np.ndarray
-
-    @property
-    def n_samples(self) -> int:
-        return len(self.data)
-
-
-def likelihood_problem(session: Session, p: ModelParams) -> LikelihoodProblem:
-    """Set up V(θ) at ``p`` (raw magnetometer units) on ``session``.
-
-    The data-only parts are computed as ``initial.initial_estimate`` computes them for the
-    ML step: gravity magnitude (median accelerometer norm), the bump inflation of Σ_a with
-    the accelerometer noise of the stationary stretch (or the prior), and the gyroscope
-    noise prior centred on its measurement.
-    """
-    still = rest.find_stationary(session.t, session.gyr, session.acc, session.mag)
-    noise = rest.initial_noise_and_bias(session.t, session.gyr, session.acc, session.mag, still)
-    g = float(np.median(np.linalg.norm(session.acc, axis=1)))
-    rate_hz = (len(session) - 1) / float(session.t[-1] - session.t[0])
-    sigma_acc = float(np.sqrt(np.trace(noise.Sigma_acc) / 3.0))
-    acc_extra_var = mekf.accelerometer_extra_variance(session.acc, g, sigma_acc, rate_hz)
-
-    norm = Normalisation(
-        centre=np.asarray(p.o, dtype=float).copy(),
-        scale=float(abs(np.linalg.det(p.D)) ** (1.0 / 3.0)),
-    )
-    p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
-    mag_n = norm.apply(session.mag)
-    q0 = starting_attitude(session.acc, mag_n, p_norm)
-    data = mekf.make_filter_data(
-        session.t, session.gyr, session.acc, mag_n, q0, acc_extra_var=acc_extra_var, g=g
-    )
-    theta = params.pack(p_norm)
-    # The prior is centred on the gyroscope noise as measured, as in ml.maximum_likelihood.
-    measured = theta.copy()
-    measured[params.SLICE_CHOL_GYR] = params.cov_to_chol_params(noise.Sigma_gyr)
-    n_still = 0 if still is None else still.stop - still.start
-    prior_mean, prior_precision = gyro_noise_prior(measured, n_still)
-    return LikelihoodProblem(
-        data=data,
-        norm=norm,
-        theta=theta,
-        scales=parameter_scales(p_norm, len(data)),
-        prior_mean=prior_mean,
-        prior_precision=prior_precision,
-    )
-
-
 def run_filter_at(session: Session, p: ModelParams) -> mekf.FilterOutput:
-    """The ML filter at ``p`` on ``session``: innovations and normalised innovations."""
-    problem = likelihood_problem(session, p)
-    return mekf.run_filter(params.unpack(problem.theta), problem.data)
+    """The ML filter at ``p`` on ``session``: innovations and normalised innovations.
+
+    The problem is set up at ``p`` itself (``LikelihoodProblem.at_parameters``): the
+    magnetometer centred on its o and divided by its ``|det D|^⅓``, with the data-only
+    levels measured on the session as for the ML step.
+    """
+    problem = LikelihoodProblem.at_parameters(session, p)
+    return problem.run_filter(problem.theta0)
 
 
 def inclination_dip_deg(

@@ -2,9 +2,9 @@
 
 For many samples the ML estimate θ̂ is close to Gaussian around the truth with covariance
 H⁻¹, H = ∂²V/∂θ² at θ̂ (the observed Fisher information; V is eq. 6's negative
-log-likelihood plus the gyroscope noise prior ``ml.py`` adds, i.e. the cost the optimiser
-minimised). Quantities derived from θ (D⁻¹, the misalignment angles, the dip in degrees)
-get their standard deviations by linearisation, σ² = J H⁻¹ Jᵀ.
+log-likelihood plus the gyroscope noise prior, i.e. the cost the optimiser minimised, as
+``likelihood/problem.py`` builds it). Quantities derived from θ (D⁻¹, the misalignment
+angles, the dip in degrees) get their standard deviations by linearisation, σ² = J H⁻¹ Jᵀ.
 
 How H is computed, and why:
 
@@ -18,7 +18,7 @@ How H is computed, and why:
   adjoint of the C kernel for what is here one second of run time; and BFGS's inverse-Hessian
   approximation is only accurate along the directions the search happened to explore.
 * In the **scaled variables** z = θ / s (s: each parameter's expected σ,
-  ``ml.parameter_scales``) H's eigenvalues are of order one, so "not positive definite" and
+  ``problem.parameter_scales``) H's eigenvalues are of order one, so "not positive definite" and
   "nearly singular" can be judged against a relative threshold, and a direction of
   (near-)zero curvature is reported as *not identifiable*, with the parameters it moves.
 """
@@ -35,9 +35,8 @@ import scipy.linalg
 
 from magcal.calib import frames
 from magcal.calib.diagnostics import replay
-from magcal.calib.diagnostics.replay import LikelihoodProblem
-from magcal.calib.likelihood import cost, mekf, params
-from magcal.calib.likelihood.ml import Normalisation
+from magcal.calib.likelihood import params
+from magcal.calib.likelihood.problem import LikelihoodProblem, Normalisation
 from magcal.errors import CalibrationError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
@@ -308,14 +307,13 @@ class CalibrationUncertainty:
 
 
 def penalised_gradient(problem: LikelihoodProblem) -> Callable[[np.ndarray], np.ndarray]:
-    """θ ↦ ∇(V + gyroscope noise prior) (34,), exact, on ``problem``'s data."""
-    tape = mekf.new_tape(problem.n_samples)
+    """θ ↦ ∇(V + gyroscope noise prior) (34,), exact; all NaN where V is not finite."""
 
     def gradient(theta: np.ndarray) -> np.ndarray:
-        value, g = cost.cost_and_gradient(theta, problem.data, tape)
+        value, g = problem.cost_and_gradient(theta)
         if not np.isfinite(value):
             return np.full_like(g, np.nan)
-        return g + problem.prior_precision * (theta - problem.prior_mean)
+        return g
 
     return gradient
 
@@ -334,20 +332,20 @@ def calibration_uncertainty(
     """
     t0 = time.perf_counter()
     p = replay.model_params_from_result(result)
-    problem = replay.likelihood_problem(session, p)
+    problem = LikelihoodProblem.at_parameters(session, p)
     gradient = penalised_gradient(problem)
-    g0 = gradient(problem.theta)
+    g0 = gradient(problem.theta0)
     if not np.isfinite(g0).all():
         raise CalibrationError(
             "uncertainty: the ML cost is not finite at the result's parameters on this "
             "session: the result does not describe this session"
         )
     H = central_difference_hessian(
-        gradient, problem.theta, HESSIAN_STEP_FRACTION * problem.scales, progress
+        gradient, problem.theta0, HESSIAN_STEP_FRACTION * problem.scales, progress
     )
     hc = covariance_from_hessian(H, problem.scales)
     values, sigma = propagate(
-        lambda th: _flatten(derived_quantities(th, problem.norm)), problem.theta, hc
+        lambda th: _flatten(derived_quantities(th, problem.norm)), problem.theta0, hc
     )
     theta_sigma = np.sqrt(np.maximum(np.diag(hc.cov), 0.0))
     if not hc.identifiable:

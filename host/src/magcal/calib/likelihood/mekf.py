@@ -8,14 +8,15 @@ State: ``q̃_nb`` plus a navigation-frame orientation error ``η`` with covarian
 * Measurement ``y = (y_a, y_m)``: ``ŷ = (−R_bn g_n, D R_bn m_n + o)``,
   ``H = (−R_bn [g_n×], D R_bn [m_n×])``, ``S = H P Hᵀ + blockdiag(Σ_a,t, Σ_m)``.
   ``Σ_a,t = Σ_a + c_t I`` where ``c_t`` (m/s²)² is a data-only inflation that makes the
-  accelerometer count less at outliers (knocks; see :func:`accelerometer_extra_variance`).
+  accelerometer count less at outliers (knocks; see
+  ``initial/sensor_levels.accelerometer_extra_variance``).
 * The first sample is only a measurement update from the given prior ``(q₀, P₀)``.
 
 Two implementations compute the same numbers:
 
 * :func:`run_filter` calls the C kernel (``host/csrc/mekf_likelihood.c``), which works in
   information form (3×3 instead of 6×6 inverses) and also provides the exact reverse-mode
-  gradient used by ``cost.py``;
+  gradient used by ``problem.py``;
 * :func:`run_filter_reference` is a plain numpy loop with the textbook 6×6 innovation
   covariance. It is slow and exists to check the kernel.
 """
@@ -44,6 +45,9 @@ except ImportError as exc:  # pragma: no cover - depends on the build
 # the first samples and the initial calibration, so it is good to a few degrees; a prior
 # this wide lets the first measurements correct it without a long transient in the cost.
 INITIAL_ATTITUDE_SIGMA_RAD = np.deg2rad(10.0)
+#: Samples averaged for the starting attitude of a filter (≈ 0.05 s at 100 Hz): enough to
+#: average noise, short enough that motion at the start does not smear it.
+INITIAL_ATTITUDE_SAMPLES = 5
 
 
 @dataclass(frozen=True)
@@ -304,38 +308,3 @@ def run_filter(p: ModelParams, data: FilterData, use_mag: bool = True) -> Filter
             "units are rad/s and m/s², and that the initial calibration is sensible"
         )
     return FilterOutput(cost=cost, q_filt=q_filt, innovations=innov, normalised=normed)
-
-
-#: Accelerometer outliers ("bumps"): a sample whose norm deviates from g by more than
-#: 3σ plus this much (m/s²) is not explained by noise or by the smooth accelerations of a
-#: calibration motion, which the ML step absorbs in Σ_a instead. Spreading distrust over
-#: smooth accelerations too was measured to make the misalignment worse, not better.
-BUMP_THRESHOLD_M_S2 = 0.5
-#: Half-width of the window over which a bump's inflation is spread, s: a knock rings for
-#: a few samples, and its norm deviation can pass through zero while it does.
-BUMP_WINDOW_S = 0.05
-#: Inflation per unit squared excess deviation. A horizontal knock of size b changes the
-#: norm by only ≈ b²/2g, far less than b, so the excess understates it: weight it up.
-BUMP_GAIN = 10.0
-
-
-def accelerometer_extra_variance(
-    acc: np.ndarray, g: float, sigma_acc: float, rate_hz: float
-) -> np.ndarray:
-    """Data-only inflation ``c_t`` (m/s²)² of Σ_a for accelerometer outliers (bumps).
-
-    The model ``y_a = −R_bn g_n + e_a`` has no room for a knock: a filter that trusts such a
-    sample tilts its attitude and, through it, the misalignment estimate. ``c_t`` is
-    ``BUMP_GAIN`` times the largest squared excess of ``|‖y_a‖ − g|`` over
-    ``3σ + BUMP_THRESHOLD_M_S2`` within ±``BUMP_WINDOW_S``; clean samples get 0. It
-    depends on the data only, never on θ, so the cost stays smooth in θ.
-
-    acc : (N, 3) m/s²; g : m/s²; sigma_acc : accelerometer noise std, m/s²; rate_hz : Hz.
-    Returns (N,) (m/s²)².
-    """
-    dev = np.abs(np.linalg.norm(acc, axis=1) - g)
-    excess = np.maximum(dev - (3.0 * sigma_acc + BUMP_THRESHOLD_M_S2), 0.0)
-    half = max(1, int(round(BUMP_WINDOW_S * rate_hz)))
-    padded = np.pad(excess, half, mode="edge")
-    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * half + 1)
-    return BUMP_GAIN * windows.max(axis=1) ** 2

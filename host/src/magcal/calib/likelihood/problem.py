@@ -1,0 +1,361 @@
+"""The maximum-likelihood problem of Algorithm 1, step 2, built in one place for every caller.
+
+:class:`LikelihoodProblem` holds everything the cost needs besides θ: the filter's data
+(magnetometer normalised, starting attitude, gravity magnitude, accelerometer bump
+inflation), the normalisation, θ's layout scales and the gyroscope-noise prior. It gives
+
+* ``V(θ) = ½ Σ_t [ ‖y_t − ŷ_t|t−1(θ)‖²_{S_t⁻¹} + log det S_t(θ) ]`` (eq. 6) through the MEKF
+  of ``mekf.py`` (:meth:`~LikelihoodProblem.negative_log_likelihood`), and V plus the prior
+  (:meth:`~LikelihoodProblem.cost`), the objective the optimiser minimises;
+* their gradients, exact (one forward and one reverse pass of the C kernel: about 2.4 times
+  the price of the cost, ``make bench``) or by finite differences, the paper's way
+  (n_θ + 1 forward or 2 n_θ central filter passes);
+* θ mapped back to raw magnetometer units (:meth:`~LikelihoodProblem.model_params`).
+
+θ is the 34-vector of ``params.py``. Two constructors share one path: :meth:`for_ml_step`
+(from the initial estimate, as the ML step sets it up) and :meth:`at_parameters` (at given
+parameters, e.g. a result's). The data-only levels come from
+``initial.sensor_levels.measure_sensor_levels``, the same function step 1 uses.
+
+Numerical choices, each a fix for a way the plain problem fails:
+
+* The magnetometer data are centred on the ellipsoid's centre and divided by its mean
+  radius first (:class:`Normalisation`), so D ≈ rotation, o ≈ 0 whatever the sensor's
+  units; results are mapped back (``ModelParams.unscaled_magnetometer``).
+* BFGS runs in variables scaled by the expected statistical uncertainty of each parameter
+  (:func:`parameter_scales`), so its identity start is close to the true curvature.
+* A log-normal prior on the gyroscope noise (:func:`gyro_noise_prior`). At IMU rates the
+  likelihood hardly depends on Σ_ω once it is small, so without one its Cholesky
+  parameters drift towards −∞ along an almost flat valley and BFGS never converges. And
+  with translational accelerations, which the model lacks, the likelihood prefers a large
+  Σ_ω: a filter that follows the accelerometer explains them best, but its tilted
+  attitude biases the misalignment (without a prior: 6× the known-attitude floor on
+  hand-moved sessions with 0.3 m/s² accelerations). The gyroscope's white noise can be
+  measured, at rest or from second differences during motion; the prior is that
+  measurement with its uncertainty.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+
+import numpy as np
+
+from magcal.calib import frames
+from magcal.calib.initial.estimate import InitialEstimate
+from magcal.calib.initial.sensor_levels import SensorLevels, measure_sensor_levels
+from magcal.calib.likelihood import mekf, params
+from magcal.calib.likelihood.mekf import FilterData
+from magcal.calib.likelihood.params import ModelParams
+from magcal.io.session import Session
+
+#: 1-σ width of the prior on log σ_ω when a stationary stretch did not measure it: the
+#: initial value then comes from second differences of the gyroscope during motion
+#: (``rest.gyro_noise_from_differences``), good to a few per cent for white noise,
+#: so it gets the same ±10 % as a stationary measurement (measured: 0.2 let the likelihood
+#: pull σ_ω up 1.7× on accelerated sessions, 2.4× the floor instead of 1.6×). Same width,
+#: centred on 0, for the unit lower-triangular entries of its Cholesky factor.
+GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.1
+#: Smallest width when a stationary stretch measured it: a gyroscope's noise at rest and in
+#: motion differ by about this much (vibration, quantisation), however long the stretch.
+GYRO_NOISE_PRIOR_WIDTH_MIN = 0.1
+
+# Forward differences have truncation error O(h) and rounding error O(ε|V|/h); h ∝ √ε
+# balances them. Central differences: O(h²) against O(ε|V|/h), so h ∝ ∛ε.
+_FORWARD_REL_STEP = np.sqrt(np.finfo(float).eps)
+_CENTRAL_REL_STEP = np.cbrt(np.finfo(float).eps)
+
+
+# --------------------------------------------------------------------------------------------
+# V(θ) and its gradient on given filter data
+
+
+def negative_log_likelihood(theta: np.ndarray, data: FilterData) -> float:
+    """V(θ) (float, nats). NaN when the filter's covariances break down."""
+    return mekf.filter_pass(params.unpack(theta), data, True)
+
+
+def negative_log_likelihood_and_gradient(
+    theta: np.ndarray, data: FilterData, tape: np.ndarray | None = None
+) -> tuple[float, np.ndarray]:
+    """V(θ) and ∂V/∂θ (34,), exact (reverse mode through the filter); ``tape`` is the
+    workspace of ``mekf.new_tape`` (allocated here when None)."""
+    theta = np.asarray(theta, dtype=float)
+    value, mg = mekf.cost_and_model_gradient(params.unpack(theta), data, tape=tape)
+    grad = params.model_grad_to_theta(
+        theta, mg.D, mg.o, mg.m, mg.gyro_bias, mg.Sigma_gyr, mg.Sigma_acc, mg.Sigma_mag
+    )
+    return value, grad
+
+
+def numeric_gradient(
+    theta: np.ndarray,
+    data: FilterData,
+    scheme: str = "forward",
+    typical: np.ndarray | None = None,
+    value: float | None = None,
+) -> np.ndarray:
+    """∂V/∂θ by finite differences (34,). ``typical`` (34,) sets each step's scale
+    (h_i = rel · max(|θ_i|, typical_i)); ``value`` is V(θ) if already known (forward)."""
+    theta = np.asarray(theta, dtype=float)
+    scale = np.maximum(np.abs(theta), 1.0 if typical is None else typical)
+    grad = np.empty_like(theta)
+    if scheme == "forward":
+        v0 = negative_log_likelihood(theta, data) if value is None else value
+        for i in range(theta.size):
+            h = _FORWARD_REL_STEP * scale[i]
+            e = theta.copy()
+            e[i] += h
+            grad[i] = (negative_log_likelihood(e, data) - v0) / (e[i] - theta[i])
+    elif scheme == "central":
+        for i in range(theta.size):
+            h = _CENTRAL_REL_STEP * scale[i]
+            hi, lo = theta.copy(), theta.copy()
+            hi[i] += h
+            lo[i] -= h
+            grad[i] = (negative_log_likelihood(hi, data) - negative_log_likelihood(lo, data)) / (
+                hi[i] - lo[i]
+            )
+    else:
+        raise ValueError(f"unknown finite-difference scheme {scheme!r}: use 'forward' or 'central'")
+    return grad
+
+
+# --------------------------------------------------------------------------------------------
+# The parts of the problem
+
+
+@dataclass(frozen=True)
+class Normalisation:
+    """y' = (y − centre) / scale; centre (3,) and scale in magnetometer units."""
+
+    centre: np.ndarray
+    scale: float
+
+    @classmethod
+    def of(cls, p: ModelParams) -> Normalisation:
+        """Centred on ``p``'s o, divided by ``|det D|^⅓`` (raw units): D ≈ a rotation after."""
+        return cls(
+            centre=np.asarray(p.o, dtype=float).copy(),
+            scale=float(abs(np.linalg.det(p.D)) ** (1.0 / 3.0)),
+        )
+
+    def apply(self, mag: np.ndarray) -> np.ndarray:
+        return (np.asarray(mag, dtype=float) - self.centre) / self.scale
+
+
+def starting_attitude(acc: np.ndarray, mag: np.ndarray, p: ModelParams) -> np.ndarray:
+    """q_nb (4,) at sample 0 by TRIAD from the first few samples and calibration ``p``.
+
+    acc : (N, 3) m/s²; mag : (N, 3) in ``p``'s magnetometer units.
+    """
+    k = min(mekf.INITIAL_ATTITUDE_SAMPLES, acc.shape[0])
+    up_b = acc[:k].mean(axis=0)
+    field_b = np.linalg.solve(p.D, mag[:k].mean(axis=0) - p.o)
+    return frames.triad(up_b, field_b, p.m_n)
+
+
+def parameter_scales(p_norm: ModelParams, n: int) -> np.ndarray:
+    """Rough 1-σ uncertainty of each θ component for n samples (34,).
+
+    D, o and the dip are measured against the magnetometer noise; the bias through the
+    attitude it makes drift, about half as well; the noise parameters as log-scales, the
+    gyroscope's a few times more weakly than the others (its noise is small next to the
+    measurement updates). Only ratios matter much, as BFGS rescales after one step; these
+    were tuned on simulated MEMS, hand-held, accelerated and Table 2 sessions (≈35 % fewer
+    iterations than the first guess of bias σ_m and gyroscope 10).
+    """
+    sigma_m = float(np.sqrt(np.trace(p_norm.Sigma_mag) / 3.0))
+    s = np.empty(params.N_PARAMS)
+    s[params.SLICE_D] = sigma_m
+    s[params.SLICE_O] = sigma_m
+    s[params.INDEX_DIP] = sigma_m
+    s[params.SLICE_BIAS] = 2.0 * sigma_m
+    s[params.SLICE_CHOL_GYR] = 3.0
+    s[params.SLICE_CHOL_ACC] = 1.5
+    s[params.SLICE_CHOL_MAG] = 0.7
+    return s / np.sqrt(n)
+
+
+def gyro_noise_prior(
+    Sigma_gyr: np.ndarray, stationary_samples: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Mean and diagonal precision (34,) of the prior on the gyroscope noise parameters.
+
+    Centred on the measured Σ_ω (3, 3), (rad/s)². With ``stationary_samples`` = n > 0 it
+    was measured there: a log-σ estimated from n samples has standard error 1/√(2n), a
+    correlation 1/√n; both are floored at :data:`GYRO_NOISE_PRIOR_WIDTH_MIN`. Otherwise it
+    was measured during motion (:data:`GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION`), with
+    uncorrelated axes.
+    """
+    mean = np.zeros(params.N_PARAMS)
+    precision = np.zeros(params.N_PARAMS)
+    sl = params.SLICE_CHOL_GYR
+    mean[sl] = params.cov_to_chol_params(Sigma_gyr)
+    if stationary_samples > 0:
+        w_log = max(GYRO_NOISE_PRIOR_WIDTH_MIN, 1.0 / np.sqrt(2.0 * stationary_samples))
+        w_corr = max(GYRO_NOISE_PRIOR_WIDTH_MIN, 1.0 / np.sqrt(stationary_samples))
+    else:
+        mean[sl.start + 3 : sl.stop] = 0.0
+        w_log = w_corr = GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION
+    precision[sl.start : sl.start + 3] = 1.0 / w_log**2
+    precision[sl.start + 3 : sl.stop] = 1.0 / w_corr**2
+    return mean, precision
+
+
+def on_canonical_branch(theta: np.ndarray) -> np.ndarray:
+    """θ moved onto the branch det D > 0, m_x = cos δ > 0 by the likelihood's symmetries.
+
+    The cost is exactly invariant under (D, δ) → (−D, δ + π), i.e. ``(D, m_n) → (−D, −m_n)``
+    (the filter never inverts D, so BFGS can cross det D = 0 from a poor start), and,
+    with the navigation frame turned 180° in heading, under δ → π − δ (parametrisation 8b
+    drops eq. 17c's m_x > 0). The paper's Assumption 1 (magnetometer axes rotated, not
+    mirrored, against the inertial ones) picks det D > 0; eq. 17c picks the dip."""
+    theta = np.array(theta, dtype=float)
+    dip = theta[params.INDEX_DIP]
+    if np.linalg.det(theta[params.SLICE_D].reshape(3, 3)) < 0.0:
+        theta[params.SLICE_D] = -theta[params.SLICE_D]
+        dip += np.pi
+    dip = float(np.arctan2(np.sin(dip), np.cos(dip)))
+    if np.cos(dip) < 0.0:
+        dip = float(np.arctan2(np.sin(np.pi - dip), np.cos(np.pi - dip)))
+    theta[params.INDEX_DIP] = dip
+    return theta
+
+
+# --------------------------------------------------------------------------------------------
+# The problem
+
+
+@dataclass(frozen=True)
+class LikelihoodProblem:
+    """V(θ) with its prior on one session.
+
+    data            : the filter's input, magnetometer normalised by ``norm``
+    norm            : y' = (y − centre) / scale
+    theta0          : (34,) where the problem was set up, in the normalised units (params.py)
+    scales          : (34,) rough 1-σ uncertainty of each θ component (:func:`parameter_scales`)
+    prior_mean      : (34,) mean of the gyroscope noise prior
+    prior_precision : (34,) its diagonal precision (zero outside the gyroscope noise)
+    """
+
+    data: FilterData
+    norm: Normalisation
+    theta0: np.ndarray
+    scales: np.ndarray
+    prior_mean: np.ndarray
+    prior_precision: np.ndarray
+
+    @classmethod
+    def for_ml_step(
+        cls, session: Session, init: InitialEstimate, at: ModelParams | None = None
+    ) -> LikelihoodProblem:
+        """The ML step's problem: magnetometer normalised by the initial estimate's o and
+        ``|det D|^⅓``, data-only levels and gyroscope prior from its step 1a. ``at`` (raw
+        units; default the initial estimate) is where it is set up: θ₀ and the filter's
+        starting attitude come from it."""
+        p = init.params if at is None else at
+        return cls._build(session, init.levels, Normalisation.of(init.params), p)
+
+    @classmethod
+    def at_parameters(cls, session: Session, p: ModelParams) -> LikelihoodProblem:
+        """The problem at ``p`` (raw magnetometer units, e.g. a result's) on ``session``.
+
+        The data-only levels are measured on the session as the initial estimate measures
+        them for the ML step: gravity magnitude, the bump inflation of Σ_a with the
+        accelerometer noise of the stationary stretch (or the prior), and the gyroscope
+        noise prior centred on its measurement. Only the magnetometer normalisation differs
+        (centred on ``p``'s o, divided by its ``|det D|^⅓``, instead of the initial
+        estimate's): V changes by a constant and θ by an affine map, so gradients and
+        curvature carry over exactly.
+        """
+        return cls._build(session, measure_sensor_levels(session), Normalisation.of(p), p)
+
+    @classmethod
+    def _build(
+        cls, session: Session, levels: SensorLevels, norm: Normalisation, p: ModelParams
+    ) -> LikelihoodProblem:
+        p_norm = p.scaled_magnetometer(norm.centre, norm.scale)
+        mag_n = norm.apply(session.mag)
+        data = mekf.make_filter_data(
+            session.t,
+            session.gyr,
+            session.acc,
+            mag_n,
+            starting_attitude(session.acc, mag_n, p_norm),
+            acc_extra_var=levels.acc_extra_var,
+            g=levels.g,
+        )
+        prior_mean, prior_precision = gyro_noise_prior(
+            levels.noise.Sigma_gyr, levels.stationary_samples
+        )
+        return cls(
+            data=data,
+            norm=norm,
+            theta0=params.pack(p_norm),
+            scales=parameter_scales(p_norm, len(data)),
+            prior_mean=prior_mean,
+            prior_precision=prior_precision,
+        )
+
+    @property
+    def n_samples(self) -> int:
+        return len(self.data)
+
+    @functools.cached_property
+    def _tape(self) -> np.ndarray:
+        # One reverse-mode workspace for all gradients on this problem.
+        return mekf.new_tape(len(self.data))
+
+    @functools.cached_property
+    def _typical(self) -> np.ndarray:
+        # Finite-difference step scales: θ₀'s magnitudes, for parameters near zero 1e-3.
+        return np.maximum(np.abs(self.theta0), 1e-3)
+
+    def negative_log_likelihood(self, theta: np.ndarray) -> float:
+        """V(θ) alone (nats); NaN when the filter breaks down."""
+        return negative_log_likelihood(theta, self.data)
+
+    def negative_log_likelihood_and_gradient(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """V(θ) alone and its exact gradient (34,)."""
+        return negative_log_likelihood_and_gradient(theta, self.data, self._tape)
+
+    def prior(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """The gyroscope noise prior's negative log density (up to a constant) and gradient."""
+        r = theta - self.prior_mean
+        return 0.5 * float(np.sum(self.prior_precision * r * r)), self.prior_precision * r
+
+    def cost(self, theta: np.ndarray) -> float:
+        """V(θ) + prior: the objective of the ML step."""
+        return negative_log_likelihood(theta, self.data) + self.prior(theta)[0]
+
+    def cost_and_gradient(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """V(θ) + prior and its exact gradient (34,)."""
+        v, g = negative_log_likelihood_and_gradient(theta, self.data, self._tape)
+        pv, pg = self.prior(theta)
+        return v + pv, g + pg
+
+    def cost_and_numeric_gradient(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
+        """V(θ) + prior and its gradient by forward differences (n_θ + 1 filter passes)."""
+        v = negative_log_likelihood(theta, self.data)
+        g = numeric_gradient(theta, self.data, "forward", typical=self._typical, value=v)
+        pv, pg = self.prior(theta)
+        return v + pv, g + pg
+
+    def numeric_gradient(self, theta: np.ndarray, scheme: str = "forward") -> np.ndarray:
+        """∂V/∂θ alone by finite differences, ``scheme`` "forward" or "central"; steps
+        scaled by θ₀'s magnitudes."""
+        return numeric_gradient(theta, self.data, scheme, typical=self._typical)
+
+    def model_params(self, theta: np.ndarray) -> ModelParams:
+        """θ (34,) normalised → the model in raw magnetometer units."""
+        return params.unpack(theta).unscaled_magnetometer(self.norm.centre, self.norm.scale)
+
+    def run_filter(self, theta: np.ndarray) -> mekf.FilterOutput:
+        """The filter at θ (34,) normalised, with all diagnostics (attitude, innovations)."""
+        return mekf.run_filter(params.unpack(theta), self.data)
+
+    def run_filter_raw(self, p: ModelParams) -> mekf.FilterOutput:
+        """The filter at ``p`` in raw magnetometer units (normalised here, not through θ)."""
+        return mekf.run_filter(p.scaled_magnetometer(self.norm.centre, self.norm.scale), self.data)

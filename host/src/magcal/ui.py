@@ -98,8 +98,8 @@ def write_line(text: str, stream: TextIO | None = None) -> None:
 class StatusLine:
     """One line of status whose total is not known (an optimizer's iterations, a recording).
 
-    On a terminal: a spinner and the text, redrawn in place, cut with "…" at the terminal's
-    width (a wrapped line could not be redrawn). Otherwise whole lines: by default one per
+    On a terminal: the text, redrawn in place, cut with "…" at the terminal's width (a wrapped
+    line could not be redrawn). Otherwise whole lines: by default one per
     ``every_s`` seconds of the caller's clock (``update(text, t_s)``; the first always), or
     as the caller says (``update(text, log=...)``); with ``last=True`` the last text, if held
     back, is written by :meth:`close` (the last state may be the one that matters: "ok to
@@ -137,15 +137,11 @@ class StatusLine:
 
     def _show(self, text: str) -> None:
         from rich.live import Live
-        from rich.spinner import Spinner
-        from rich.text import Text
 
-        line = Text(text, no_wrap=True, overflow="ellipsis", end="")
         if self._display is None:
             self._console = _console(self.stream)
-            self._spinner = Spinner("dots", line)
             self._display = Live(
-                self._spinner,
+                _status_renderable(text),
                 console=self._console,
                 refresh_per_second=REFRESH_PER_S,
                 redirect_stdout=False,
@@ -156,7 +152,7 @@ class StatusLine:
             width = terminal_columns(self.stream)
             if width is not None:  # follow a resized terminal
                 self._console.width = width
-            self._spinner.update(text=line)
+            self._display.update(_status_renderable(text))
 
     def message(self, text: str) -> None:
         """``text`` on a line of its own, above the status line on a terminal."""
@@ -178,6 +174,13 @@ class StatusLine:
 
     def __exit__(self, *exc) -> None:
         self.close()
+
+
+def _status_renderable(text: str):
+    """``text`` on one line: cut with "…" at the terminal's width, never wrapped."""
+    from rich.text import Text
+
+    return Text(text, no_wrap=True, overflow="ellipsis", end="")
 
 
 class ProgressBar:
@@ -276,6 +279,7 @@ def _rich_progress(console, unit: str):
         TextColumn,
         TimeRemainingColumn,
     )
+    from rich.table import Column
     from rich.text import Text
 
     class RateColumn(ProgressColumn):
@@ -285,13 +289,19 @@ def _rich_progress(console, unit: str):
             speed = task.speed
             return Text("" if speed is None else f"{speed:.3g} {unit}/s".replace(" /s", "/s"))
 
+    def fixed() -> Column:
+        return Column(no_wrap=True)
+
+    # One line at any width: the label gives way first (cut with "…"), the figures never wrap.
     return Progress(
-        TextColumn("{task.description}"),
-        BarColumn(),
-        TaskProgressColumn() if unit == "%" else MofNCompleteColumn(),
-        RateColumn(),
-        TimeRemainingColumn(),
-        TextColumn("{task.fields[note]}"),
+        TextColumn(
+            "{task.description}", table_column=Column(no_wrap=True, overflow="ellipsis", ratio=1)
+        ),
+        BarColumn(bar_width=20, table_column=fixed()),
+        (TaskProgressColumn if unit == "%" else MofNCompleteColumn)(table_column=fixed()),
+        RateColumn(table_column=fixed()),
+        TimeRemainingColumn(table_column=fixed()),
+        TextColumn("{task.fields[note]}", table_column=fixed()),
         console=console,
         refresh_per_second=REFRESH_PER_S,
         redirect_stdout=False,

@@ -93,7 +93,6 @@ def progress_printer(stream=None):
                     "report: Hessian of the ML cost",
                     total,
                     stream,
-                    unit="passes",
                     log_step_pct=100,
                     log_line=lambda d, t: f"report: Hessian of the ML cost, gradient pass {d}/{t}",
                 )

@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 
 import magcal.calib.calibrate
-from magcal import cli
 from magcal.cli import EXIT_ERROR, main, refusal
 from magcal.commands import calibrate as calibrate_command
 from magcal.errors import MagcalError

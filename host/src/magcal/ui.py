@@ -140,19 +140,21 @@ class StatusLine:
 
         if self._display is None:
             self._console = _console(self.stream)
+            # Drawn at each update, not by a timer: every state the caller reports is shown
+            # (callers report a few times a second), and the output is deterministic.
             self._display = Live(
                 _status_renderable(text),
                 console=self._console,
-                refresh_per_second=REFRESH_PER_S,
+                auto_refresh=False,
                 redirect_stdout=False,
                 redirect_stderr=False,
             )
-            self._display.start()
+            self._display.start(refresh=True)
         else:
             width = terminal_columns(self.stream)
             if width is not None:  # follow a resized terminal
                 self._console.width = width
-            self._display.update(_status_renderable(text))
+            self._display.update(_status_renderable(text), refresh=True)
 
     def message(self, text: str) -> None:
         """``text`` on a line of its own, above the status line on a terminal."""

@@ -62,7 +62,8 @@ def test_the_collect_line_on_a_terminal_never_wraps(monkeypatch, columns):
     assert _ANSI.sub("", text).endswith("\n")
     shown = _screen_lines(text)
     assert all(len(line) <= columns for line in shown)
-    assert [line.split()[0] for line in shown] == ["0", "100", "200", "300", "400"]  # each state
+    # each state, and the last once more as the display stops
+    assert [line.split()[0] for line in shown] == ["0", "100", "200", "300", "400", "400"]
     full = _line(400)
     assert len(full) > 80  # the 40 and 80 columns cases do cut
     if len(full) <= columns:

@@ -8,6 +8,8 @@ Stops at a coverage target of field directions (default 90 %), ``--duration`` or
 redrawn in place on a terminal (cut at its width), one line a second otherwise; it shows
 the live estimate's norm spread and says when it is ok to stop. Whatever was collected is
 written, also after Ctrl-C (exit 130) or an error mid-collection (exit 2, the file named).
+
+The ``--mavlink`` half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
 """
 
 from __future__ import annotations

@@ -1,5 +1,8 @@
 """``magcal info --port URL``: what the device says about itself; ``--mavlink URL``: the
-autopilot, its firmware and each compass with its parameters in force."""
+autopilot, its firmware and each compass with its parameters in force.
+
+The ``--mavlink`` half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
+"""
 
 from __future__ import annotations
 

@@ -8,7 +8,7 @@ it reports or the norm spread exceeds ``--max-spread``.
 ``--mavlink URL [--compass N]``: the field the autopilot corrects with its parameters in force
 (:mod:`magcal.autopilot.verify`): norm spread and heading consistency of its own stream, and
 with ``--session`` the parameters in force applied to a session recorded by ``magcal collect
---mavlink``.
+--mavlink``. That half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
 """
 
 from __future__ import annotations

@@ -20,7 +20,7 @@ from magcal.io.session import read_session
 from tests.autopilot.test_mavlink_end_to_end import SPEEDUP
 from tests.autopilot_emulator import AutopilotEmulator
 
-#: Wide enough that no progress line is clipped here (clipping: tests/unit/test_progress_clip.py).
+#: Wide enough that no progress line is cut here (cutting: tests/unit/test_ui.py).
 WIDE_COLUMNS = 400
 LIVE_ESTIMATE = re.compile(
     r"CKF norm spread (\d+\.\d+) %, uncertainty (\d+\.\d+) %, change over the last seconds "
@@ -29,7 +29,7 @@ LIVE_ESTIMATE = re.compile(
 
 
 class _Terminal(io.StringIO):
-    """stderr as a terminal: the progress line is rewritten in place with \\r."""
+    """stderr as a terminal: the progress line is redrawn in place."""
 
     def isatty(self) -> bool:
         return True
@@ -41,12 +41,14 @@ def test_ardupilot_cli_progress_shows_the_norm_spread_then_ok_to_stop(
     terminal = _Terminal()
     monkeypatch.setattr(sys, "stderr", terminal)
     monkeypatch.setenv("COLUMNS", str(WIDE_COLUMNS))
+    monkeypatch.delenv("CI", raising=False)
+    monkeypatch.setenv("TERM", "xterm-256color")
     out = tmp_path / "live.csv"
     with AutopilotEmulator(personality="ardupilot", seed=0, speedup=SPEEDUP) as emu:
         assert cli.main(["collect", "--mavlink", emu.url, "-o", str(out)]) == 0
-    # each update: \r, the line, erase to the end of the line; one newline after the last
-    updates = [u.split("\n")[0].removesuffix("\x1b[K") for u in terminal.getvalue().split("\r")]
-    updates = updates[1:]
+    # each update redraws the line in place: control sequences removed, one update a line
+    text = re.sub(r"\x1b\[[0-9;?]*[a-zA-Z]", "", terminal.getvalue())
+    updates = [u for u in re.split(r"[\r\n]", text) if u]
     assert len(updates) > 5
 
     def first(pattern: str) -> int:

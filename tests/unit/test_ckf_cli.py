@@ -8,9 +8,9 @@ import json
 
 import pytest
 
-from magcal import cli
 from magcal.calib import calibrate
 from magcal.cli import EXIT_ERROR, main
+from magcal.commands import calibrate as calibrate_command
 from magcal.io.result import REQUIRED_KEYS, read_result
 
 METHOD_KEYS = {"ckf": "ckf", "two-step": "two_step"}
@@ -58,7 +58,7 @@ def test_unobservable_session_is_refused_unless_forced(sessions, tmp_path, capsy
 
 
 def test_method_help_lists_every_method(capsys):
-    assert cli.CALIBRATION_METHODS == calibrate.METHODS
+    assert calibrate_command.CALIBRATION_METHODS == calibrate.METHODS
     with pytest.raises(SystemExit):
         main(["calibrate", "--help"])
     text = " ".join(capsys.readouterr().out.split())

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 import magcal.calib.calibrate
-from magcal import cli
 from magcal.cli import EXIT_ERROR, main, refusal
+from magcal.commands import calibrate as calibrate_command
 from magcal.errors import MagcalError
 from magcal.io.result import REQUIRED_KEYS, read_result
 from magcal.io.session import read_session, session_from_arrays, write_session
@@ -108,7 +108,7 @@ def test_result_is_written_before_the_summary(simulated, tmp_path, capsys, monke
     def broken_summary(*args, **kwargs):
         raise MagcalError("calibrate: the summary failed")
 
-    monkeypatch.setattr(cli, "_print_summary", broken_summary)
+    monkeypatch.setattr(calibrate_command, "_print_summary", broken_summary)
     out = tmp_path / "r.json"
     refused(capsys, ["calibrate", str(simulated), "--method", "init", "-o", str(out)], "summary")
     assert read_result(out).method == "init"  # the calibration is not lost

@@ -14,7 +14,7 @@ import pytest
 
 from magcal import cli
 from magcal.calib.frames import field_direction
-from magcal.commands import flash as flash_command
+from magcal.commands.flash import device as flash_command
 from magcal.device import fixed_point
 from magcal.device.client import ClientConfig, DeviceClient, Scale
 from magcal.device.flash import FlashError, FlashInterruptedError, flash_parameters, read_backup

@@ -5,9 +5,11 @@ the on-board correction undone; the compass parameters in force in the metadata)
 
 Stops at a coverage target of field directions (default 90 %), ``--duration`` or
 ``--max-samples``, whichever comes first, or Ctrl-C. Progress goes to stderr: one line
-rewritten in place on a terminal (clipped to its width), one line a second otherwise; it shows
+redrawn in place on a terminal (cut at its width), one line a second otherwise; it shows
 the live estimate's norm spread and says when it is ok to stop. Whatever was collected is
 written, also after Ctrl-C (exit 130) or an error mid-collection (exit 2, the file named).
+
+The ``--mavlink`` half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
 """
 
 from __future__ import annotations
@@ -19,14 +21,14 @@ from magcal.calib.diagnostics import observability
 from magcal.commands.common import (
     add_link_arguments,
     check_link_options,
-    clip_line,
+    compass_params,
     open_device,
     positive,
-    terminal_columns,
 )
 from magcal.device.collect import CollectError, CollectProgress, CollectResult, collect
 from magcal.errors import MagcalError
 from magcal.io.session import check_writable, write_session
+from magcal.ui import EXIT_INTERRUPTED, StatusLine, say
 
 DEFAULT_COVERAGE_PCT = 90.0
 #: Progress lines per second when stderr is not a terminal (a log file).
@@ -68,42 +70,24 @@ def add_parser(sub) -> None:
     p.set_defaults(run=run)
 
 
+def progress_line(p: CollectProgress) -> str:
+    """The collect status: samples, rate, drops, coverage and the live estimate's hint."""
+    return (
+        f"{p.samples:7d} samples  {p.rate_hz:6.1f}/s  dropped {p.dropped}  "
+        f"coverage {100 * p.coverage:5.1f} %  {p.hint}"
+    )
+
+
 def progress_printer(stream=None):
-    """Progress lines: rewritten in place on a terminal, clipped to its width (a wrapped line
-    cannot be rewritten); LOG_LINES_PER_S whole lines otherwise."""
-    stream = stream or sys.stderr
-    tty = stream.isatty()
-    state = {"next": 0.0, "shown": False, "held": None}
+    """``show(progress)`` for the collection, ``show.done()`` after it (idempotent): a
+    :class:`magcal.ui.StatusLine` redrawn in place on a terminal (cut at its width); in a log,
+    LOG_LINES_PER_S whole lines of the collection's clock and always its last state."""
+    status = StatusLine(stream, every_s=1.0 / LOG_LINES_PER_S, last=True)
 
     def show(p: CollectProgress) -> None:
-        line = (
-            f"{p.samples:7d} samples  {p.rate_hz:6.1f}/s  dropped {p.dropped}  "
-            f"coverage {100 * p.coverage:5.1f} %  {p.hint}"
-        )
-        if tty:
-            line = clip_line(line, terminal_columns(stream))
-            stream.write("\r" + line + "\x1b[K")  # erase what a longer line left
-            stream.flush()
-            state["shown"] = True
-        elif p.elapsed_s >= state["next"]:
-            state["next"] = p.elapsed_s + 1.0 / LOG_LINES_PER_S
-            state["held"] = None
-            stream.write(line + "\n")
-            stream.flush()
-        else:  # the last state matters most (it may say "ok to stop"): done() writes it
-            state["held"] = line
+        status.update(progress_line(p), p.elapsed_s)
 
-    def done() -> None:  # ends the rewritten line, or writes the held last line; idempotent
-        if tty and state["shown"]:
-            state["shown"] = False
-            stream.write("\n")
-            stream.flush()
-        elif not tty and state["held"] is not None:
-            stream.write(state["held"] + "\n")
-            state["held"] = None
-            stream.flush()
-
-    show.done = done  # type: ignore[attr-defined]
+    show.done = status.close  # type: ignore[attr-defined]
     return show
 
 
@@ -140,8 +124,6 @@ def finish_collect(
     """Write a finished collection to ``args.output`` and return the exit code: interrupted
     (the partial session kept), too short, or below the coverage target (a warning).
     ``source`` and ``hint`` name the link and what to check when nothing arrived."""
-    from magcal.cli import EXIT_INTERRUPTED
-
     if result.session is None:
         raise MagcalError(f"collect {source}: no samples were received, nothing written; {hint}")
     write_collected(args.output, result, out)
@@ -168,13 +150,11 @@ def finish_collect(
 def run(args, out=None) -> int:
     check_link_options(args, ("rate",))
     if args.mavlink:
-        from magcal.commands import autopilot
-
         if args.rate is None:
             from magcal.autopilot.collect import DEFAULT_RATE_HZ
 
             args.rate = DEFAULT_RATE_HZ
-        return autopilot.run_collect(args, out)
+        return run_autopilot(args, out)
     out = out or sys.stdout
     if args.duration is None and args.coverage is None and args.max_samples is None:
         raise MagcalError("collect: --coverage off needs --duration or --max-samples")
@@ -197,4 +177,51 @@ def run(args, out=None) -> int:
         )
     return finish_collect(
         args, result, min_samples, f"on {args.port}", "check that the device is acquiring", out
+    )
+
+
+# ---------------------------------------------------------------- --mavlink: an autopilot
+
+
+def run_autopilot(args, out=None) -> int:
+    from magcal.autopilot.collect import collect as collect_from_autopilot
+    from magcal.autopilot.connection import open_autopilot
+
+    out = out or sys.stdout
+    if args.duration is None and args.coverage is None and args.max_samples is None:
+        raise MagcalError("collect: --coverage off needs --duration or --max-samples")
+    check_writable(args.output, "writing session")
+    compass = args.compass or 1
+    min_samples = observability.MIN_SAMPLES
+    progress = progress_printer()
+    with open_autopilot(args.mavlink) as ap:
+        fw = ap.firmware()
+        cp = compass_params(ap, compass)
+        say(
+            "collect",
+            f"{ap.describe()}, firmware {fw or 'unknown'}; compass {compass} "
+            f"({'external' if cp.external else 'internal'}), field in {cp.unit}",
+        )
+        result = collect_saving_partial(
+            lambda: collect_from_autopilot(
+                ap,
+                cp,
+                rate_hz=args.rate,
+                duration_s=args.duration,
+                coverage_target=None if args.coverage is None else args.coverage / 100.0,
+                max_samples=args.max_samples,
+                min_samples=min_samples,
+                progress=progress,
+                firmware=fw,
+            ),
+            args.output,
+            progress,
+        )
+    return finish_collect(
+        args,
+        result,
+        min_samples,
+        f"on {args.mavlink}",
+        "check that the vehicle streams its IMU",
+        out,
     )

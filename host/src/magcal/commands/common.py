@@ -1,11 +1,11 @@
-"""What every device command shares: the link arguments and opening a device session."""
+"""What every device command shares: the link arguments (``--port`` for a device running
+magcal's firmware, ``--mavlink`` for an autopilot), opening a device session, and reading an
+autopilot's compass parameters. Imports no command module."""
 
 from __future__ import annotations
 
 import argparse
 import contextlib
-import os
-import shutil
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -85,37 +85,6 @@ def positive(kind):
     return parse
 
 
-#: What replaces the end of a progress line too long for the terminal.
-CLIPPED_MARK = "..."
-
-
-def terminal_columns(stream) -> int:
-    """The width, in columns, of the terminal ``stream`` writes to: ``COLUMNS`` when set (as
-    :func:`shutil.get_terminal_size` honours it), else the stream's own terminal, else
-    :func:`shutil.get_terminal_size`'s answer (stdout's terminal, or 80)."""
-    if os.environ.get("COLUMNS", "").isdigit() and int(os.environ["COLUMNS"]) > 0:
-        return int(os.environ["COLUMNS"])
-    try:
-        columns = os.get_terminal_size(stream.fileno()).columns
-    except (AttributeError, ValueError, OSError):  # no fileno, closed, or not a terminal
-        columns = 0
-    # 0: a pseudo-terminal whose size was never set
-    return columns if columns > 0 else shutil.get_terminal_size().columns
-
-
-def clip_line(line: str, columns: int) -> str:
-    """``line`` shortened to at most ``columns - 1`` characters, its end replaced by
-    CLIPPED_MARK when cut. A line rewritten in place with ``\\r`` must not wrap: a wrapped
-    line leaves its first part behind on every update, and writing the last column makes
-    some terminals wrap before the next ``\\r``, so that column stays free."""
-    room = max(1, columns - 1)
-    if len(line) <= room:
-        return line
-    if room <= len(CLIPPED_MARK):
-        return line[:room]
-    return line[: room - len(CLIPPED_MARK)] + CLIPPED_MARK
-
-
 def scale_text(s: Scale) -> str:
     """An exact scale as the device gives it: "1/6842 gauss", "122 × 10^-6 standard_gravity"
     is written "122/1 × 10^-6 standard_gravity"."""
@@ -143,3 +112,11 @@ def open_device(url: str) -> Iterator[DeviceSession]:
         hello = client.hello()
         info = client.info()
         yield DeviceSession(url=url, client=client, hello=hello, info=info)
+
+
+def compass_params(ap, compass: int, **kw):
+    """The parameters in force of the autopilot's compass ``compass`` (1-based), with its unit
+    and naming (:func:`magcal.autopilot.vehicle.read_compass_params`)."""
+    from magcal.autopilot import vehicle
+
+    return vehicle.read_compass_params(ap.read, ap.autopilot, compass, **kw)

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import sys
 
+from magcal import ui
 from magcal.autopilot.vehicle import AUTOPILOT_NAMES
 from magcal.calib.diagnostics import observability
 from magcal.commands.common import positive
@@ -55,26 +56,21 @@ def add_parser(sub) -> None:
 
 
 def progress_printer(label: str, stream=None):
-    """``label: 45 %`` rewritten in place on a terminal, every LOG_STEP_PCT % otherwise."""
-    stream = stream or sys.stderr
-    tty = stream.isatty()
-    state = {"last": -1}
+    """``show(fraction)`` of the log read, ``show.done()`` after it: a
+    :class:`magcal.ui.ProgressBar` in percent; in a log ``label: 45 %`` every LOG_STEP_PCT %."""
+    bar = ui.ProgressBar(
+        label,
+        100,
+        stream,
+        unit="%",
+        log_step_pct=LOG_STEP_PCT,
+        log_line=lambda done, total: f"{label}: {done} %",
+    )
 
     def show(fraction: float) -> None:
-        pct = int(100 * min(max(fraction, 0.0), 1.0))
-        if tty:
-            if pct != state["last"]:
-                stream.write(f"\r{label}: {pct:3d} %")
-                stream.flush()
-        elif pct // LOG_STEP_PCT != state["last"] // LOG_STEP_PCT or state["last"] < 0:
-            stream.write(f"{label}: {pct} %\n")
-        state["last"] = pct
+        bar.update(int(100 * min(max(fraction, 0.0), 1.0)))
 
-    def done() -> None:
-        if tty and state["last"] >= 0:
-            stream.write("\n")
-
-    show.done = done  # type: ignore[attr-defined]
+    show.done = bar.close  # type: ignore[attr-defined]
     return show
 
 

@@ -3,8 +3,8 @@
 from __future__ import annotations
 
 import os
-import sys
 
+from magcal import ui
 from magcal.calib.initial import ellipsoid
 from magcal.errors import MagcalError
 
@@ -80,33 +80,33 @@ def _check_output(args) -> None:
     check_report_writable(args.output)
 
 
-def _progress_printer(stream=None):
-    """The Hessian's gradient passes on one line of stderr, rewritten in place on a terminal
-    (first and last pass otherwise), then one line for the figures."""
-    stream = stream or sys.stderr
-    tty = stream.isatty()
-    state = {"open": False}
+def progress_printer(stream=None):
+    """``show(stage, done, total)`` for the report, ``show.done()`` after it: the Hessian's
+    gradient passes as a :class:`magcal.ui.ProgressBar` (in a log, its first and last pass),
+    then one line per later stage (the figures)."""
+    state: dict[str, ui.ProgressBar | None] = {"bar": None}
 
     def show(stage: str, done: int, total: int) -> None:
         if stage == "hessian":
-            line = f"report: Hessian of the ML cost, gradient pass {done}/{total}"
-            if tty:
-                stream.write("\r" + line)
-                state["open"] = True
-            elif done in (1, total):
-                stream.write(line + "\n")
+            if state["bar"] is None:
+                state["bar"] = ui.ProgressBar(
+                    "report: Hessian of the ML cost",
+                    total,
+                    stream,
+                    log_step_pct=100,
+                    log_line=lambda d, t: f"report: Hessian of the ML cost, gradient pass {d}/{t}",
+                )
+            state["bar"].update(done, total)
         else:
-            if state["open"]:
-                stream.write("\n")
-                state["open"] = False
-            stream.write(f"report: {stage}\n")
-        stream.flush()
+            close()
+            ui.write_line(f"report: {stage}", stream)
 
-    def done() -> None:
-        if state["open"]:
-            stream.write("\n")
+    def close() -> None:
+        if state["bar"] is not None:
+            state["bar"].close()
+            state["bar"] = None
 
-    show.done = done  # type: ignore[attr-defined]
+    show.done = close  # type: ignore[attr-defined]
     return show
 
 
@@ -116,7 +116,7 @@ def run(args) -> int:
 
     _check_output(args)
     result, session, validation = _read_inputs(args)
-    progress = _progress_printer()
+    progress = progress_printer()
     try:
         report = build_report(
             result,

@@ -8,19 +8,24 @@ it reports or the norm spread exceeds ``--max-spread``.
 ``--mavlink URL [--compass N]``: the field the autopilot corrects with its parameters in force
 (:mod:`magcal.autopilot.verify`): norm spread and heading consistency of its own stream, and
 with ``--session`` the parameters in force applied to a session recorded by ``magcal collect
---mavlink``.
+--mavlink``. That half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
 """
 
 from __future__ import annotations
 
 import sys
 
-from magcal.commands.common import add_link_arguments, check_link_options, open_device, positive
+from magcal.commands.common import (
+    add_link_arguments,
+    check_link_options,
+    compass_params,
+    open_device,
+    positive,
+)
 from magcal.device.verify import HeadingConsistency, verify
 from magcal.io.session import read_session
+from magcal.ui import EXIT_FAILED
 
-#: Exit status when the check ran and the output is not good enough.
-EXIT_FAILED = 1
 DEFAULT_MAX_SPREAD_PCT = 2.0
 
 
@@ -70,13 +75,11 @@ def heading_lines(h: HeadingConsistency, where: str) -> list[str]:
 def run(args, out=None) -> int:
     check_link_options(args, ("rate",))
     if args.mavlink:
-        from magcal.commands import autopilot
-
         if args.rate is None:
             from magcal.autopilot.verify import DEFAULT_RATE_HZ
 
             args.rate = DEFAULT_RATE_HZ
-        return autopilot.run_verify(args, out)
+        return run_autopilot(args, out)
     out = out or sys.stdout
     session = read_session(args.session) if args.session else None
     with open_device(args.port) as dev:
@@ -125,3 +128,56 @@ def run(args, out=None) -> int:
         )
         status = EXIT_FAILED
     return status
+
+
+# ---------------------------------------------------------------- --mavlink: an autopilot
+
+
+def run_autopilot(args, out=None) -> int:
+    from magcal.autopilot import verify as apverify
+    from magcal.autopilot.connection import open_autopilot
+
+    out = out or sys.stdout
+    session = read_session(args.session) if args.session else None
+    compass = args.compass or 1
+    with open_autopilot(args.mavlink) as ap:
+        cp = compass_params(ap, compass)
+        session_head = None
+        if session is not None:
+            session_head = apverify.heading_of_session(session, cp, args.session)
+        r = apverify.verify(
+            ap, cp, n_samples=args.samples, duration_s=args.duration, rate_hz=args.rate
+        )
+    n = r.norm
+    who = (
+        "corrected here with the parameters in force"
+        if r.corrected_here
+        else "corrected by the vehicle"
+    )
+    lines = [
+        f"vehicle    {ap.describe()}, compass {compass}; stream {r.stream} ({who})",
+        f"norm       mean {n.mean:.5g} {r.unit}, std {n.std:.4g} ({100 * n.rel_std:.3f} %), "
+        f"min {n.min:.5g}, max {n.max:.5g}, (max-min)/mean {100 * n.rel_range:.3f} % "
+        f"over {n.n} samples (missing {r.missing}, repeated timestamps {r.repeated})",
+    ]
+    if r.heading is not None:
+        lines += heading_lines(r.heading, f"{r.stream} stream")
+    else:
+        lines.append("heading    not measurable: no sample with |acc| near g")
+    if session is not None:
+        if session_head is not None:
+            lines += heading_lines(session_head, f"{args.session} (parameters in force)")
+        else:
+            lines.append(f"heading    {args.session}: not measurable (no sample with |acc| ≈ g)")
+    for line in lines:
+        print(line, file=out)
+    max_spread = args.max_spread if args.max_spread is not None else DEFAULT_MAX_SPREAD_PCT
+    if 100 * n.rel_std > max_spread:
+        print(
+            f"magcal verify: the norm's spread {100 * n.rel_std:.2f} % exceeds {max_spread:g} %: "
+            "calibrate again (rotate through more orientations, away from magnetic objects) "
+            "and flash the result",
+            file=sys.stderr,
+        )
+        return EXIT_FAILED
+    return 0

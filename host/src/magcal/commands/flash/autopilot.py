@@ -1,9 +1,8 @@
-"""The device commands with ``--mavlink URL``: an ArduPilot or PX4 autopilot instead of a device
-running magcal's firmware. ``info``, ``collect``, ``flash`` and ``verify`` call the ``run_*``
-here when ``--mavlink`` is given; the work is in :mod:`magcal.autopilot`.
+"""``magcal flash RESULT.json --mavlink URL``: a calibration result as ArduPilot or PX4 compass
+parameters (:mod:`magcal.autopilot.flash`: mapping, limits, a backup of every parameter touched
+first, each write confirmed by the vehicle's echo). ``--restore BACKUP`` writes a backup back.
 
-Nothing here imports pymavlink at module level: the command line loads this module for its
-help text, and ``simulate`` or ``calibrate`` must not pay for the MAVLink stack.
+Nothing here imports pymavlink at module level.
 """
 
 from __future__ import annotations
@@ -12,144 +11,15 @@ import datetime as dt
 import sys
 from pathlib import Path
 
+from magcal.commands.common import compass_params
 from magcal.errors import MagcalError
+from magcal.ui import EXIT_INTERRUPTED, refusal, say
 
 
-def _say(command: str, text: str) -> None:
-    print(f"magcal {command}: {text}", file=sys.stderr, flush=True)
+def _say(text: str) -> None:
+    say("flash", text)
 
 
-def _compass_params(ap, compass: int, **kw):
-    from magcal.autopilot import vehicle
-
-    return vehicle.read_compass_params(ap.read, ap.autopilot, compass, **kw)
-
-
-# ------------------------------------------------------------------------------ info
-def run_info(args, out=None) -> int:
-    from magcal.autopilot import mapping, params, rotations, vehicle
-    from magcal.autopilot.connection import open_autopilot
-
-    out = out or sys.stdout
-    with open_autopilot(args.mavlink) as ap:
-        fw = ap.firmware()
-        print(f"autopilot  {ap.name} {fw or '(firmware version not reported)'}", file=out)
-        print(f"vehicle    {ap.describe()}, {args.mavlink}", file=out)
-        compasses = [args.compass] if args.compass else [1, 2, 3]
-        shared: dict[str, tuple[float, int | None]] = {}
-        naming = mapping.AP_NAMING_LEGACY if ap.autopilot == vehicle.ARDUPILOT else ""
-        for n in compasses:
-            try:
-                cp = _compass_params(ap, n)
-            except vehicle.AutopilotError as exc:
-                print(f"compass {n}  {exc}", file=out)
-                continue
-            naming = cp.naming
-            own = set(vehicle.compass_param_names(ap.autopilot, n, naming))
-            print(f"compass {n}  {_compass_line(cp, rotations, mapping)}", file=out)
-            for name, value in cp.values.items():
-                t = cp.types.get(name)
-                if name not in own:
-                    shared[name] = (value, t)
-                    continue
-                kind = params.TYPE_NAMES.get(t, str(t))
-                print(f"  {name:<18} {params.value_text(value, t):>14}  {kind}", file=out)
-        owned = {
-            name for n in (1, 2, 3) for name in vehicle.compass_param_names(ap.autopilot, n, naming)
-        }
-        shared = {k: v for k, v in shared.items() if k not in owned}
-        if shared:
-            print("shared", file=out)
-            for name, (value, t) in sorted(shared.items()):
-                kind = params.TYPE_NAMES.get(t, str(t))
-                print(f"  {name:<18} {params.value_text(value, t):>14}  {kind}", file=out)
-    return 0
-
-
-def _ap_rotation_name(index: int, rotations) -> str:
-    if 0 <= index <= rotations.ARDUPILOT_MAX_INDEX:
-        return rotations.ARDUPILOT_TABLE[index][0]
-    return "not enumerated"
-
-
-def _compass_line(cp, rotations, mapping) -> str:
-    """One line on a compass: where its rotation comes from, its device, stream and unit."""
-    from magcal.autopilot import vehicle
-
-    n = cp.compass
-    if cp.autopilot == vehicle.ARDUPILOT:
-        orient = int(cp.values[mapping.ap_param_names(n, cp.naming)["ORIENT"]])
-        if not cp.external:
-            rot = "internal: turned by AHRS_ORIENTATION and the board"
-        elif orient in mapping.AP_CUSTOM_ORIENT:
-            rot = f"external, rotation {orient} (custom, CUST_ROT{orient - 100}_*)"
-        else:
-            rot = f"external, rotation {orient} ({_ap_rotation_name(orient, rotations)})"
-        naming = f", parameter naming {cp.naming}"
-    else:
-        rot_value = int(cp.values[f"CAL_MAG{n - 1}_ROT"])
-        rot = (
-            "internal: turned by SENS_BOARD_ROT"
-            if not cp.external
-            else f"external, CAL_MAG{n - 1}_ROT {rot_value}"
-        )
-        naming = ""
-    # read_compass_params refuses a compass whose device id is 0: this one is present
-    dev = int(cp.values[vehicle.dev_id_name(cp.autopilot, n, cp.naming)])
-    present = f", device id {dev}"
-    stream = vehicle.collect_stream(cp.autopilot, n)
-    return f"{rot}{present}{naming}; stream {stream}, field in {cp.unit}"
-
-
-# ------------------------------------------------------------------------------ collect
-def run_collect(args, out=None) -> int:
-    from magcal.autopilot.collect import collect
-    from magcal.autopilot.connection import open_autopilot
-    from magcal.calib.diagnostics import observability
-    from magcal.commands.collect import collect_saving_partial, finish_collect, progress_printer
-    from magcal.io.session import check_writable
-
-    out = out or sys.stdout
-    if args.duration is None and args.coverage is None and args.max_samples is None:
-        raise MagcalError("collect: --coverage off needs --duration or --max-samples")
-    check_writable(args.output, "writing session")
-    compass = args.compass or 1
-    min_samples = observability.MIN_SAMPLES
-    progress = progress_printer()
-    with open_autopilot(args.mavlink) as ap:
-        fw = ap.firmware()
-        cp = _compass_params(ap, compass)
-        _say(
-            "collect",
-            f"{ap.describe()}, firmware {fw or 'unknown'}; compass {compass} "
-            f"({'external' if cp.external else 'internal'}), field in {cp.unit}",
-        )
-        result = collect_saving_partial(
-            lambda: collect(
-                ap,
-                cp,
-                rate_hz=args.rate,
-                duration_s=args.duration,
-                coverage_target=None if args.coverage is None else args.coverage / 100.0,
-                max_samples=args.max_samples,
-                min_samples=min_samples,
-                progress=progress,
-                firmware=fw,
-            ),
-            args.output,
-            progress,
-        )
-    return finish_collect(
-        args,
-        result,
-        min_samples,
-        f"on {args.mavlink}",
-        "check that the vehicle streams its IMU",
-        out,
-    )
-
-
-# ------------------------------------------------------------------------------ flash
 def _field(args):
     from magcal.autopilot import wmm
 
@@ -217,7 +87,7 @@ def _print_plan(plan, cp, out) -> None:
 
     m = plan.mapped
     for note in m.notes:
-        _say("flash", f"note: {note}")
+        _say(f"note: {note}")
     print(f"{'parameter':<18} {'in force':>14} {'new':>14}", file=out)
     for e in plan.writes:
         old = cp.values.get(e.name)
@@ -245,7 +115,7 @@ def _export(plan, path: Path, ap, result_path: str) -> Path:
     return params.write_new_file(path, params.render_param_file(path, pf, **header), overwrite=True)
 
 
-def run_flash(args) -> int:
+def run(args) -> int:
     from magcal.autopilot import flash as apflash
     from magcal.autopilot import params, vehicle
     from magcal.autopilot.connection import open_autopilot
@@ -268,15 +138,14 @@ def run_flash(args) -> int:
             raise MagcalError(f"flash: backup file {args.backup} exists; give a new path")
     compass = args.compass or 1
     with open_autopilot(args.mavlink) as ap:
-        cp = _compass_params(
+        cp = compass_params(
             ap, compass, custom_angles=args.px4_custom_rotation and ap.autopilot == vehicle.PX4
         )
-        _say("flash", f"vehicle {ap.describe()}; compass {compass}, unit {cp.unit}")
+        _say(f"vehicle {ap.describe()}; compass {compass}, unit {cp.unit}")
         D_inv, o, res_unit = apflash.result_in_unit(result, cp.unit, args.mag_unit, args.result)
         conv = "" if res_unit == cp.unit else f" (converted from {res_unit})"
-        _say("flash", f"{args.result}: method {result.method}, D and o in {cp.unit}{conv}")
+        _say(f"{args.result}: method {result.method}, D and o in {cp.unit}{conv}")
         _say(
-            "flash",
             f"field {fld.strength(cp.unit):.6g} {cp.unit} from {fld.source}"
             + (
                 f", inclination {fld.inclination_deg:.2f}°"
@@ -295,7 +164,6 @@ def run_flash(args) -> int:
         _print_plan(plan, cp, sys.stdout)
         if args.param_file:
             _say(
-                "flash",
                 f"parameter file written: {_export(plan, Path(args.param_file), ap, args.result)}",
             )
         if args.dry_run:
@@ -304,7 +172,7 @@ def run_flash(args) -> int:
                     params.PARM_SUFFIX if ap.autopilot == vehicle.ARDUPILOT else params.QGC_SUFFIX
                 )
                 path = result_path.with_name(f"{result_path.stem}.{ap.autopilot}{suffix}")
-                _say("flash", f"parameter file written: {_export(plan, path, ap, args.result)}")
+                _say(f"parameter file written: {_export(plan, path, ap, args.result)}")
             print("dry run: nothing was written to the vehicle")
             return 0
         if not plan.writes:
@@ -323,11 +191,9 @@ def run_flash(args) -> int:
             what=f"before magcal flash {args.result}",
             known=known,
         )
-        _say("flash", f"backup of the values in force: {', '.join(map(str, backup.paths))}")
+        _say(f"backup of the values in force: {', '.join(map(str, backup.paths))}")
         try:
-            failed = apflash.write_and_confirm(
-                ap, plan.writes, lambda t: _say("flash", t), old=cp.values
-            )
+            failed = apflash.write_and_confirm(ap, plan.writes, _say, old=cp.values)
         except apflash.WriteInterrupted as exc:
             return _interrupted(
                 exc,
@@ -358,7 +224,6 @@ def _interrupted(exc, message: str, backup_path: Path) -> int:
     EXIT_INTERRUPTED (130, as any interrupted command); any other cause is an
     AutopilotFlashError carrying the same account and the backup path."""
     from magcal.autopilot import flash as apflash
-    from magcal.cli import EXIT_INTERRUPTED, refusal
 
     if exc.by_user:
         print(refusal("flash", message), file=sys.stderr, flush=True)
@@ -370,7 +235,7 @@ def _reboot(ap, reasons: tuple[str, ...], reboot: bool, never: tuple[str, ...] =
     if not reasons:
         return
     if reboot:
-        _say("flash", f"rebooting the vehicle ({'; '.join(reasons)})")
+        _say(f"rebooting the vehicle ({'; '.join(reasons)})")
         ap.reboot()
         if never:
             groups = ", ".join(f"*{g}" for g in never)
@@ -399,7 +264,7 @@ def _run_restore(args) -> int:
                 f"flash: {src} was saved from system {pf.system_id}, this vehicle is system "
                 f"{ap.heartbeat.system}: nothing was written (--force writes it anyway)"
             )
-        _say("flash", f"restoring {len(pf.entries)} parameters from {src} to {ap.describe()}")
+        _say(f"restoring {len(pf.entries)} parameters from {src} to {ap.describe()}")
         before = (
             Path(args.backup)
             if args.backup
@@ -416,12 +281,12 @@ def _run_restore(args) -> int:
             if e.name not in current
             or not params.confirmed(e.value, current[e.name].value, e.param_type)
         )
-        _say("flash", f"values in force saved in {backup.path}")
+        _say(f"values in force saved in {backup.path}")
         try:
             failed = apflash.write_and_confirm(
                 ap,
                 writes,
-                lambda t: _say("flash", t),
+                _say,
                 old={n: e.value for n, e in current.items()},
             )
         except apflash.WriteInterrupted as exc:
@@ -449,57 +314,4 @@ def _run_restore(args) -> int:
             print("vehicle rebooted")
         else:
             print("reboot the vehicle so that every restored value is in use (or pass --reboot)")
-    return 0
-
-
-# ------------------------------------------------------------------------------ verify
-def run_verify(args, out=None) -> int:
-    from magcal.autopilot import verify as apverify
-    from magcal.autopilot.connection import open_autopilot
-    from magcal.commands.verify import DEFAULT_MAX_SPREAD_PCT, EXIT_FAILED, heading_lines
-    from magcal.io.session import read_session
-
-    out = out or sys.stdout
-    session = read_session(args.session) if args.session else None
-    compass = args.compass or 1
-    with open_autopilot(args.mavlink) as ap:
-        cp = _compass_params(ap, compass)
-        session_head = None
-        if session is not None:
-            session_head = apverify.heading_of_session(session, cp, args.session)
-        r = apverify.verify(
-            ap, cp, n_samples=args.samples, duration_s=args.duration, rate_hz=args.rate
-        )
-    n = r.norm
-    who = (
-        "corrected here with the parameters in force"
-        if r.corrected_here
-        else "corrected by the vehicle"
-    )
-    lines = [
-        f"vehicle    {ap.describe()}, compass {compass}; stream {r.stream} ({who})",
-        f"norm       mean {n.mean:.5g} {r.unit}, std {n.std:.4g} ({100 * n.rel_std:.3f} %), "
-        f"min {n.min:.5g}, max {n.max:.5g}, (max-min)/mean {100 * n.rel_range:.3f} % "
-        f"over {n.n} samples (missing {r.missing}, repeated timestamps {r.repeated})",
-    ]
-    if r.heading is not None:
-        lines += heading_lines(r.heading, f"{r.stream} stream")
-    else:
-        lines.append("heading    not measurable: no sample with |acc| near g")
-    if session is not None:
-        if session_head is not None:
-            lines += heading_lines(session_head, f"{args.session} (parameters in force)")
-        else:
-            lines.append(f"heading    {args.session}: not measurable (no sample with |acc| ≈ g)")
-    for line in lines:
-        print(line, file=out)
-    max_spread = args.max_spread if args.max_spread is not None else DEFAULT_MAX_SPREAD_PCT
-    if 100 * n.rel_std > max_spread:
-        print(
-            f"magcal verify: the norm's spread {100 * n.rel_std:.2f} % exceeds {max_spread:g} %: "
-            "calibrate again (rotate through more orientations, away from magnetic objects) "
-            "and flash the result",
-            file=sys.stderr,
-        )
-        return EXIT_FAILED
     return 0

@@ -18,12 +18,6 @@ set; it reads the device's description (hello, info) and writes nothing, not eve
 Units: the result's ``D`` and ``o`` are in the session's magnetometer unit, the device
 corrects raw counts. The unit comes from ``--mag-unit`` or the result's optional ``mag_unit``
 key; the size of one count from the device (info's exact magnetometer count scale).
-
-``magcal flash RESULT.json --mavlink URL [--compass N] (--location LAT,LON[,ALT_KM] | --field
-VALUE+UNIT)``: ArduPilot or PX4 compass parameters (:mod:`magcal.autopilot.flash`: mapping,
-limits, a backup of every parameter touched first, each write confirmed by the vehicle's
-echo); ``--dry-run`` writes the parameter file only, ``--param-file`` exports ``.parm``
-(Mission Planner) or ``.params`` (QGroundControl), ``--restore BACKUP`` writes a backup back.
 """
 
 from __future__ import annotations
@@ -36,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from magcal.commands.common import add_link_arguments, check_link_options, open_device, scale_text
+from magcal.commands.common import open_device, scale_text
 from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, DeviceInfo, Scale
 from magcal.device.flash import (
@@ -53,6 +47,7 @@ from magcal.device.generated import Status, Unit
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult, read_result
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
+from magcal.ui import say
 
 #: The magnetometer units a result may be in, with their size in tesla (None: raw counts).
 MAG_UNIT_TESLA: dict[str, Fraction | None] = {
@@ -73,94 +68,8 @@ class FlashCommandError(MagcalError):
     """magcal flash failed; the message ends by saying which set the device holds."""
 
 
-def add_parser(sub) -> None:
-    p = sub.add_parser(
-        "flash",
-        help="write a calibration result to the device (backup first, every step read back)",
-        description="Convert RESULT.json to the device's parameter format, save the device's "
-        "current set to a backup file, write, read back bit for bit, commit, reset and "
-        "confirm the new set is active. --restore BACKUP writes a backup back. With --mavlink: "
-        "map it to ArduPilot or PX4 compass parameters (field strength from --location or "
-        "--field), back up the values in force, write each and confirm it from the vehicle's "
-        "echo.",
-    )
-    p.add_argument("result", nargs="?", help="calibration result JSON (magcal-result/1)")
-    add_link_arguments(p)
-    p.add_argument(
-        "--restore",
-        metavar="BACKUP",
-        help="write this backup (of an earlier flash) back instead of a result",
-    )
-    p.add_argument(
-        "--mag-unit",
-        choices=sorted(MAG_UNIT_TESLA),
-        help="the unit of the result's D and o (default: the result's mag_unit; needed "
-        "when the result does not say)",
-    )
-    p.add_argument(
-        "--backup",
-        metavar="PATH",
-        help="where to save the device's current set (default: next to the result, "
-        "RESULT.backup-<uid>-<UTC time>.json); never overwritten",
-    )
-    p.add_argument(
-        "--dry-run",
-        action="store_true",
-        help="convert and check only, print the parameter set; write nothing",
-    )
-    p.add_argument(
-        "--force",
-        action="store_true",
-        help="with --restore: write a backup that was taken from another device",
-    )
-    ap = p.add_argument_group("with --mavlink (ArduPilot, PX4)")
-    ap.add_argument(
-        "--location",
-        metavar="LAT,LON[,ALT_KM]",
-        help="where the vehicle flies (degrees north, east; km): the field strength comes from "
-        "the World Magnetic Model",
-    )
-    ap.add_argument("--date", metavar="YYYY-MM-DD", help="the model's date (default today)")
-    ap.add_argument(
-        "--field",
-        metavar="VALUE",
-        help="the local field strength with its unit instead of --location: 48.5uT, 485mG, "
-        "0.485gauss",
-    )
-    ap.add_argument(
-        "--session",
-        metavar="SESSION.csv",
-        help="the session the result was calibrated from: its compass parameters at recording "
-        "time (ArduPilot needs the rotation that was in force)",
-    )
-    ap.add_argument(
-        "--param-file",
-        metavar="PATH",
-        help="also export the parameters: .parm (Mission Planner, MAVProxy) or .params "
-        "(QGroundControl); with --dry-run the default is RESULT.<autopilot>.parm/.params",
-    )
-    ap.add_argument(
-        "--no-custom-rotation",
-        action="store_true",
-        help="ArduPilot: do not write a custom rotation (CUST_ROTn_*); the misalignment is then "
-        "left out and its heading error reported",
-    )
-    ap.add_argument(
-        "--px4-custom-rotation",
-        action="store_true",
-        help="PX4: write CAL_MAGn_ROT = 100 with CAL_MAGn_ROLL/PITCH/YAW when the misalignment "
-        "is not an enumerated rotation (newer PX4 only; off by default)",
-    )
-    ap.add_argument(
-        "--reboot",
-        action="store_true",
-        help="reboot the vehicle after writing when some value takes effect only at boot",
-    )
-    p.set_defaults(run=run)
-
-
 def _say(text: str) -> None:
-    print(f"magcal flash: {text}", file=sys.stderr, flush=True)
+    say("flash", text)
 
 
 # ---------------------------------------------------------------- conversion
@@ -361,24 +270,8 @@ def _finish(result: FlashResult, first: DeviceClient) -> int:
     return 0
 
 
-MAVLINK_ONLY = (
-    "location",
-    "date",
-    "field",
-    "session",
-    "param_file",
-    "no_custom_rotation",
-    "px4_custom_rotation",
-    "reboot",
-)
-
-
 def run(args) -> int:
-    check_link_options(args, MAVLINK_ONLY)
-    if args.mavlink:
-        from magcal.commands import autopilot
-
-        return autopilot.run_flash(args)
+    """``magcal flash --port``: a refusal or failure says which set the device holds."""
     try:
         return _run(args)
     except FlashCommandError:

@@ -1,0 +1,228 @@
+"""``magcal calibrate SESSION.csv``: calibrate a recorded or simulated session
+(:func:`magcal.calib.calibrate.calibrate`), print a summary, and optionally write the result,
+the paper's figures, and the errors against a simulation's truth."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from magcal import ui
+from magcal.errors import MagcalError
+
+#: ``calibrate --method`` choices, as ``magcal.calib.calibrate.METHODS`` (not imported here: the
+#: parser is built for every command, and the pipeline loads the numerical stack).
+CALIBRATION_METHODS = ("ml", "init", "ckf", "two-step")
+
+
+def add_parser(sub) -> None:
+    p = sub.add_parser("calibrate", help="calibrate a session (Kok & Schön Algorithm 1)")
+    p.add_argument("session", help="session CSV (magcal-session: 1)")
+    p.add_argument(
+        "--method",
+        default="ml",
+        choices=CALIBRATION_METHODS,
+        help="ml: maximum likelihood, Kok & Schön's Algorithm 1 (default); init: its initial "
+        "estimate (step 1) only; ckf: Zhao et al.'s cubature Kalman filter, sample by sample; "
+        "two-step: Alonso & Shuster's TWO-STEP. ckf and two-step fit the ellipsoid from the "
+        "field norm alone and take the misalignment from init's alignment step",
+    )
+    p.add_argument("-o", "--output", help="result JSON to write")
+    p.add_argument("--plot", metavar="DIR", help="write the paper's figures as PNG here")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="calibrate even when the session cannot determine it (with a warning)",
+    )
+    p.add_argument(
+        "--gradient",
+        default="exact",
+        choices=["exact", "numeric"],
+        help="exact (reverse mode) or the paper's finite differences",
+    )
+    p.add_argument("--truth", help="truth JSON of a simulated session: also print errors")
+    p.set_defaults(run=run)
+
+
+def summary_rows(cal) -> list[tuple[str, str]]:
+    """The result at a glance, as label-value rows: method, D, o, dip, gyroscope bias, the
+    optimizer's account, the innovations, the field norm before and after, the time taken."""
+    r = cal.result
+    x = r.extra
+    indent = " " * (ui.LABEL_WIDTH + 1)
+    with np.printoptions(precision=5, suppress=True):  # local: no global numpy state
+        rows = [
+            ("method", r.method),
+            ("D", np.array2string(r.D, prefix=indent)),
+            ("o", f"{r.o}"),
+            ("dip", f"{r.dip_deg:.3f}°"),
+        ]
+        if r.gyro_bias is not None:
+            rows.append(("gyro bias", f"{np.rad2deg(r.gyro_bias)} °/s"))
+    if "optimizer" in x:
+        o = x["optimizer"]
+        rows.append(
+            (
+                "ML",
+                f"{o['iterations']} iterations, {o['cost_evaluations']} cost and "
+                f"{o['gradient_evaluations']} gradient evaluations, "
+                f"final cost {o['final_cost']:.6f}, {o['seconds']:.2f} s, "
+                f"stopped on '{o['stopping_rule']}' ({o['gradient']} gradient)",
+            )
+        )
+    s = x["innovations"]
+    rows.append(
+        (
+            "innovations",
+            f"normalised: mean {s['mean']:.3f}, std {s['std']:.3f}, "
+            f"{100 * s['fraction_outside_3']:.2f} % outside ±3",
+        )
+    )
+    b, a = x["field_norm"]["before"], x["field_norm"]["after"]
+    rows.append(
+        (
+            "field norm",
+            f"before {b['mean']:.4g} ± {b['std']:.3g} (raw units), "
+            f"after {a['mean']:.5f} ± {a['std']:.5f}",
+        )
+    )
+    rows.append(("time", ", ".join(f"{k} {v:.2f} s" for k, v in x["seconds"].items())))
+    return rows
+
+
+def _print_summary(cal, out=None) -> None:
+    out = out or sys.stdout
+    ui.print_table(summary_rows(cal), out)
+    for w in cal.result.warnings:
+        print(f"warning: {w}", file=out)
+
+
+def progress_printer(stream=None):
+    """``show(iteration, cost, decrement)`` for the ML optimizer, ``show.done()`` after it: a
+    :class:`magcal.ui.StatusLine` on a terminal; in a log the first and every 10th iteration."""
+    status = ui.StatusLine(stream, last=False)
+
+    def show(iteration: int, cost: float, decrement: float) -> None:
+        line = f"ML iteration {iteration:4d}  cost {cost:.6f}  predicted decrease {decrement:.2e}"
+        status.update(line, log=iteration == 1 or iteration % 10 == 0)
+
+    show.done = status.close  # type: ignore[attr-defined]
+    return show
+
+
+def _read_matching_truth(truth_path: str, session_path: str, session):
+    """The truth file of ``session``; refuses one whose length shows it is another session's."""
+    from magcal.sim.scenarios import read_truth
+
+    truth = read_truth(truth_path)
+    n_truth, n_session = int(truth.q_nb.shape[0]), len(session)
+    if n_truth != n_session:
+        raise MagcalError(
+            f"comparing with the truth: {truth_path} has {n_truth} samples but the session "
+            f"{session_path} has {n_session}, so it is the truth of another session: pass the "
+            f"truth file that `magcal simulate` wrote with {session_path}"
+        )
+    return truth
+
+
+def _print_truth_comparison(cal, truth, session, out=None) -> None:
+    out = out or sys.stdout
+    from magcal.calib.diagnostics import quality
+
+    st = truth.sensor
+    floor = quality.known_attitude_fit(session.mag, truth.q_nb, st.m_n)
+    rows = [
+        ("known-attitude floor", floor),
+        ("initial estimate", (cal.init.params.D, cal.init.params.o)),
+    ]
+    # init's result is the initial estimate; ckf and two-step replace its ellipsoid step, so
+    # their "initial estimate" is their own result.
+    if cal.ml is not None:
+        rows.append(("ML estimate", (cal.result.D, cal.result.o)))
+    elif cal.result.method != "init":
+        rows[1] = (f"{cal.result.method} estimate", (cal.result.D, cal.result.o))
+    print("calibration-induced heading error against the truth (RMS over SO(3)):", file=out)
+    for name, (D, o) in rows:
+        e = quality.calibration_heading_errors(st.D, st.o, st.m_n, D, o)
+        print(f"  {name:22s} {quality.rms_deg(e):.4f}°", file=out)
+
+
+def _prepare_plot_dir(directory: str) -> None:
+    """Create the ``--plot`` directory and check that files can be written there."""
+    from magcal.io.session import check_writable, os_error_advice
+
+    try:
+        Path(directory).mkdir(parents=True, exist_ok=True)
+    except FileExistsError:
+        raise MagcalError(
+            f"writing plots to {directory}: it is a file, not a directory: give a directory"
+        ) from None
+    except OSError as exc:
+        raise MagcalError(
+            f"writing plots to {directory}: cannot create the directory "
+            f"({os_error_advice(exc, directory, writing=True)})"
+        ) from exc
+    check_writable(Path(directory) / "ellipsoid_sphere.png", "writing plot", MagcalError)
+
+
+def _write_plots(cal, session, directory: str) -> list[Path]:
+    from magcal.report import plots
+
+    d = Path(directory)
+    return [
+        plots.plot_ellipsoid_sphere(session.mag, cal.calibrated, d / "ellipsoid_sphere.png"),
+        plots.plot_norms(
+            session.t,
+            np.linalg.norm(session.mag, axis=1),
+            np.linalg.norm(cal.calibrated, axis=1),
+            d / "field_norm.png",
+        ),
+        plots.plot_innovation_histogram(
+            cal.filter_output.normalised,
+            d / "innovations.png",
+            title=f"Normalised innovations ({cal.result.method})",
+        ),
+    ]
+
+
+def run(args) -> int:
+    from magcal.calib.calibrate import calibrate
+    from magcal.calib.diagnostics import observability
+    from magcal.calib.initial import ellipsoid
+    from magcal.io.result import check_result_writable, write_result
+    from magcal.io.session import os_error_advice, read_session
+
+    # Everything a typo can break is checked before calibrating: an ML run takes a while.
+    if args.output:
+        check_result_writable(args.output)
+    if args.plot:
+        _prepare_plot_dir(args.plot)
+    # The observability checks refuse fewer samples; forced, the ellipsoid fit's minimum holds.
+    min_samples = ellipsoid.MIN_SAMPLES if args.force else observability.MIN_SAMPLES
+    session = read_session(args.session, min_samples=min_samples)
+    truth = _read_matching_truth(args.truth, args.session, session) if args.truth else None
+    progress = progress_printer()
+    try:
+        cal = calibrate(
+            session, args.method, force=args.force, gradient=args.gradient, progress=progress
+        )
+    finally:
+        progress.done()
+    # Save the result first: nothing printed or plotted below may lose it.
+    if args.output:
+        write_result(args.output, cal.result)
+        print(f"wrote {args.output}")
+    _print_summary(cal)
+    if truth is not None:
+        _print_truth_comparison(cal, truth, session)
+    if args.plot:
+        try:
+            for path in _write_plots(cal, session, args.plot):
+                print(f"wrote {path}")
+        except OSError as exc:
+            raise MagcalError(
+                f"writing plots to {args.plot}: {os_error_advice(exc, args.plot, writing=True)}"
+            ) from exc
+    return 0

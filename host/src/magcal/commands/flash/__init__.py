@@ -1,35 +1,17 @@
-"""``magcal flash RESULT.json --port URL``: write a calibration to the device.
+"""``magcal flash``: write a calibration where it is used, reading back every step.
 
-1. convert the result's ``D_inv`` and ``o`` to the device's fixed-point parameter set
-   (:func:`magcal.device.fixed_point.from_calibration`) and check it is representable;
-2. read the device's current set and save it to a backup file (never overwriting one);
-3. write it, read it back and compare bit for bit, commit;
-4. reset the device and confirm the new set is active, bit for bit.
-
-Steps 2-4 are :func:`magcal.device.flash.flash_parameters` (SPEC §5). Progress goes to stderr,
-one line per step; the outcome names the set the device holds: "new parameters active
-(crc32 ...)" on stdout, or, on failure, a message ending "device holds the OLD set", "the NEW
-set" or "an unknown set", with the backup's path, and a non-zero exit status.
-
-``magcal flash --restore BACKUP --port URL`` writes a backup back the same way (the set it
-replaces is backed up first). ``--dry-run`` converts and checks only and prints the parameter
-set; it reads the device's description (hello, info) and writes nothing, not even a backup.
-
-Units: the result's ``D`` and ``o`` are in the session's magnetometer unit, the device
-corrects raw counts. The unit comes from ``--mag-unit`` or the result's optional ``mag_unit``
-key; the size of one count from the device (info's exact magnetometer count scale).
-
-``magcal flash RESULT.json --mavlink URL [--compass N] (--location LAT,LON[,ALT_KM] | --field
-VALUE+UNIT)``: ArduPilot or PX4 compass parameters (:mod:`magcal.autopilot.flash`: mapping,
-limits, a backup of every parameter touched first, each write confirmed by the vehicle's
-echo); ``--dry-run`` writes the parameter file only, ``--param-file`` exports ``.parm``
-(Mission Planner) or ``.params`` (QGroundControl), ``--restore BACKUP`` writes a backup back.
-"""
+``--port URL`` writes to a device running magcal's firmware (:mod:`.device`: fixed-point
+conversion, a backup of the device's set first, write, read back bit for bit, commit, reset,
+confirm). ``--mavlink URL`` sets an ArduPilot or PX4 autopilot's compass parameters
+(:mod:`.autopilot`: mapping, limits, a backup of every parameter touched first, each write
+confirmed by the vehicle's echo). Either takes ``--restore BACKUP`` to write a backup back and
+``--dry-run`` to write nothing to the device or vehicle."""
 
 from __future__ import annotations
 
 from magcal.commands.common import add_link_arguments, check_link_options
 from magcal.commands.flash.device import MAG_UNIT_TESLA
+from magcal.errors import MagcalError
 
 
 def add_parser(sub) -> None:
@@ -132,6 +114,10 @@ MAVLINK_ONLY = (
 
 def run(args) -> int:
     check_link_options(args, MAVLINK_ONLY)
+    if args.restore and args.result:
+        raise MagcalError("flash: give either RESULT.json or --restore BACKUP, not both")
+    if not args.restore and not args.result:
+        raise MagcalError("flash: give a calibration result (RESULT.json) or --restore BACKUP")
     if args.mavlink:
         from magcal.commands.flash import autopilot
 

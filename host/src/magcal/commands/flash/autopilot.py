@@ -121,12 +121,8 @@ def run(args) -> int:
     from magcal.autopilot.connection import open_autopilot
     from magcal.io.result import read_result
 
-    if args.restore:
-        if args.result:
-            raise MagcalError("flash: give either RESULT.json or --restore BACKUP, not both")
+    if args.restore:  # flash.run has checked that exactly one of the two is given
         return _run_restore(args)
-    if not args.result:
-        raise MagcalError("flash: give a calibration result (RESULT.json) or --restore BACKUP")
     result_path = Path(args.result)
     result = read_result(result_path)
     fld = _field(args)

@@ -283,12 +283,8 @@ def run(args) -> int:
 
 
 def _run(args) -> int:
-    if args.restore:
-        if args.result:
-            raise MagcalError("flash: give either RESULT.json or --restore BACKUP, not both")
+    if args.restore:  # flash.run has checked that exactly one of the two is given
         return _run_restore(args)
-    if not args.result:
-        raise MagcalError("flash: give a calibration result (RESULT.json) or --restore BACKUP")
     if args.force:
         raise MagcalError("flash: --force is for --restore only")
     result_path = Path(args.result)

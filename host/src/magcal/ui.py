@@ -95,7 +95,40 @@ def write_line(text: str, stream: TextIO | None = None) -> None:
     stream.flush()
 
 
-class StatusLine:
+class _Display:
+    """What :class:`StatusLine` and :class:`ProgressBar` share: the stream, whether it is live,
+    the rich display drawn on it (None until the first update, and always in a log), messages
+    above it, closing, and use as a context manager."""
+
+    def __init__(self, stream: TextIO | None) -> None:
+        self.stream = stream or sys.stderr
+        self.live = is_live(self.stream)
+        self._display = None  # rich Live or Progress, both with .console and .stop()
+
+    def message(self, text: str) -> None:
+        """``text`` on a line of its own, above the live display on a terminal."""
+        if self._display is not None:
+            self._display.console.print(text, soft_wrap=True)
+        else:
+            write_line(text, self.stream)
+
+    def close(self) -> None:
+        if self._display is not None:
+            self._display.stop()
+            self._display = None
+        self._closed()
+
+    def _closed(self) -> None:
+        """What a subclass writes once the display is gone."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+class StatusLine(_Display):
     """One line of status whose total is not known (an optimizer's iterations, a recording).
 
     On a terminal: the text, redrawn in place, cut with "…" at the terminal's width (a wrapped
@@ -109,13 +142,11 @@ class StatusLine:
     def __init__(
         self, stream: TextIO | None = None, *, every_s: float = 1.0, last: bool = True
     ) -> None:
-        self.stream = stream or sys.stderr
-        self.live = is_live(self.stream)
+        super().__init__(stream)
         self._every_s = every_s
         self._last = last
         self._next_s: float | None = None
         self._held: str | None = None
-        self._display = None
         self._console = None
 
     def update(self, text: str, t_s: float | None = None, *, log: bool | None = None) -> None:
@@ -156,26 +187,10 @@ class StatusLine:
                 self._console.width = width
             self._display.update(_status_renderable(text), refresh=True)
 
-    def message(self, text: str) -> None:
-        """``text`` on a line of its own, above the status line on a terminal."""
-        if self._display is not None:
-            self._console.print(text, soft_wrap=True)
-        else:
-            write_line(text, self.stream)
-
-    def close(self) -> None:
-        if self._display is not None:
-            self._display.stop()
-            self._display = None
+    def _closed(self) -> None:
         if self._held is not None:
             write_line(self._held, self.stream)
             self._held = None
-
-    def __enter__(self) -> StatusLine:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
 
 
 def _status_renderable(text: str):
@@ -185,7 +200,7 @@ def _status_renderable(text: str):
     return Text(text, no_wrap=True, overflow="ellipsis", end="")
 
 
-class ProgressBar:
+class ProgressBar(_Display):
     """Work of known size: ``completed`` of ``total`` (runs, gradient passes, percent).
 
     On a terminal: the label, a bar, completed/total (a percentage when ``unit`` is "%"), the
@@ -208,8 +223,7 @@ class ProgressBar:
         log_step_pct: float = 25.0,
         log_line: Callable[[int, int], str] | None = None,
     ) -> None:
-        self.stream = stream or sys.stderr
-        self.live = is_live(self.stream)
+        super().__init__(stream)
         self.label = label
         self.total = total
         self.completed = completed
@@ -217,7 +231,6 @@ class ProgressBar:
         self._step = log_step_pct
         self._log_line = log_line or (lambda done, total: f"{label}: {done}/{total}")
         self._logged_step: int | None = None
-        self._progress = None
         self._task = None
 
     def update(self, completed: int, total: int | None = None, *, note: str | None = None) -> None:
@@ -242,33 +255,15 @@ class ProgressBar:
         return int(pct // self._step) if self._step > 0 else int(pct)
 
     def _draw(self, note: str | None) -> None:
-        if self._progress is None:
-            self._progress = _rich_progress(_console(self.stream), self._unit)
-            self._progress.start()
-            self._task = self._progress.add_task(
+        if self._display is None:
+            self._display = _rich_progress(_console(self.stream), self._unit)
+            self._display.start()
+            self._task = self._display.add_task(
                 self.label, total=self.total, completed=self.completed, note=note or ""
             )
             return
         fields = {} if note is None else {"note": note}
-        self._progress.update(self._task, completed=self.completed, total=self.total, **fields)
-
-    def message(self, text: str) -> None:
-        """``text`` on a line of its own, above the bar on a terminal."""
-        if self._progress is not None:
-            self._progress.console.print(text, soft_wrap=True)
-        else:
-            write_line(text, self.stream)
-
-    def close(self) -> None:
-        if self._progress is not None:
-            self._progress.stop()
-            self._progress = None
-
-    def __enter__(self) -> ProgressBar:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
+        self._display.update(self._task, completed=self.completed, total=self.total, **fields)
 
 
 def _rich_progress(console, unit: str):

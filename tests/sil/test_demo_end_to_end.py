@@ -3,7 +3,7 @@
 magcal-sil starts on a fresh flash file; the world (a MEMS sensor with a random distortion in
 a 50 uT field, seed 11) tumbles it, sped up, while the real command line (host/magcal) runs
 collect, calibrate --method ml, flash and verify; then the device's own corrected output of
-noise-free readings of the same motion is streamed (magcal.sim.demo, as ``make demo``).
+noise-free readings of the same motion is streamed (magcal_evaluation.demo, as ``make demo``).
 
 After flashing:
 - the heading error of the device's corrected output (each sample rotated to north with the
@@ -31,11 +31,17 @@ import numpy as np
 import pytest
 
 from magcal.device.client import DeviceClient
-from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.io.result import read_result
 from magcal.io.session import read_session
-from magcal.sim.demo import DemoConfig, format_report, run_demo
-from magcal.sim.world import FeedClient, WorldError, WorldFeeder, make_world, tumbling_session
+from magcal_evaluation.demo import DemoConfig, format_report, run_demo
+from magcal_evaluation.sil import REPO_ROOT, SIL_BINARY
+from magcal_evaluation.world import (
+    FeedClient,
+    WorldError,
+    WorldFeeder,
+    make_world,
+    tumbling_session,
+)
 from tests.fake_device import FakeDevice, MemoryLink
 
 SEED = 11

@@ -15,10 +15,10 @@ import pytest
 
 from magcal import cli
 from magcal.sim.scenarios import PRESETS, ScenarioConfig
-from magcal.study import StudyError, StudySettingsError, make_settings, run_study
-from magcal.study import experiments as ex
-from magcal.study.runner import RUNS_FILE, SETTINGS_FILE, Task
-from magcal.study.summary import SUMMARY_FILE
+from magcal_evaluation.study import StudyError, StudySettingsError, make_settings, run_study
+from magcal_evaluation.study import experiments as ex
+from magcal_evaluation.study.runner import RUNS_FILE, SETTINGS_FILE, Task
+from magcal_evaluation.study.summary import SUMMARY_FILE
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -305,7 +305,7 @@ def test_zhao_table_holds_the_mean_estimates(straight):
     folder, settings, outcome = straight
     if "zhao-table1" not in settings.experiments:
         pytest.skip("this build has no CKF and TWO-STEP")
-    from magcal.study import zhao
+    from magcal_evaluation.study import zhao
 
     records = [r["result"] for r in saved_records(folder) if r["experiment"] == "zhao-table1"]
     text = (folder / SUMMARY_FILE).read_text(encoding="utf-8")
@@ -334,7 +334,7 @@ def test_settings_without_the_comparison_record_no_methods():
 def test_jobs_default_to_the_cpus_this_process_may_use(monkeypatch):
     import os
 
-    from magcal.commands import study as study_command
+    from magcal_evaluation.study import command as study_command
 
     monkeypatch.setattr(os, "cpu_count", lambda: 64)
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3}, raising=False)

@@ -4,7 +4,7 @@
     python tools/accuracy_report.py --runs 20 --table2-runs 150 \\
         --out bench/accuracy.md --plots out/accuracy
 
-Runs every check of :mod:`magcal.report.accuracy` over seeds 1..N (N = --runs, or
+Runs every check of :mod:`magcal_evaluation.accuracy` over seeds 1..N (N = --runs, or
 --table2-runs for Table 2) in --workers processes, prints one line per run to stderr, and
 writes a Markdown report (the command, date, machine, per-scenario medians, pass/fail per
 criterion, failed runs, timings), Figure 8 (``figure8.png``) and the raw per-run numbers
@@ -37,8 +37,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magcal.calib.diagnostics import quality  # noqa: E402
-from magcal.report import accuracy  # noqa: E402
 from magcal.report.plots import plot_heading_rmse_histograms  # noqa: E402
+from magcal_evaluation import REPO_ROOT, accuracy  # noqa: E402
 
 #: Rough seconds per run, to start the long runs first so both workers finish together.
 _COST_ESTIMATE_S = {
@@ -54,7 +54,6 @@ _COST_ESTIMATE_S = {
 #: Issue 2: every check over at least this many seeded runs (Table 2 included).
 MIN_RUNS = 20
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 GIT_TIMEOUT_S = 10.0
 
 
@@ -147,7 +146,7 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
         "heading, in degrees. *Floor*: the known-attitude least-squares fit of the same "
         "session. *Symmetric fit*: `(D̃D̃ᵀ)^½` and the ellipsoid's centre (no misalignment). "
         "Relative errors: `‖D̂ − D‖_F/‖D‖_F` and `‖ô − o‖/‖D‖₂` (see "
-        "`magcal.report.accuracy` for why the offset is divided by the field size).",
+        "`magcal_evaluation.accuracy` for why the offset is divided by the field size).",
         "",
         "## Summary",
         "",

@@ -6,7 +6,7 @@
 For seeds 1..N of the clean MEMS scenario and of the accelerated one (0.3 m/s² and 20
 knocks), the same sessions as `make accuracy`: the known-attitude floor, the ML error, and
 the Cramér–Rao bound of the model with translational-acceleration states
-(:mod:`magcal.report.cramer_rao`; process RMS 0.3/√3 m/s² per axis, f0 = 1 Hz, ζ = 0.7,
+(:mod:`magcal_evaluation.cramer_rao`; process RMS 0.3/√3 m/s² per axis, f0 = 1 Hz, ζ = 0.7,
 held known). On the clean scenario the bound is computed with the process off, which is
 the calibration model itself, so ML meeting its bound there checks the method. Progress
 goes to stderr, one line per run.
@@ -30,9 +30,9 @@ import numpy as np  # noqa: E402
 from magcal.calib.calibrate import calibrate  # noqa: E402
 from magcal.calib.diagnostics.replay import likelihood_problem  # noqa: E402
 from magcal.calib.likelihood import params  # noqa: E402
-from magcal.report import accuracy  # noqa: E402
-from magcal.report import cramer_rao as cr  # noqa: E402
 from magcal.sim.scenarios import simulate  # noqa: E402
+from magcal_evaluation import accuracy  # noqa: E402
+from magcal_evaluation import cramer_rao as cr  # noqa: E402
 
 #: The simulator's band-limited acceleration (0.2–2 Hz, RMS of ‖a‖ 0.3 m/s²) as the
 #: process of the bound: per-axis RMS 0.3/√3, centred in the band, about critically damped.
@@ -90,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         + f"` in {minutes:.1f} min. Seeds 1..{args.runs}, the sessions of `make accuracy`. "
         "Heading errors are RMS in degrees as in bench/accuracy.md. *Bound*: the Cramér–Rao "
         "bound of the model with translational-acceleration states "
-        "(`magcal.report.cramer_rao`; RMS 0.17 m/s² per axis, f0 1 Hz, ζ 0.7, held known), "
+        "(`magcal_evaluation.cramer_rao`; RMS 0.17 m/s² per axis, f0 1 Hz, ζ 0.7, held known), "
         "from the Fisher information at the true parameters plus the ML estimator's "
         "gyroscope-noise prior. Clean MEMS: the process is off, which is the calibration "
         "model itself.",

@@ -4,6 +4,7 @@ failures are counted; the Markdown tables hold the runs' numbers."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import math
@@ -342,3 +343,16 @@ def test_jobs_default_to_the_cpus_this_process_may_use(monkeypatch):
     assert args.jobs == 2  # the affinity mask (a container's or taskset's limit), not 64
     monkeypatch.delattr(os, "sched_getaffinity")
     assert study_command.available_cpus() == 64  # platforms without affinity masks
+
+
+def test_study_is_registered_in_the_magcal_commands_entry_point_group():
+    # magcal's command line adds every command of this group; the product has no study.
+    from importlib.metadata import entry_points
+
+    found = {ep.name: ep for ep in entry_points(group="magcal.commands")}
+    assert found["study"].value == "magcal_evaluation.study.command"
+    module = found["study"].load()
+    sub = argparse.ArgumentParser().add_subparsers(dest="command")
+    module.add_parser(sub)
+    args = sub.choices["study"].parse_args(["out", "--runs", "3"])
+    assert (args.outdir, args.runs, args.run) == ("out", 3, module.run)

@@ -1,9 +1,9 @@
-"""Quick versions of issue 2's accuracy checks (the full report is ``make accuracy``).
+"""Quick versions of the accuracy checks (the full report is ``make accuracy``).
 
-Each check runs a few fixed seeds (1..n, never chosen by outcome) through the same
-functions as ``tools/accuracy_report.py`` (:mod:`magcal_evaluation.accuracy`) and asserts the
-same bound on the median. Sessions are shorter only where the check does not fix their
-length (noise-free, small noise, scale, hand-held); the MEMS checks keep the issue's minute.
+Each check runs a few fixed seeds (1..n, never chosen by outcome) through the same functions
+as the accuracy report (:mod:`magcal_evaluation.accuracy`) and asserts the same bound on the
+median. Sessions are shorter only where the check does not fix their length (noise-free,
+small noise, scale, hand-held); the MEMS checks keep their full minute.
 """
 
 from __future__ import annotations
@@ -30,11 +30,11 @@ QUICK_SEEDS = {
 }
 
 
-#: Checks whose bound the library does not meet yet; issue 2 stays open on them. Strict:
+#: Checks whose bound the library does not meet yet. Strict:
 #: the test fails as soon as the bound is met, so this list cannot go stale.
 NOT_MET_YET = {
     "mems-acc": (
-        "issue 2, blocked: with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the "
+        "bound not met: with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the "
         "ML misalignment sits at about 2× the known-attitude floor (20 seeds 2.04×; bound 2×), "
         "below the scenario's Cramér-Rao bound of 2.29× (make cramer-rao)"
     ),

@@ -8,7 +8,7 @@ noise-free readings of the same motion is streamed (magcal_evaluation.demo, as `
 After flashing:
 - the heading error of the device's corrected output (each sample rotated to north with the
   attitude the world fed it with) is at most 0.5 deg RMS, and so is the calibration-induced
-  heading error of the result over the SO(3) grid (issue 2's metric);
+  heading error of the result over the SO(3) grid (the accuracy checks' metric);
 - for every streamed sample, the device's fixed-point output equals the host's float64
   correction ``D_inv (y - o)`` of result.json (its unquantised D_inv and o), in the device's
   output LSBs, within 1 LSB, unrounded: the output's rounding (1/2 LSB) plus the parameter

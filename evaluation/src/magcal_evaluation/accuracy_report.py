@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
-"""Accuracy report of issue 2 ("Accuracy: what must be shown"): `make accuracy`.
+"""The accuracy report: every accuracy check over seeded runs, `make accuracy`.
 
-    python tools/accuracy_report.py --runs 20 --table2-runs 150 \\
+    python -m magcal_evaluation.accuracy_report --runs 20 --table2-runs 150 \\
         --out bench/accuracy.md --plots out/accuracy
 
 Runs every check of :mod:`magcal_evaluation.accuracy` over seeds 1..N (N = --runs, or
@@ -10,7 +10,7 @@ writes a Markdown report (the command, date, machine, per-scenario medians, pass
 criterion, failed runs, timings), Figure 8 (``figure8.png``) and the raw per-run numbers
 (``runs.json``) under --plots. Exits 1 when a check fails its bound (after writing).
 
-Issue 2 asks for at least 20 runs per check (:data:`MIN_RUNS`). Fewer, or the --quick
+A report needs at least 20 runs per check (:data:`MIN_RUNS`). Fewer, or the --quick
 variants, are refused unless --exploratory is given; such a report is headed EXPLORATORY.
 """
 
@@ -51,7 +51,7 @@ _COST_ESTIMATE_S = {
     "noise-free": 0.3,
 }
 
-#: Issue 2: every check over at least this many seeded runs (Table 2 included).
+#: Every check over at least this many seeded runs (Table 2 included).
 MIN_RUNS = 20
 
 GIT_TIMEOUT_S = 10.0
@@ -88,7 +88,7 @@ def _progress_line(i: int, total: int, key: str, run: dict) -> str:
 
 def _git(*args: str) -> str | None:
     """``git *args`` in the repository: its stdout, or None if git is missing or fails. The
-    same helper as in bench/run_bench.py (tools/ and bench/ import nothing from each other):
+    same helper as in bench/run_bench.py (evaluation/ and bench/ import nothing from each other):
     keep the two identical."""
     try:
         proc = subprocess.run(
@@ -123,12 +123,12 @@ def _status(v: accuracy.Verdict) -> str:
 
 def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
     """The report; ``meta["exploratory"]`` (a reason, or None) heads it EXPLORATORY."""
-    lines = ["# magcal accuracy report (issue 2)", ""]
+    lines = ["# magcal accuracy report", ""]
     if meta.get("exploratory"):
         lines = [
-            "# EXPLORATORY magcal accuracy report (issue 2)",
+            "# EXPLORATORY magcal accuracy report",
             "",
-            f"**EXPLORATORY: {meta['exploratory']}. This is not the report issue 2 asks for "
+            f"**EXPLORATORY: {meta['exploratory']}. This is not a full accuracy report "
             f"(at least {MIN_RUNS} runs per check, full-size sessions): do not quote its "
             "verdicts as results.**",
             "",
@@ -140,7 +140,7 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
         f"{meta['python']}, magcal at {meta['commit']}.",
         "",
         "Every figure is a median over seeded simulations (seeds 1..N, fixed, never chosen "
-        "by outcome). *Heading error*: the calibration-induced heading error of issue 2 — "
+        "by outcome). *Heading error*: the calibration-induced heading error — "
         f"noise-free fields at {quality.HEADING_GRID_SIZE} orientations covering SO(3), "
         "corrected with the estimate, rotated back with the true attitude, RMS of their "
         "heading, in degrees. *Floor*: the known-attitude least-squares fit of the same "
@@ -167,7 +167,7 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
         "symmetric fit). Whether such runs fail the check depends on the check, as its "
         "criteria below say. Every check fails if any run raises or is refused by the "
         "observability check. Beyond that, the ratio, scale, noise-free and small-noise "
-        "checks are judged on medians, as the issue asks, so a run beyond the bound is "
+        "checks are judged on medians, so a run beyond the bound is "
         "counted but does not fail them. Table 2 is judged on medians (ML < init, Figure 8) "
         "and also needs the SDP's A positive definite in every run (and the library's "
         "algebraic fit never to return a non-positive-definite A). The hand-held check is "
@@ -251,7 +251,7 @@ def main(argv: list[str] | None = None) -> int:
     reasons += ["--quick"] if args.quick else []
     if reasons and not args.exploratory:
         ap.error(
-            f"{', '.join(reasons)}: issue 2 needs at least {MIN_RUNS} full-size runs per "
+            f"{', '.join(reasons)}: a report needs at least {MIN_RUNS} full-size runs per "
             "check; add --exploratory for a trial report (it is headed EXPLORATORY)"
         )
     exploratory = (
@@ -290,7 +290,7 @@ def main(argv: list[str] | None = None) -> int:
         f.write("\n")
 
     meta = {
-        "command": "python tools/accuracy_report.py "
+        "command": "python -m magcal_evaluation.accuracy_report "
         + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)),
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "wall_min": wall / 60.0,

@@ -1,5 +1,5 @@
 """Cramér–Rao bound on the calibration-induced heading error when translational
-accelerations are unknown (issue 2's accelerated MEMS check).
+accelerations are unknown (the accelerated MEMS accuracy check).
 
 The known-attitude floor of :mod:`magcal_evaluation.accuracy` is what a fit achieves when the
 attitude is given. An estimator that must find the attitude from gyroscope, accelerometer

@@ -21,12 +21,13 @@ Steps (each one printed as it starts, with the wall-clock time):
 
 The figures (:class:`DemoReport`):
 
-- the calibration-induced heading error (issue 2: ``magcal_evaluation.accuracy`` over the SO(3)
-  grid, noise-free) of no calibration (identity, zero offset) and of the ML result. The
-  truth is in the session's field unit (|m| = 1); the device reads ``k (D R m + o)`` counts
-  (k counts per field unit, :attr:`World.counts_per_unit`), and the session holds those
-  counts times its unit's size u (found by matching the session's rows to the fed counts);
-  both are compared in raw counts: truth ``(k D, k o)``, result ``(D/u, o/u)``;
+- the calibration-induced heading error (``magcal_evaluation.accuracy.heading_rms_deg``
+  over the SO(3) grid, noise-free) of no calibration (identity, zero offset) and of the ML
+  result. The truth is in the session's field unit (|m| = 1); the device reads
+  ``k (D R m + o)`` counts (k counts per field unit, :attr:`World.counts_per_unit`), and the
+  session holds those counts times its unit's size u (found by matching the session's rows
+  to the fed counts); both are compared in raw counts: truth ``(k D, k o)``, result
+  ``(D/u, o/u)``;
 - from the device's corrected stream: heading error of each sample rotated to north with the
   true attitude (raw counts as "before", the device's output as "after"), and the spread of
   the field norm (std / mean), raw and corrected;
@@ -280,7 +281,7 @@ def write_device_csv(path: Path, cor: list[Corrected]) -> None:
 def format_report(r: DemoReport) -> str:
     """The before/after table."""
     rows = [
-        ("heading error, SO(3) grid (issue 2), deg", r.heading_grid_identity_deg,
+        ("heading error, SO(3) grid, deg", r.heading_grid_identity_deg,
          r.heading_grid_ml_deg, "{:.3f}"),
         (f"heading error, device stream ({r.device_samples} samples), deg",
          r.heading_device_raw_deg, r.heading_device_corrected_deg, "{:.3f}"),

@@ -1,4 +1,4 @@
-"""``magcal study``: the papers' experiments, reproducible (issue 7).
+"""``magcal study``: the papers' experiments, reproducible.
 
 :func:`run_study` runs the experiments of :mod:`magcal_evaluation.study.experiments` (Kok &
 Schön's Figure 8, Zhao et al.'s Table 1 and Figure 1, a comparison of every method) through

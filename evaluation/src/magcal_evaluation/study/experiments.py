@@ -32,12 +32,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import magcal_evaluation.study.zhao as zhao
 from magcal import __version__
 from magcal.calib import calibrate
 from magcal.errors import InsufficientDataError, MagcalError
 from magcal.sim.scenarios import PRESETS, preset, simulate
 from magcal_evaluation import accuracy
-from magcal_evaluation.study import zhao
 from magcal_evaluation.study.runner import Task
 
 STUDY_FORMAT = "magcal-study/1"

@@ -15,9 +15,9 @@ from pathlib import Path
 
 import numpy as np
 
+import magcal_evaluation.study.zhao as zhao
 from magcal.calib.diagnostics import quality
 from magcal.report import plots
-from magcal_evaluation.study import zhao
 from magcal_evaluation.study.experiments import StudySettings, seeds
 
 SUMMARY_FILE = "summary.md"

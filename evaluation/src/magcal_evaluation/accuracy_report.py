@@ -218,7 +218,9 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--runs", type=int, default=20, help="seeds per check (default 20)")
     ap.add_argument("--table2-runs", type=int, default=150, help="seeds for Table 2")
     ap.add_argument("--out", default="bench/accuracy.md", help="Markdown report path")

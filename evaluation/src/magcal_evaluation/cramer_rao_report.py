@@ -64,7 +64,9 @@ def run(job: tuple[str, int]) -> dict:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--runs", type=int, default=20, help="seeds 1..N per scenario")
     ap.add_argument("--out", required=True, help="Markdown report to write")
     ap.add_argument("--workers", type=int, default=len(os.sched_getaffinity(0)))

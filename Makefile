@@ -16,33 +16,36 @@ FW_WARN := -std=c99 -Wall -Wextra -Wpedantic -Werror
 FW_INC := -Ifirmware/include
 
 # Each part of the build that grew its own rules has a fragment in mk/ (cross-building and
-# QEMU, protocol generation and fuzzing). A fragment adds what `make test` must also run to
-# TEST_EXTRA.
+# QEMU, protocol generation and fuzzing, the product installed on its own). A fragment adds
+# what `make test` must also run to TEST_EXTRA.
 TEST_EXTRA :=
 .DEFAULT_GOAL := setup
 include $(sort $(wildcard mk/*.mk))
 
 setup: $(STAMP)
 
-# Re-install when the package definition, the lock (mk/deps.mk) or the native kernel changes
-# (the editable install compiles host/csrc into magcal/calib/likelihood/_mekf*.so).
-$(STAMP): host/pyproject.toml host/setup.py host/requirements.lock $(wildcard host/csrc/*.c host/csrc/*.h)
+# Re-install when a package definition, the lock (mk/deps.mk) or the native kernel changes
+# (the editable install compiles host/csrc into magcal/calib/likelihood/_mekf*.so). The
+# evaluation (evaluation/: accuracy checks, Cramér–Rao bound, magcal study, the demo) goes in
+# after the product it imports.
+$(STAMP): host/pyproject.toml host/setup.py evaluation/pyproject.toml host/requirements.lock $(wildcard host/csrc/*.c host/csrc/*.h)
 	@$(PYTHON) -c "import sysconfig,os,sys; sys.exit(not os.path.exists(os.path.join(sysconfig.get_paths()['include'],'Python.h')))" \
 		|| { echo "make setup: $(PYTHON) has no C headers (Python.h), needed to build the native kernel: install python3-dev (Debian/Ubuntu) or python3-devel (Fedora)" >&2; exit 1; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet --upgrade pip
 	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet -e 'host[dev]'
+	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet -e evaluation
 	touch $@
 
-# The end-to-end demo (magcal.sim.demo): the SIL device with a random distortion, tumbled by the
+# The end-to-end demo (magcal_evaluation.demo): the SIL device with a random distortion, tumbled by the
 # world simulator while collect, calibrate, flash and verify run; before/after against the truth.
 # DEMO_ARGS, e.g. "--seed 3 --speedup 1", are passed on.
 demo: setup sil
-	$(PY) -m magcal.sim.demo --no-build --out $(OUT)/demo $(DEMO_ARGS)
+	$(PY) -m magcal_evaluation.demo --no-build --out $(OUT)/demo $(DEMO_ARGS)
 
 lint: setup
-	$(VENV)/bin/ruff check host tests tools bench
-	$(VENV)/bin/ruff format --check host tests tools bench
+	$(VENV)/bin/ruff check host evaluation tests bench
+	$(VENV)/bin/ruff format --check host evaluation tests bench
 
 test: setup deps-target lint test-native firmware-lib $(TEST_EXTRA)
 	$(PY) -m pytest -q tests --ignore=tests/target
@@ -74,11 +77,11 @@ build/libmagcal_fw.so: $(FW_SRC) $(FW_HDR)
 	gcc $(FW_WARN) -O2 -fPIC -shared $(FW_INC) $(FW_SRC) -o $@
 
 accuracy: setup
-	$(PY) tools/accuracy_report.py --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy
+	$(PY) -m magcal_evaluation.accuracy_report --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy
 
 # The Cramér–Rao bound of the MEMS checks with unknown translational accelerations.
 cramer-rao: setup
-	$(PY) tools/cramer_rao_report.py --runs 20 --out bench/cramer_rao.md
+	$(PY) -m magcal_evaluation.cramer_rao_report --runs 20 --out bench/cramer_rao.md
 
 bench: setup sil
 	$(PY) bench/run_bench.py --out bench/results.json
@@ -86,5 +89,5 @@ bench: setup sil
 	$(PY) bench/link_figures.py --out bench/link.json
 
 clean:
-	rm -rf $(OUT) build host/build host/src/*.egg-info $(STAMP)
+	rm -rf $(OUT) build host/build host/src/*.egg-info evaluation/build evaluation/src/*.egg-info $(STAMP)
 	find host -name '_mekf*.so' -delete

@@ -64,8 +64,8 @@ from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, DeviceTimeoutError, Sample, StreamKind
 from magcal.device.flash import flash_parameters
 from magcal.device.framing import encode_message
-from magcal.device.sil import build_sil, start_sil
 from magcal.link import open_link
+from magcal_evaluation.sil import build_sil, start_sil
 
 FORMAT = "magcal-link-figures/1"
 BAUD = 921_600

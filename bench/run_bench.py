@@ -505,8 +505,8 @@ def run_worker(name: str, params: dict, cpu: int | None) -> dict:
 
 def _git(*args: str) -> str | None:
     """``git *args`` in the repository: its stdout, or None if git is missing or fails. The
-    same helper as in tools/accuracy_report.py (tools/ and bench/ import nothing from each
-    other): keep the two identical."""
+    same helper as in magcal_evaluation.accuracy_report (evaluation/ and bench/ import
+    nothing from each other): keep the two identical."""
     try:
         proc = subprocess.run(
             ["git", *args],

@@ -1,9 +1,9 @@
 """Quick versions of the accuracy checks (the full report is ``make accuracy``).
 
-Each check runs a few fixed seeds (1..n, never chosen by outcome) through the same
-functions as ``tools/accuracy_report.py`` (:mod:`magcal.report.accuracy`) and asserts the
-same bound on the median. Sessions are shorter only where the check does not fix their
-length (noise-free, small noise, scale, hand-held); the MEMS checks keep the scenario's minute.
+Each check runs a few fixed seeds (1..n, never chosen by outcome) through the same functions
+as the accuracy report (:mod:`magcal_evaluation.accuracy`) and asserts the same bound on the
+median. Sessions are shorter only where the check does not fix their length (noise-free,
+small noise, scale, hand-held); the MEMS checks keep their full minute.
 """
 
 from __future__ import annotations
@@ -13,8 +13,8 @@ import pytest
 
 from magcal.calib import calibrate
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_algebraic
-from magcal.report import accuracy
 from magcal.sim.scenarios import preset, simulate
+from magcal_evaluation import accuracy
 
 #: Seeds per check in the quick version (seeds 1..n).
 QUICK_SEEDS = {

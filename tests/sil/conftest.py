@@ -1,4 +1,4 @@
-"""The SIL device (build/sil/magcal-sil) as a process for the tests, on magcal.device.sil.
+"""The SIL device (build/sil/magcal-sil) as a process for the tests, on magcal_evaluation.sil.
 
 ``sil_binary`` builds it once per session with ``make -s sil``; ``start_sil`` starts one
 process (TCP protocol and feed on ephemeral loopback ports, a flash file of the test's) and
@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pytest
 
-from magcal.device import sil as _sil
-from magcal.device.sil import (  # noqa: F401  (re-exported for the tests)
+from magcal_evaluation import sil as _sil
+from magcal_evaluation.sil import (  # noqa: F401  (re-exported for the tests)
     MAKE_TIMEOUT_S,
     REPO_ROOT,
     SIL_BINARY,

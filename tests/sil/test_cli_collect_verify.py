@@ -1,6 +1,6 @@
 """``magcal collect`` and ``magcal verify`` against the SIL device (build/sil/magcal-sil over
 TCP), with a simulated tumbling session fed through the sensor feed faster than real time
-(magcal.sim.world.WorldFeeder):
+(magcal_evaluation.world.WorldFeeder):
 
 - collect with --duration: the session reads back with the device's identity and exact
   scales in its metadata, a plausible sample count, the samples equal to what was fed (within
@@ -34,7 +34,7 @@ from magcal.device.client import DeviceClient
 from magcal.device.flash import flash_parameters
 from magcal.io.session import read_session
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
-from magcal.sim.world import FeedClient, WorldFeeder, make_world, tumbling_session
+from magcal_evaluation.world import FeedClient, WorldFeeder, make_world, tumbling_session
 from tests.sil.conftest import REPO_ROOT, SIL_BINARY
 
 SUBPROCESS_TIMEOUT_S = 60.0

@@ -35,9 +35,9 @@ from magcal.device.client import DeviceClient, DeviceError, ParamWhich
 from magcal.device.flash import read_backup
 from magcal.device.framing import Deframer, Frame, crc32_iso_hdlc
 from magcal.device.generated import MessageId, Status
-from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.io.result import CalibrationResult, write_result
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
+from magcal_evaluation.sil import REPO_ROOT, SIL_BINARY
 
 PROXY_JOIN_TIMEOUT_S = 5.0
 

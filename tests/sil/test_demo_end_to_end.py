@@ -3,12 +3,12 @@
 magcal-sil starts on a fresh flash file; the world (a MEMS sensor with a random distortion in
 a 50 uT field, seed 11) tumbles it, sped up, while the real command line (host/magcal) runs
 collect, calibrate --method ml, flash and verify; then the device's own corrected output of
-noise-free readings of the same motion is streamed (magcal.sim.demo, as ``make demo``).
+noise-free readings of the same motion is streamed (magcal_evaluation.demo, as ``make demo``).
 
 After flashing:
 - the heading error of the device's corrected output (each sample rotated to north with the
   attitude the world fed it with) is at most 0.5 deg RMS, and so is the calibration-induced
-  heading error of the result over the SO(3) grid (the accuracy report's metric);
+  heading error of the result over the SO(3) grid (the accuracy checks' metric);
 - for every streamed sample, the device's fixed-point output equals the host's float64
   correction ``D_inv (y - o)`` of result.json (its unquantised D_inv and o), in the device's
   output LSBs, within 1 LSB, unrounded: the output's rounding (1/2 LSB) plus the parameter
@@ -31,11 +31,17 @@ import numpy as np
 import pytest
 
 from magcal.device.client import DeviceClient
-from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.io.result import read_result
 from magcal.io.session import read_session
-from magcal.sim.demo import DemoConfig, format_report, run_demo
-from magcal.sim.world import FeedClient, WorldError, WorldFeeder, make_world, tumbling_session
+from magcal_evaluation.demo import DemoConfig, format_report, run_demo
+from magcal_evaluation.sil import REPO_ROOT, SIL_BINARY
+from magcal_evaluation.world import (
+    FeedClient,
+    WorldError,
+    WorldFeeder,
+    make_world,
+    tumbling_session,
+)
 from tests.fake_device import FakeDevice, MemoryLink
 
 SEED = 11

@@ -12,7 +12,7 @@ What is checked:
   paths were exercised), and the proxy did inject every kind of fault;
 - the stream: the samples the device sent (the proxy's clean log) have strictly increasing
   seqs with gaps only as the device's counted drops, and counts exactly as the world predicts
-  (magcal.sim.world.device_counts); the client received exactly those that crossed the link
+  (magcal_evaluation.world.device_counts); the client received exactly those that crossed the link
   intact (each damaged frame costs that frame, no good frame is lost to resynchronisation,
   no bad one accepted), in order, with the same values;
 - acted once: the first param_set request and the first param_commit_resp are lost on
@@ -54,9 +54,9 @@ from magcal.device.client import ClientConfig, DeviceClient, DeviceTimeoutError,
 from magcal.device.flash import flash_parameters, read_backup
 from magcal.device.framing import unpack_message
 from magcal.device.generated import MessageId
-from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
-from magcal.sim.world import FeedClient, WorldFeeder, make_world, tumbling_session
+from magcal_evaluation.sil import REPO_ROOT, SIL_BINARY
+from magcal_evaluation.world import FeedClient, WorldFeeder, make_world, tumbling_session
 from tests.sil.lossy_proxy import Faults, LossyProxy, Unit
 
 pytestmark = pytest.mark.skipif(

@@ -1,6 +1,6 @@
 """The host's client library against the SIL device (build/sil/magcal-sil) end to end:
 open_link("socket://..."), hello/info, a simulated session fed through the feed socket as
-physical values (magcal.sim.world, P lines) and streamed back raw as the counts the device
+physical values (magcal_evaluation.world, P lines) and streamed back raw as the counts the device
 made of them (count, order, values exactly as world.device_counts predicts), flash_parameters
 of the simulator's true calibration, then the corrected stream within 1 LSB of
 fixed_point.emulate. And the device's quantisation at the edges: values at half counts,
@@ -30,10 +30,10 @@ from magcal.device.client import (
 )
 from magcal.device.flash import flash_parameters, read_backup
 from magcal.device.generated import Unit
-from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 from magcal.sim.scenarios import preset, simulate
-from magcal.sim.world import FeedClient, count_si, device_counts, make_world, physical_line
+from magcal_evaluation.sil import REPO_ROOT, SIL_BINARY
+from magcal_evaluation.world import FeedClient, count_si, device_counts, make_world, physical_line
 
 SIL_STREAM_TIMEOUT_S = 10.0  # a loaded machine (2 shared cores) may be slow to feed
 N_RAW = 150

@@ -19,7 +19,7 @@ import pytest
 
 from magcal.device import framing
 from magcal.device.generated import MessageId, Status
-from magcal.device.sil import SIL_BINARY, STOP_TIMEOUT_S, SilProcess
+from magcal_evaluation.sil import SIL_BINARY, STOP_TIMEOUT_S, SilProcess
 
 RESPONSE_TIMEOUT_S = 5.0
 STREAM_TIMEOUT_S = 10.0

@@ -1,4 +1,4 @@
-"""magcal.device.sil's process wrapper against the SIL device: its stderr never blocks it.
+"""magcal_evaluation.sil's process wrapper against the SIL device: its stderr never blocks it.
 
 The SIL writes one stderr line per refused feed line; a pipe nobody reads while it runs
 would fill (64 KB) and block it in fprintf, so the wrapper sends stderr to a file, which
@@ -12,9 +12,9 @@ import shutil
 import pytest
 
 from magcal.device.client import DeviceClient, StreamKind
-from magcal.device.sil import REPO_ROOT, SIL_BINARY
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
-from magcal.sim.world import FeedClient, physical_line
+from magcal_evaluation.sil import REPO_ROOT, SIL_BINARY
+from magcal_evaluation.world import FeedClient, physical_line
 
 #: Refused feed lines to send: each makes a stderr line of about 150 bytes, so well past 64 KB.
 N_BAD_LINES = 2000

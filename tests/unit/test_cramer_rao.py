@@ -1,4 +1,4 @@
-"""magcal.report.cramer_rao: the augmented MEKF is the calibration MEKF when the
+"""magcal_evaluation.cramer_rao: the augmented MEKF is the calibration MEKF when the
 acceleration process is off (against the C kernel, with and without knocks), the Fisher
 information from per-sample scores agrees with the kernel's Hessian, and unknown
 accelerations raise the bound above the known-attitude floor's neighbourhood."""
@@ -19,9 +19,9 @@ from magcal.calib.likelihood.problem import (
     negative_log_likelihood_and_gradient,
 )
 from magcal.errors import MagcalError
-from magcal.report import accuracy
-from magcal.report import cramer_rao as cr
 from magcal.sim.scenarios import preset, simulate
+from magcal_evaluation import accuracy
+from magcal_evaluation import cramer_rao as cr
 
 OFF = cr.AccelerationProcess(rms_m_s2=0.0, f0_hz=1.0, zeta=0.7)
 

@@ -8,8 +8,8 @@ import pytest
 from magcal.calib.calibrate import calibrate
 from magcal.calib.diagnostics import quality
 from magcal.errors import InsufficientDataError, MagcalError
-from magcal.report import accuracy
 from magcal.sim.scenarios import preset, simulate
+from magcal_evaluation import accuracy
 
 
 def rel(a, b, scale):

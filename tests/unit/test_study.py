@@ -4,6 +4,7 @@ failures are counted; the Markdown tables hold the runs' numbers."""
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 import math
@@ -15,10 +16,10 @@ import pytest
 
 from magcal import cli
 from magcal.sim.scenarios import PRESETS, ScenarioConfig
-from magcal.study import StudyError, StudySettingsError, make_settings, run_study
-from magcal.study import experiments as ex
-from magcal.study.runner import RUNS_FILE, SETTINGS_FILE, Task
-from magcal.study.summary import SUMMARY_FILE
+from magcal_evaluation.study import StudyError, StudySettingsError, make_settings, run_study
+from magcal_evaluation.study import experiments as ex
+from magcal_evaluation.study.runner import RUNS_FILE, SETTINGS_FILE, Task
+from magcal_evaluation.study.summary import SUMMARY_FILE
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 
@@ -305,7 +306,7 @@ def test_zhao_table_holds_the_mean_estimates(straight):
     folder, settings, outcome = straight
     if "zhao-table1" not in settings.experiments:
         pytest.skip("this build has no CKF and TWO-STEP")
-    from magcal.study import zhao
+    from magcal_evaluation.study import zhao
 
     records = [r["result"] for r in saved_records(folder) if r["experiment"] == "zhao-table1"]
     text = (folder / SUMMARY_FILE).read_text(encoding="utf-8")
@@ -334,7 +335,7 @@ def test_settings_without_the_comparison_record_no_methods():
 def test_jobs_default_to_the_cpus_this_process_may_use(monkeypatch):
     import os
 
-    from magcal.commands import study as study_command
+    from magcal_evaluation.study import command as study_command
 
     monkeypatch.setattr(os, "cpu_count", lambda: 64)
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 3}, raising=False)
@@ -342,3 +343,16 @@ def test_jobs_default_to_the_cpus_this_process_may_use(monkeypatch):
     assert args.jobs == 2  # the affinity mask (a container's or taskset's limit), not 64
     monkeypatch.delattr(os, "sched_getaffinity")
     assert study_command.available_cpus() == 64  # platforms without affinity masks
+
+
+def test_study_is_registered_in_the_magcal_commands_entry_point_group():
+    # magcal's command line adds every command of this group; the product has no study.
+    from importlib.metadata import entry_points
+
+    found = {ep.name: ep for ep in entry_points(group="magcal.commands")}
+    assert found["study"].value == "magcal_evaluation.study.command"
+    module = found["study"].load()
+    sub = argparse.ArgumentParser().add_subparsers(dest="command")
+    module.add_parser(sub)
+    args = sub.choices["study"].parse_args(["out", "--runs", "3"])
+    assert (args.outdir, args.runs, args.run) == ("out", 3, module.run)

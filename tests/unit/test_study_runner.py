@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from magcal.study.runner import (
+from magcal_evaluation.study.runner import (
     RUNS_FILE,
     SETTINGS_FILE,
     RunStore,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from magcal.report.plots import plot_heading_error_comparison, plot_norm_series
-from magcal.study import zhao
+from magcal_evaluation.study import zhao
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 

@@ -12,8 +12,8 @@ from magcal.calib.calibrate import calibrate
 from magcal.calib.norm_only import twostep
 from magcal.calib.norm_only.twostep import two_step
 from magcal.errors import InsufficientDataError
-from magcal.report.accuracy import heading_rms_deg
 from magcal.sim.scenarios import preset, simulate
+from magcal_evaluation.accuracy import heading_rms_deg
 
 
 def true_A(sensor) -> np.ndarray:

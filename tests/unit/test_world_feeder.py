@@ -1,4 +1,4 @@
-"""magcal.sim.world: the mirror of the SIL port's quantisation (the value of a count, round
+"""magcal_evaluation.world: the mirror of the SIL port's quantisation (the value of a count, round
 half away from zero, saturation at the int16 limits), the exact round trip counts -> SI (the
 client's conversion) -> counts, the physical feed lines (exact reprs), the feed socket, and
 the true calibration in the device's format. tests/sil/test_sil_client.py checks the mirror
@@ -22,7 +22,7 @@ from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, Scale
 from magcal.device.generated import Unit
 from magcal.sim.scenarios import preset, simulate
-from magcal.sim.world import (
+from magcal_evaluation.world import (
     FeedClient,
     WorldError,
     WorldFeeder,

@@ -1,9 +1,9 @@
-"""``magcal study``: the papers' experiments, reproducible (issue 7).
+"""``magcal study``: the papers' experiments, reproducible.
 
-:func:`run_study` runs the experiments of :mod:`magcal.study.experiments` (Kok & Schön's
-Figure 8, Zhao et al.'s Table 1 and Figure 1, a comparison of every method) through the
-resumable runner of :mod:`magcal.study.runner`, then writes ``summary.md`` and the PNGs of
-:mod:`magcal.study.summary` into the study folder.
+:func:`run_study` runs the experiments of :mod:`magcal_evaluation.study.experiments` (Kok &
+Schön's Figure 8, Zhao et al.'s Table 1 and Figure 1, a comparison of every method) through
+the resumable runner of :mod:`magcal_evaluation.study.runner`, then writes ``summary.md`` and
+the PNGs of :mod:`magcal_evaluation.study.summary` into the study folder.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TextIO
 
-from magcal.study.experiments import (
+from magcal_evaluation.study.experiments import (
     EXPERIMENTS,
     STUDY_METHODS,
     StudySettings,
@@ -27,8 +27,14 @@ from magcal.study.experiments import (
     run_task,
     tasks,
 )
-from magcal.study.runner import RunStore, StudyError, StudyProgress, run_tasks, write_text_atomic
-from magcal.study.summary import (
+from magcal_evaluation.study.runner import (
+    RunStore,
+    StudyError,
+    StudyProgress,
+    run_tasks,
+    write_text_atomic,
+)
+from magcal_evaluation.study.summary import (
     SUMMARY_FILE,
     StudySummary,
     render_markdown,

@@ -1,10 +1,11 @@
-"""The accuracy checks of issue 2 ("Accuracy: what must be shown") as seeded functions.
+"""The accuracy checks (what the calibration must be shown to achieve) as seeded functions.
 
 One *run* simulates one seeded session, calibrates it and returns a flat dict of plain
 numbers (picklable, so that a report script can spread runs over processes). One *verdict*
-turns the runs of a check into the issue's pass/fail criteria. ``tools/accuracy_report.py``
-(``make accuracy``: ≥ 20 runs, 150 for Table 2) and ``tests/accuracy`` (a few runs, shorter
-sessions where the check allows) call the same functions with the same bounds.
+turns the runs of a check into its pass/fail criteria. The accuracy report
+(:mod:`magcal_evaluation.accuracy_report`, ``make accuracy``: ≥ 20 runs, 150 for Table 2)
+and ``tests/accuracy`` (a few runs, shorter sessions where the check allows) call the same
+functions with the same bounds.
 
 Checks (``CHECKS``):
 
@@ -51,7 +52,7 @@ from magcal.errors import InsufficientDataError
 from magcal.io.session import Session
 from magcal.sim.scenarios import ScenarioConfig, SimTruth, preset, simulate
 
-# --------------------------------------------------------------------------- bounds (issue 2)
+# --------------------------------------------------------------------------- bounds
 
 #: Noise-free data: init recovers D Dᵀ and o to this relative error.
 NOISE_FREE_REL_TOL = 1e-6
@@ -92,7 +93,7 @@ def rel_error_offset(o_est: np.ndarray, o_true: np.ndarray, D_true: np.ndarray) 
 
 
 def heading_rms_deg(truth: SimTruth, D_est: np.ndarray, o_est: np.ndarray) -> float:
-    """Calibration-induced heading error (issue 2), RMS over the SO(3) grid, degrees."""
+    """Calibration-induced heading error, RMS over the SO(3) grid, degrees."""
     s = truth.sensor
     return quality.rms_deg(quality.calibration_heading_errors(s.D, s.o, s.m_n, D_est, o_est))
 
@@ -139,7 +140,7 @@ def algebraic_a_eigenvalues(mag: np.ndarray) -> np.ndarray:
 
 def is_alignment_warning(text: str) -> bool:
     """Whether a result warning is the pipeline's "accelerations too large to trust the
-    inclination" warning (issue 2: the data cannot support the alignment)."""
+    inclination" warning (the data cannot support the alignment)."""
     return text.startswith("accelerations too large to trust the inclination")
 
 
@@ -164,7 +165,7 @@ def _mems_small_noise(quick: bool) -> ScenarioConfig:
 
 
 def _mems(quick: bool) -> ScenarioConfig:
-    return preset("mems")  # the issue's 1 minute at 100 Hz, also in the quick version
+    return preset("mems")  # the check's 1 minute at 100 Hz, also in the quick version
 
 
 def _mems_acc(quick: bool) -> ScenarioConfig:
@@ -329,7 +330,7 @@ def run_scale(seed: int, quick: bool = False) -> dict:
 
 @dataclass(frozen=True)
 class Criterion:
-    """One line of the verdict: the issue's wording, what was measured, pass (None: info)."""
+    """One line of the verdict: the criterion, what was measured, pass (None: info)."""
 
     text: str
     measured: str

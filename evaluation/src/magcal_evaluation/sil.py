@@ -5,7 +5,7 @@ native process; the demo (``make demo``) and the tests talk to it like to a boar
 
     with start_sil(flash_path) as sil:           # TCP protocol and feed, ephemeral ports
         url = sil.url                            # "socket://127.0.0.1:PORT" for --port
-        FeedClient("127.0.0.1", sil.feed_port)   # magcal.sim.world: the sensors
+        FeedClient("127.0.0.1", sil.feed_port)   # magcal_evaluation.world: the sensors
     # stopped here: SIGTERM, then SIGKILL if it does not exit in time
 
 On start the process prints three lines (each flushed)::
@@ -36,11 +36,13 @@ from pathlib import Path
 from typing import IO
 
 from magcal.errors import MagcalError
+from magcal_evaluation import REPO_ROOT
 
-#: The checkout this module runs from (host/src/magcal/device/sil.py -> the repository).
-REPO_ROOT = Path(__file__).resolve().parents[4]
-#: Where ``make sil`` puts the executable.
+#: Where ``make sil`` puts the executable in that checkout.
 SIL_BINARY = REPO_ROOT / "build" / "sil" / "magcal-sil"
+#: The environment variable naming another magcal-sil executable, used instead of SIL_BINARY
+#: when no binary is passed (a build elsewhere, or an installed evaluation package).
+SIL_BINARY_ENV = "MAGCAL_SIL_BINARY"
 
 MAKE_TIMEOUT_S = 300.0
 # The process prints its three lines within milliseconds; the rest is margin for a loaded
@@ -154,9 +156,23 @@ def read_lines(proc: subprocess.Popen, count: int, timeout_s: float) -> list[str
     return buf.decode().splitlines()[:count]
 
 
+def default_binary() -> Path:
+    """The magcal-sil to start when none is given: ``$MAGCAL_SIL_BINARY`` when set, else the
+    checkout's build/sil/magcal-sil (:data:`SIL_BINARY`)."""
+    named = os.environ.get(SIL_BINARY_ENV, "").strip()
+    return Path(named) if named else SIL_BINARY
+
+
 def build_sil(repo_root: Path = REPO_ROOT, timeout_s: float = MAKE_TIMEOUT_S) -> Path:
     """``make -s sil`` in repo_root (builds or brings build/sil/magcal-sil up to date).
-    Returns the executable's path; SilError when make fails or takes longer than timeout_s."""
+    Returns the executable's path; SilError when repo_root is not a magcal checkout, when make
+    fails or takes longer than timeout_s."""
+    if not (Path(repo_root) / "mk" / "sil.mk").is_file():
+        raise SilError(
+            f"building magcal-sil: {repo_root} is not a magcal checkout (no mk/sil.mk): install "
+            f"the evaluation editable from a checkout (make setup), or build magcal-sil there "
+            f"and name it in ${SIL_BINARY_ENV}"
+        )
     try:
         done = subprocess.run(
             ["make", "-s", "sil"], cwd=repo_root, capture_output=True, text=True, timeout=timeout_s
@@ -173,20 +189,24 @@ def build_sil(repo_root: Path = REPO_ROOT, timeout_s: float = MAKE_TIMEOUT_S) ->
 def start_sil(
     flash: Path | str,
     *extra: str,
-    binary: Path | str = SIL_BINARY,
+    binary: Path | str | None = None,
     pty: bool = False,
     timeout_s: float = STARTUP_TIMEOUT_S,
 ) -> SilProcess:
     """Start magcal-sil on the flash file ``flash`` and parse its start-up lines.
 
     The protocol is served on an ephemeral TCP port (or a pty with ``pty=True``), the feed on
-    an ephemeral TCP port; ``extra`` are further arguments (e.g. ``"--uid", "c0ffee"``).
-    SilError (after killing the process) when the lines are not as documented within
-    timeout_s; stop it with :meth:`SilProcess.stop` or use it as a context manager.
+    an ephemeral TCP port; ``extra`` are further arguments (e.g. ``"--uid", "c0ffee"``);
+    ``binary`` is the executable (default: :func:`default_binary`). SilError (after killing
+    the process) when the lines are not as documented within timeout_s; stop it with
+    :meth:`SilProcess.stop` or use it as a context manager.
     """
-    binary = Path(binary)
+    binary = default_binary() if binary is None else Path(binary)
     if not binary.exists():
-        raise SilError(f"{binary} does not exist: run `make sil` first")
+        raise SilError(
+            f"{binary} does not exist: run `make sil` first (or name the executable in "
+            f"${SIL_BINARY_ENV})"
+        )
     proto_args = ["--pty"] if pty else ["--tcp", "0"]
     err = tempfile.TemporaryFile(prefix="magcal-sil-stderr-")
     try:

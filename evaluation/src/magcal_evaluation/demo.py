@@ -3,14 +3,14 @@ by the world simulator while the real command line collects, calibrates, flashes
 verifies; then the heading error and the field-norm spread before and after, against the
 simulator's truth.
 
-    python -m magcal.sim.demo [--out out/demo] [--seed N] [--speedup X] [--duration S]
+    python -m magcal_evaluation.demo [--out out/demo] [--seed N] [--speedup X] [--duration S]
 
 Steps (each one printed as it starts, with the wall-clock time):
 
 1. start ``build/sil/magcal-sil`` (TCP) on a fresh flash file; draw a sensor with a random
    distortion (soft iron x misalignment D, hard iron o, noise: ``magcal.sim``'s MEMS or
    hand-held sampler, from the seed) in a 50 uT field, and a tumbling motion;
-2. feed the sensors from a thread (:class:`magcal.sim.world.WorldFeeder`, real time or sped
+2. feed the sensors from a thread (:class:`magcal_evaluation.world.WorldFeeder`, real time or sped
    up: the device's clock is the feed's) while ``magcal collect`` records the session;
 3. ``magcal calibrate --method ml`` (with the plots), ``magcal flash`` (with a backup),
    ``magcal verify``, each fed likewise; the feeder pauses in between, so the device's time
@@ -21,12 +21,13 @@ Steps (each one printed as it starts, with the wall-clock time):
 
 The figures (:class:`DemoReport`):
 
-- the calibration-induced heading error (issue 2: ``magcal.report.accuracy`` over the SO(3)
-  grid, noise-free) of no calibration (identity, zero offset) and of the ML result. The
-  truth is in the session's field unit (|m| = 1); the device reads ``k (D R m + o)`` counts
-  (k counts per field unit, :attr:`World.counts_per_unit`), and the session holds those
-  counts times its unit's size u (found by matching the session's rows to the fed counts);
-  both are compared in raw counts: truth ``(k D, k o)``, result ``(D/u, o/u)``;
+- the calibration-induced heading error (``magcal_evaluation.accuracy.heading_rms_deg``
+  over the SO(3) grid, noise-free) of no calibration (identity, zero offset) and of the ML
+  result. The truth is in the session's field unit (|m| = 1); the device reads
+  ``k (D R m + o)`` counts (k counts per field unit, :attr:`World.counts_per_unit`), and the
+  session holds those counts times its unit's size u (found by matching the session's rows
+  to the fed counts); both are compared in raw counts: truth ``(k D, k o)``, result
+  ``(D/u, o/u)``;
 - from the device's corrected stream: heading error of each sample rotated to north with the
   true attitude (raw counts as "before", the device's output as "after"), and the spread of
   the field norm (std / mean), raw and corrected;
@@ -65,13 +66,21 @@ from magcal.device.client import (
     DeviceInfo,
     StreamKind,
 )
-from magcal.device.sil import REPO_ROOT, SIL_BINARY, SilProcess, build_sil, start_sil
 from magcal.errors import MagcalError
 from magcal.io.result import read_result
 from magcal.io.session import Session, read_session
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
-from magcal.report.accuracy import heading_rms_deg
-from magcal.sim.world import (
+from magcal_evaluation.accuracy import heading_rms_deg
+from magcal_evaluation.sil import (
+    REPO_ROOT,
+    SIL_BINARY,
+    SIL_BINARY_ENV,
+    SilProcess,
+    build_sil,
+    default_binary,
+    start_sil,
+)
+from magcal_evaluation.world import (
     FIELD_STRENGTH_T,
     FeedClient,
     World,
@@ -111,7 +120,7 @@ class DemoConfig:
     check_s: float = 10.0
     speedup: float = 2.0
     field_t: float = FIELD_STRENGTH_T
-    sil_binary: Path = SIL_BINARY
+    sil_binary: Path = field(default_factory=default_binary)
 
 
 @dataclass
@@ -272,7 +281,7 @@ def write_device_csv(path: Path, cor: list[Corrected]) -> None:
 def format_report(r: DemoReport) -> str:
     """The before/after table."""
     rows = [
-        ("heading error, SO(3) grid (issue 2), deg", r.heading_grid_identity_deg,
+        ("heading error, SO(3) grid, deg", r.heading_grid_identity_deg,
          r.heading_grid_ml_deg, "{:.3f}"),
         (f"heading error, device stream ({r.device_samples} samples), deg",
          r.heading_device_raw_deg, r.heading_device_corrected_deg, "{:.3f}"),
@@ -310,7 +319,9 @@ def run_demo(cfg: DemoConfig, log: Log = print) -> DemoReport:
     flash_file.unlink(missing_ok=True)  # a fresh, uncalibrated device every run
     backup = out / "backup.json"
     backup.unlink(missing_ok=True)
-    step(f"starting {cfg.sil_binary.relative_to(REPO_ROOT)} (TCP) on {flash_file}")
+    binary = Path(cfg.sil_binary).resolve()
+    shown = binary.relative_to(REPO_ROOT) if binary.is_relative_to(REPO_ROOT) else binary
+    step(f"starting {shown} (TCP) on {flash_file}")
     with start_sil(flash_file, binary=cfg.sil_binary) as sil:
         report = _run_on_device(cfg, sil, report, out, backup, step, log)
         step("stopping magcal-sil")
@@ -452,7 +463,7 @@ def _run_on_device(
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
-        prog="python -m magcal.sim.demo", description=__doc__.split("\n")[0]
+        prog="python -m magcal_evaluation.demo", description=__doc__.split("\n")[0]
     )
     p.add_argument("--out", type=Path, default=DemoConfig.out_dir, help="output directory")
     p.add_argument("--seed", type=int, help="sensor, motion and noise (default: random)")
@@ -461,11 +472,18 @@ def main(argv: list[str] | None = None) -> int:
                    help="device seconds to collect")  # fmt: skip
     p.add_argument("--speedup", type=float, default=DemoConfig.speedup,
                    help="device seconds per wall-clock second (1: real time)")  # fmt: skip
+    p.add_argument(
+        "--sil",
+        type=Path,
+        metavar="PATH",
+        help=f"the magcal-sil executable (default: ${SIL_BINARY_ENV}, else the checkout's "
+        "build/sil/magcal-sil, brought up to date with make sil)",
+    )
     p.add_argument("--no-build", action="store_true", help="do not run make sil first")
     args = p.parse_args(argv)
-    binary = SIL_BINARY
+    binary = args.sil or default_binary()
     try:
-        if not args.no_build:
+        if not args.no_build and binary == SIL_BINARY:
             binary = build_sil()
         cfg = DemoConfig(
             out_dir=args.out,

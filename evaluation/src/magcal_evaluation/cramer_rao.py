@@ -1,7 +1,7 @@
 """Cramér–Rao bound on the calibration-induced heading error when translational
-accelerations are unknown (issue 2's accelerated MEMS check).
+accelerations are unknown (the accelerated MEMS accuracy check).
 
-The known-attitude floor of :mod:`magcal.report.accuracy` is what a fit achieves when the
+The known-attitude floor of :mod:`magcal_evaluation.accuracy` is what a fit achieves when the
 attitude is given. An estimator that must find the attitude from gyroscope, accelerometer
 and magnetometer while the body also accelerates has less information: the accelerations
 hide part of the gravity direction that ties the magnetometer's axes to the inertial ones.

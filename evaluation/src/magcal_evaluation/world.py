@@ -209,7 +209,7 @@ class World:
 
     def truth_counts(self) -> SimTruth:
         """The truth with its sensor's D and o in raw counts (:meth:`calibration_counts`),
-        e.g. for ``magcal.report.accuracy.heading_rms_deg`` against a result in counts."""
+        e.g. for ``magcal_evaluation.accuracy.heading_rms_deg`` against a result in counts."""
         D, o = self.calibration_counts()
         k = self.counts_per_unit
         sensor = replace(self.truth.sensor, D=D, o=o, Sigma_mag=k * k * self.truth.sensor.Sigma_mag)

@@ -5,16 +5,16 @@ Three experiments (``magcal study --experiments``):
 ``figure8``
     Kok & Schön (2016) Section 8 with the Table 2 settings (``preset("table2")``): the
     heading RMSE of the calibration EKF run with the initial and with the ML estimate against
-    the true attitude (their Figure 8). One run is :func:`magcal.report.accuracy.run_table2`,
+    the true attitude (their Figure 8). One run is :func:`magcal_evaluation.accuracy.run_table2`,
     the same code ``make accuracy`` runs, so the seeds 1..150 give the same numbers there.
 ``zhao-table1``
     Zhao et al. Table 1: mean ``A`` and ``b`` of the CKF and of TWO-STEP over 50 runs of
-    their simulation (:mod:`magcal.study.zhao`), and their Figure 1 (field norm before and
-    after) from the first run.
+    their simulation (:mod:`magcal_evaluation.study.zhao`), and their Figure 1 (field norm
+    before and after) from the first run.
 ``comparison``
     Every calibration method :func:`magcal.calib.calibrate.calibrate` accepts among
     :data:`STUDY_METHODS`, on the same seeded sessions of each scenario: the
-    calibration-induced heading error (:func:`magcal.report.accuracy.heading_rms_deg`), the
+    calibration-induced heading error (:func:`magcal_evaluation.accuracy.heading_rms_deg`), the
     time of the ``calibrate`` call, and its failures (exceptions, and refusals by the
     observability checks) with their reasons. A method appears as soon as ``calibrate``
     accepts it.
@@ -32,13 +32,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import magcal_evaluation.study.zhao as zhao
 from magcal import __version__
 from magcal.calib import calibrate
 from magcal.errors import InsufficientDataError, MagcalError
-from magcal.report import accuracy
 from magcal.sim.scenarios import PRESETS, preset, simulate
-from magcal.study import zhao
-from magcal.study.runner import Task
+from magcal_evaluation import accuracy
+from magcal_evaluation.study.runner import Task
 
 STUDY_FORMAT = "magcal-study/1"
 EXPERIMENTS = ("figure8", "zhao-table1", "comparison")
@@ -311,7 +311,8 @@ RUNS = {
 
 
 def run_task(task: Task) -> dict:
-    """The run function of :func:`magcal.study.runner.run_tasks` for this study's tasks."""
+    """The run function of :func:`magcal_evaluation.study.runner.run_tasks` for this study's
+    tasks."""
     return RUNS[task.experiment](task.params)
 
 

@@ -1,4 +1,8 @@
-"""``magcal study OUTDIR``: the papers' experiments, resumable (see :mod:`magcal.study`)."""
+"""``magcal study OUTDIR``: the papers' experiments, resumable (see
+:mod:`magcal_evaluation.study`).
+
+magcal's command line finds this module through the entry-point group ``magcal.commands``
+(evaluation/pyproject.toml) and calls :func:`add_parser`."""
 
 from __future__ import annotations
 
@@ -97,8 +101,8 @@ def _command(args, settings) -> str:
 def run(args, out=None) -> int:
     # Imported here, not at the top: the CLI imports every command module at start-up, and
     # the study's modules (simulation, calibration, plots) take a second to load.
-    from magcal.study import make_settings, run_study
-    from magcal.study.experiments import DEFAULT_SCENARIOS
+    from magcal_evaluation.study import make_settings, run_study
+    from magcal_evaluation.study.experiments import DEFAULT_SCENARIOS
 
     out = out or sys.stdout
     settings, notes = make_settings(

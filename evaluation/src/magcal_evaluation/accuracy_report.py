@@ -1,16 +1,16 @@
 #!/usr/bin/env python3
-"""Accuracy report of issue 2 ("Accuracy: what must be shown"): `make accuracy`.
+"""The accuracy report: every accuracy check over seeded runs, `make accuracy`.
 
-    python tools/accuracy_report.py --runs 20 --table2-runs 150 \\
+    python -m magcal_evaluation.accuracy_report --runs 20 --table2-runs 150 \\
         --out bench/accuracy.md --plots out/accuracy
 
-Runs every check of :mod:`magcal.report.accuracy` over seeds 1..N (N = --runs, or
+Runs every check of :mod:`magcal_evaluation.accuracy` over seeds 1..N (N = --runs, or
 --table2-runs for Table 2) in --workers processes, prints one line per run to stderr, and
 writes a Markdown report (the command, date, machine, per-scenario medians, pass/fail per
 criterion, failed runs, timings), Figure 8 (``figure8.png``) and the raw per-run numbers
 (``runs.json``) under --plots. Exits 1 when a check fails its bound (after writing).
 
-Issue 2 asks for at least 20 runs per check (:data:`MIN_RUNS`). Fewer, or the --quick
+A report needs at least 20 runs per check (:data:`MIN_RUNS`). Fewer, or the --quick
 variants, are refused unless --exploratory is given; such a report is headed EXPLORATORY.
 """
 
@@ -37,8 +37,8 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 
 from magcal.calib.diagnostics import quality  # noqa: E402
-from magcal.report import accuracy  # noqa: E402
 from magcal.report.plots import plot_heading_rmse_histograms  # noqa: E402
+from magcal_evaluation import REPO_ROOT, accuracy  # noqa: E402
 
 #: Rough seconds per run, to start the long runs first so both workers finish together.
 _COST_ESTIMATE_S = {
@@ -51,10 +51,9 @@ _COST_ESTIMATE_S = {
     "noise-free": 0.3,
 }
 
-#: Issue 2: every check over at least this many seeded runs (Table 2 included).
+#: Every check over at least this many seeded runs (Table 2 included).
 MIN_RUNS = 20
 
-REPO_ROOT = Path(__file__).resolve().parent.parent
 GIT_TIMEOUT_S = 10.0
 
 
@@ -89,7 +88,7 @@ def _progress_line(i: int, total: int, key: str, run: dict) -> str:
 
 def _git(*args: str) -> str | None:
     """``git *args`` in the repository: its stdout, or None if git is missing or fails. The
-    same helper as in bench/run_bench.py (tools/ and bench/ import nothing from each other):
+    same helper as in bench/run_bench.py (evaluation/ and bench/ import nothing from each other):
     keep the two identical."""
     try:
         proc = subprocess.run(
@@ -124,12 +123,12 @@ def _status(v: accuracy.Verdict) -> str:
 
 def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
     """The report; ``meta["exploratory"]`` (a reason, or None) heads it EXPLORATORY."""
-    lines = ["# magcal accuracy report (issue 2)", ""]
+    lines = ["# magcal accuracy report", ""]
     if meta.get("exploratory"):
         lines = [
-            "# EXPLORATORY magcal accuracy report (issue 2)",
+            "# EXPLORATORY magcal accuracy report",
             "",
-            f"**EXPLORATORY: {meta['exploratory']}. This is not the report issue 2 asks for "
+            f"**EXPLORATORY: {meta['exploratory']}. This is not a full accuracy report "
             f"(at least {MIN_RUNS} runs per check, full-size sessions): do not quote its "
             "verdicts as results.**",
             "",
@@ -141,13 +140,13 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
         f"{meta['python']}, magcal at {meta['commit']}.",
         "",
         "Every figure is a median over seeded simulations (seeds 1..N, fixed, never chosen "
-        "by outcome). *Heading error*: the calibration-induced heading error of issue 2 — "
+        "by outcome). *Heading error*: the calibration-induced heading error — "
         f"noise-free fields at {quality.HEADING_GRID_SIZE} orientations covering SO(3), "
         "corrected with the estimate, rotated back with the true attitude, RMS of their "
         "heading, in degrees. *Floor*: the known-attitude least-squares fit of the same "
         "session. *Symmetric fit*: `(D̃D̃ᵀ)^½` and the ellipsoid's centre (no misalignment). "
         "Relative errors: `‖D̂ − D‖_F/‖D‖_F` and `‖ô − o‖/‖D‖₂` (see "
-        "`magcal.report.accuracy` for why the offset is divided by the field size).",
+        "`magcal_evaluation.accuracy` for why the offset is divided by the field size).",
         "",
         "## Summary",
         "",
@@ -168,7 +167,7 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
         "symmetric fit). Whether such runs fail the check depends on the check, as its "
         "criteria below say. Every check fails if any run raises or is refused by the "
         "observability check. Beyond that, the ratio, scale, noise-free and small-noise "
-        "checks are judged on medians, as the issue asks, so a run beyond the bound is "
+        "checks are judged on medians, so a run beyond the bound is "
         "counted but does not fail them. Table 2 is judged on medians (ML < init, Figure 8) "
         "and also needs the SDP's A positive definite in every run (and the library's "
         "algebraic fit never to return a non-positive-definite A). The hand-held check is "
@@ -219,7 +218,9 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap = argparse.ArgumentParser(
+        prog=f"python -m {__spec__.name}", description=__doc__.splitlines()[0]
+    )
     ap.add_argument("--runs", type=int, default=20, help="seeds per check (default 20)")
     ap.add_argument("--table2-runs", type=int, default=150, help="seeds for Table 2")
     ap.add_argument("--out", default="bench/accuracy.md", help="Markdown report path")
@@ -252,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
     reasons += ["--quick"] if args.quick else []
     if reasons and not args.exploratory:
         ap.error(
-            f"{', '.join(reasons)}: issue 2 needs at least {MIN_RUNS} full-size runs per "
+            f"{', '.join(reasons)}: a report needs at least {MIN_RUNS} full-size runs per "
             "check; add --exploratory for a trial report (it is headed EXPLORATORY)"
         )
     exploratory = (
@@ -291,7 +292,7 @@ def main(argv: list[str] | None = None) -> int:
         f.write("\n")
 
     meta = {
-        "command": "python tools/accuracy_report.py "
+        "command": "python -m magcal_evaluation.accuracy_report "
         + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)),
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "wall_min": wall / 60.0,

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+import magcal_evaluation.study.zhao as zhao
 from magcal.calib.diagnostics import quality
 from magcal.report import plots
-from magcal.study import zhao
-from magcal.study.experiments import StudySettings, seeds
+from magcal_evaluation.study.experiments import StudySettings, seeds
 
 SUMMARY_FILE = "summary.md"
 FIGURE8_FILE = "figure8.png"
@@ -400,7 +400,7 @@ def _zhao_md(s: ZhaoSummary, settings: StudySettings) -> list[str]:
         "## Zhao et al., Table 1: CKF and TWO-STEP",
         "",
         f"{s.runs} runs (seeds {_seed_range(settings, 'zhao-table1')}) of the paper's "
-        f"simulation, {s.samples} samples each (`magcal.study.zhao`: σ = "
+        f"simulation, {s.samples} samples each (`magcal_evaluation.study.zhao`: σ = "
         f"{zhao.NOISE_SIGMA_G} G, field {zhao.field_norm_g():.3f} G, the true A and b of "
         "their Table 1; the sample count is ours, the paper gives none). magcal's CKF "
         "(`CubatureCalibrator`, sample by sample, started from the sphere of the first "

@@ -6,7 +6,9 @@
 #                        evaluation command (study), every module of the installed package
 #                        imports, and nothing under host/src names magcal_evaluation
 #
-# pip takes the dependencies from its cache after `make setup`, so this takes about a minute.
+# The versions come from the lock (mk/deps.mk), as in CI; host/build goes first, as setuptools
+# copies into it without deleting and a moved module would be installed twice. pip takes the
+# dependencies from its cache after `make setup`, so this takes about a minute.
 
 .PHONY: check-install
 
@@ -16,9 +18,9 @@ CHECK_INSTALL_PY := $(CURDIR)/$(CHECK_INSTALL_DIR)/venv/bin/python
 check-install:
 	@! grep -rn --include='*.py' magcal_evaluation host/src \
 		|| { echo "check-install: the product names magcal_evaluation (above); the evaluation imports the product, never the reverse" >&2; exit 1; }
-	rm -rf $(CHECK_INSTALL_DIR)
+	rm -rf $(CHECK_INSTALL_DIR) host/build
 	$(PYTHON) -m venv $(CHECK_INSTALL_DIR)/venv
-	$(CHECK_INSTALL_PY) -m pip install --quiet ./host
+	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(CHECK_INSTALL_PY) -m pip install --quiet ./host
 	@set -e; work=$$(mktemp -d); trap 'rm -rf "$$work"' EXIT; cd "$$work"; \
 	export -n PYTHONPATH; bin=$(CURDIR)/$(CHECK_INSTALL_DIR)/venv/bin; \
 	$$bin/magcal simulate --preset mems --seed 1 -o s.csv; \

@@ -122,3 +122,18 @@ def test_progress_line_counts_and_estimates():
     p.update({"key": "a", "crashed": "x"})
     assert "5/10 runs" in p.line() and "2 failed" in p.line()
     assert "ETA 0:00" in p.line()  # one new run took ~0 s, so the rest takes ~0 s
+
+
+def test_progress_in_a_log_is_whole_lines_at_each_step_and_the_end():
+    stream = io.StringIO()
+    p = StudyProgress(20, 0, 0, stream)
+    p.update()
+    for i in range(20):
+        p.update({"key": str(i), "crashed": "x"} if i == 3 else {"key": str(i), "result": {}})
+    p.finish()
+    lines = stream.getvalue().splitlines()
+    # The first state, then one line per PROGRESS_LOG_STEP_PCT (10 %: every 2 runs of 20).
+    assert lines[0].startswith("study: 0/20 runs, 0 failed")
+    assert lines[-1].startswith("study: 20/20 runs, 1 failed")
+    assert len(lines) == 11
+    assert all("\r" not in line and "\x1b" not in line for line in lines)

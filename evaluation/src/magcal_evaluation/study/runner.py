@@ -37,11 +37,12 @@ from typing import TextIO
 import numpy as np
 
 from magcal.errors import MagcalError
+from magcal.ui import ProgressBar
 
 SETTINGS_FILE = "settings.json"
 RUNS_FILE = "runs.jsonl"
-#: Without a terminal, a progress line is printed at most this often, s.
-PROGRESS_LOG_INTERVAL_S = 10.0
+#: Without a terminal, a progress line is printed each time this share of the runs is done, %.
+PROGRESS_LOG_STEP_PCT = 10.0
 #: prctl(2) option: the signal a process gets when its parent dies (linux/prctl.h).
 PR_SET_PDEATHSIG = 1
 
@@ -222,17 +223,25 @@ def _read_runs(path: Path) -> dict[str, dict]:
 
 
 class StudyProgress:
-    """One line on stderr: runs done/total, failures, elapsed and ETA. Rewritten in place on
-    a terminal; otherwise printed every :data:`PROGRESS_LOG_INTERVAL_S` and at the end."""
+    """The study's progress on stderr through magcal's one progress display
+    (:class:`magcal.ui.ProgressBar`): on a terminal a bar with runs done/total, the rate, the
+    time left and the failures so far; in a log the line :meth:`line` (runs done/total,
+    failures, elapsed, ETA) at every :data:`PROGRESS_LOG_STEP_PCT` per cent and at the end.
+    Runs saved by an earlier, interrupted call count as done but not towards the rate."""
 
     def __init__(self, total: int, done: int, failed: int, stream: TextIO | None = None):
         self.total, self.done, self.failed = total, done, failed
         self._resumed = done
-        self._stream = stream or sys.stderr
-        self._tty = self._stream.isatty()
         self._t0 = time.monotonic()
-        self._next_log = 0.0
-        self._shown = False
+        self._bar = ProgressBar(
+            "study",
+            total,
+            stream,
+            completed=done,
+            unit="runs",
+            log_step_pct=PROGRESS_LOG_STEP_PCT,
+            log_line=lambda _done, _total: self.line(),
+        )
 
     def line(self) -> str:
         elapsed = time.monotonic() - self._t0
@@ -249,27 +258,14 @@ class StudyProgress:
         if record is not None:
             self.done += 1
             self.failed += is_failure(record)
-        now = time.monotonic() - self._t0
-        if self._tty:
-            self._stream.write("\r" + self.line() + "\x1b[K")
-            self._stream.flush()
-            self._shown = True
-        elif now >= self._next_log or self.done == self.total:
-            self._next_log = now + PROGRESS_LOG_INTERVAL_S
-            self._stream.write(self.line() + "\n")
-            self._stream.flush()
+        self._bar.update(self.done, note=f"{self.failed} failed")
 
     def message(self, text: str) -> None:
-        """A line of its own, below the progress line."""
-        self.finish()
-        self._stream.write(text + "\n")
-        self._stream.flush()
+        """A line of its own, above the progress display."""
+        self._bar.message(text)
 
     def finish(self) -> None:
-        if self._tty and self._shown:
-            self._stream.write("\n")
-            self._stream.flush()
-            self._shown = False
+        self._bar.close()
 
 
 def _clock(seconds: float) -> str:

@@ -167,7 +167,7 @@ def format_table(res: dict) -> str:
             f"   log-log slope of cost+gradient time vs samples: "
             f"{scal['loglog_slope_cost_grad']:.3f} (1 = linear)"
         )
-    ckf = res.get("ckf")  # results before the CKF (issue 7) have none
+    ckf = res.get("ckf")  # results of builds without the CKF section have none
     if ckf is not None:
         out += [
             "",

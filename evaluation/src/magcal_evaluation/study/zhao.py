@@ -1,7 +1,7 @@
 """Zhao et al.'s simulation (Table 1 and Figure 1): magnetometer-only data of known ``A``, ``b``.
 
 H. Zhao, C. Lin, H. Zhang, G. Zhai, *Real-time Calibration Algorithm for Three-axis
-Magnetometer*, Section 4 (``shared/papers/zhao-realtime-ckf-magnetometer-calibration.txt``).
+Magnetometer*, Section 4 (summarised in ``docs/algorithm.md`` §2).
 Their model (eqs. 2-3) in gauss: ``y_k = C B^C_k + b + n_k`` with ``B^C_k = Γ_k B^I`` (a
 random attitude applied to the local field), ``n_k ~ N(0, σ² I)``, and the calibration
 ``A = TᵀT``, ``T = C⁻¹``, so that ``(y − b)ᵀ A (y − b) = B_m² = ‖B^I‖²`` without noise.

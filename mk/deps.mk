@@ -35,16 +35,18 @@ lock:
 
 # host/build is removed first: setuptools copies into it without deleting, and a module that
 # moved would otherwise be installed twice.
-$(LATEST_VENV)/.installed: host/pyproject.toml host/setup.py
+$(LATEST_VENV)/.installed: host/pyproject.toml host/setup.py evaluation/pyproject.toml
 	rm -rf $(LATEST_VENV) host/build
 	$(PYTHON) -m venv $(LATEST_VENV)
 	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade pip setuptools
 	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --upgrade --upgrade-strategy eager \
-		'./host[dev]' $(wildcard ./evaluation)
+		'./host[dev]'
+	$(LATEST_VENV)/bin/python -m pip install $(PIP_QUIET) --no-deps -e evaluation
 	touch $@
 
-# The suite runs against the non-editable install in LATEST_VENV (tests import magcal from
-# there, the tests package from the checkout; the few tests that run host/magcal use .venv).
+# The suite runs against the non-editable install of the product in LATEST_VENV (tests import
+# magcal from there, the tests package from the checkout; the evaluation, which finds the SIL
+# device in its checkout, is installed editable; the few tests that run host/magcal use .venv).
 # Its verdict is printed, not returned, and not as pytest's closing line, so that a CI log's
 # verdict stays `make test`'s.
 test-latest: setup firmware-lib sil

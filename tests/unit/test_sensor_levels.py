@@ -1,8 +1,14 @@
-"""The data-only levels of a session: the accelerometer bump inflation of Σ_a."""
+"""The data-only levels of a session: the accelerometer bump inflation of Σ_a, the time scale
+of the accelerometer's errors and the samples whose accelerometer reading is used."""
 
 import numpy as np
+import pytest
 
 from magcal.calib.initial import sensor_levels
+from magcal.calib.initial.sensor_levels import (
+    acceleration_correlation_time_s,
+    accelerometer_updates,
+)
 
 
 def test_acc_inflation_is_zero_at_rest_and_spreads_a_bump_over_its_window():
@@ -22,3 +28,54 @@ def test_acc_inflation_ignores_smooth_accelerations():
     t = np.arange(1000) / 100.0
     acc = np.column_stack([0.3 * np.sin(2 * t), 0.3 * np.cos(3 * t), 9.81 + 0.3 * np.sin(t)])
     assert not np.any(sensor_levels.accelerometer_extra_variance(acc, 9.81, 0.02, 100.0))
+
+
+def _ar1(rng, n, rho, sigma):
+    """A first-order autoregressive series with lag-1 correlation rho and std sigma."""
+    e = rng.normal(scale=sigma * np.sqrt(1.0 - rho * rho), size=n)
+    x = np.empty(n)
+    x[0] = rng.normal(scale=sigma)
+    for i in range(1, n):
+        x[i] = rho * x[i - 1] + e[i]
+    return x
+
+
+def _vertical_acc(deviation):
+    acc = np.zeros((deviation.shape[0], 3))
+    acc[:, 2] = 9.81 + deviation
+    return acc
+
+
+def test_white_accelerometer_noise_has_a_time_scale_of_one_sample():
+    rng = np.random.default_rng(1)
+    t = np.arange(20000) / 100.0
+    tau = acceleration_correlation_time_s(
+        t, _vertical_acc(rng.normal(scale=0.02, size=t.size)), 9.81
+    )
+    assert tau == pytest.approx(0.01, rel=0.1)
+    assert accelerometer_updates(t, tau).all()
+
+
+@pytest.mark.parametrize("rho", [0.9, 0.98])
+def test_correlated_accelerations_give_their_integral_time_scale(rho):
+    # An AR(1) series has ρ_k = ρ^k and integral time scale T (1 + ρ) / (1 − ρ).
+    rng = np.random.default_rng(2)
+    t = np.arange(60000) / 200.0
+    tau = acceleration_correlation_time_s(t, _vertical_acc(_ar1(rng, t.size, rho, 1.0)), 9.81)
+    expected = (1.0 / 200.0) * (1.0 + rho) / (1.0 - rho)
+    assert tau == pytest.approx(expected, rel=0.2)
+
+
+def test_updates_are_spaced_by_the_correlation_time():
+    t = np.arange(1000) / 100.0
+    used = accelerometer_updates(t, 0.1)
+    assert used[0]
+    assert np.all(np.diff(np.flatnonzero(used)) == 10)
+    # Irregular times: every used sample at least the spacing (less half a median interval)
+    # after the last one, and none skipped that could have been used.
+    rng = np.random.default_rng(3)
+    t = np.cumsum(rng.uniform(0.005, 0.015, 2000))
+    used = accelerometer_updates(t, 0.1)
+    gaps = np.diff(t[used])
+    assert gaps.min() >= 0.1 - 0.5 * np.median(np.diff(t)) - 1e-12
+    assert gaps.max() < 0.1 + 0.015

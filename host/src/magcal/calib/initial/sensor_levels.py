@@ -9,6 +9,8 @@ One function, :func:`measure_sensor_levels`, computes them for every step that n
   scale error or local gravity does not bias the inclination;
 * the sample rate;
 * the accelerometer bump inflation ``c_t`` (:func:`accelerometer_extra_variance`);
+* the time over which the accelerometer's errors stay correlated, and from it the samples
+  whose accelerometer reading the likelihood uses (:func:`accelerometer_updates`);
 * Σ_a for the ML step: the accelerometer noise plus the motion's acceleration.
 
 None of them depends on the calibration θ, so the likelihood stays smooth in θ.
@@ -34,6 +36,66 @@ BUMP_WINDOW_S = 0.05
 #: Inflation per unit squared excess deviation. A horizontal knock of size b changes the
 #: norm by only ≈ b²/2g, far less than b, so the excess understates it: weight it up.
 BUMP_GAIN = 10.0
+
+
+#: Lags (s) over which the autocorrelation of the accelerometer norm is summed at most: a
+#: hand's accelerations decorrelate within a second; a longer sum only adds the noise of
+#: the estimate.
+MAX_CORRELATION_LAG_S = 2.0
+
+
+def acceleration_correlation_time_s(t: np.ndarray, acc: np.ndarray, g: float) -> float:
+    """The integral time scale (s) of the accelerometer's error, seen in ``‖y_a‖ − g``.
+
+    The model ``y_a = −R_bn g_n + e_a`` takes ``e_a`` as white, but a hand's translational
+    accelerations are correlated over a few tenths of a second. The integral time scale
+    ``T (1 + 2 Σ_k ρ_k)`` (T the sample interval, ρ_k the autocorrelation at lag k, summed up
+    to its first zero crossing and at most :data:`MAX_CORRELATION_LAG_S`) is the spacing at
+    which samples count as independent: white sensor noise gives one sample interval, a
+    sensor held still or turned gently hardly more.
+
+    t : (N,) s; acc : (N, 3) m/s²; g : m/s². Returns seconds, at least one sample interval.
+    """
+    dt = float(np.median(np.diff(t))) if len(t) > 1 else 0.0
+    dev = np.linalg.norm(acc, axis=1) - g
+    dev = dev - dev.mean()
+    n = dev.shape[0]
+    if n < 3 or not np.any(dev):
+        return dt
+    spectrum = np.fft.rfft(dev, 2 * n)
+    rho = np.fft.irfft(spectrum * np.conj(spectrum))[:n]
+    rho /= rho[0]
+    max_lag = min(n - 1, max(1, int(MAX_CORRELATION_LAG_S / dt)))
+    rho = rho[1 : max_lag + 1]
+    crossing = np.flatnonzero(rho <= 0.0)
+    lags = rho[: crossing[0]] if crossing.size else rho
+    return dt * (1.0 + 2.0 * float(lags.sum()))
+
+
+def accelerometer_updates(t: np.ndarray, correlation_time_s: float) -> np.ndarray:
+    """Which samples' accelerometer readings the likelihood uses: (N,) bool.
+
+    One per ``correlation_time_s`` (the first sample, then each first sample at least that
+    long after the last one used). Using every sample would count one acceleration episode
+    as dozens of independent measurements of the tilt, and the likelihood then explains it
+    by tilting the attitude, through the gyroscope bias and the misalignment. Readings spaced
+    by the errors' time scale are nearly independent, as the model assumes; with white
+    errors every sample is used. The gyroscope still propagates, and the magnetometer
+    updates, at every sample.
+    """
+    t = np.asarray(t, dtype=float)
+    used = np.zeros(t.shape[0], dtype=bool)
+    if t.shape[0] == 0:
+        return used
+    # Half a sample interval of slack, so that a uniform rate keeps every k-th sample.
+    dt = float(np.median(np.diff(t))) if t.shape[0] > 1 else 0.0
+    spacing = max(correlation_time_s - 0.5 * dt, 0.0)
+    next_t = -np.inf
+    for i, ti in enumerate(t):
+        if ti >= next_t:
+            used[i] = True
+            next_t = ti + spacing
+    return used
 
 
 def accelerometer_extra_variance(
@@ -67,6 +129,10 @@ class SensorLevels:
     g             : gravity magnitude, m/s² (median accelerometer norm)
     rate_hz       : mean sample rate, Hz
     acc_extra_var : (N,) (m/s²)², the bump inflation c_t of Σ_a
+    acc_correlation_s : s, the accelerometer errors' integral time scale
+                    (:func:`acceleration_correlation_time_s`)
+    acc_used      : (N,) bool, the samples whose accelerometer reading the likelihood uses
+                    (:func:`accelerometer_updates`)
     Sigma_acc     : (3, 3) (m/s²)², Σ_a for the ML step: ``noise.Sigma_acc`` plus the
                     motion's acceleration share (isotropic)
     """
@@ -75,6 +141,8 @@ class SensorLevels:
     g: float
     rate_hz: float
     acc_extra_var: np.ndarray
+    acc_correlation_s: float
+    acc_used: np.ndarray
     Sigma_acc: np.ndarray
 
     @property
@@ -102,10 +170,13 @@ def measure_sensor_levels(session: Session) -> SensorLevels:
     # (`make accuracy`, init 0.11° → 0.16°) though better on hand-held ones (1.19° → 0.89°).
     shake = rest.motion_acceleration_variance(session.acc, g, noise.stationary)
     Sigma_acc = noise.Sigma_acc + max(0.0, shake - sigma_acc**2) * np.eye(3)
+    acc_correlation_s = acceleration_correlation_time_s(session.t, session.acc, g)
     return SensorLevels(
         noise=noise,
         g=g,
         rate_hz=rate_hz,
         acc_extra_var=acc_extra_var,
+        acc_correlation_s=acc_correlation_s,
+        acc_used=accelerometer_updates(session.t, acc_correlation_s),
         Sigma_acc=Sigma_acc,
     )

@@ -6,6 +6,7 @@ refusal as a warning), and good simulated sessions of every preset pass."""
 from __future__ import annotations
 
 import dataclasses
+import json
 
 import numpy as np
 import pytest
@@ -166,3 +167,17 @@ def test_cli_refuses_with_exit_2_and_writes_nothing_unless_forced(handheld, tmp_
     assert main(["calibrate", str(path), "--method", "init", "--force", "-o", str(out)]) == 0
     warnings = read_result(out).warnings
     assert any("forced: the result contradicts its own session" in w for w in warnings)
+
+
+def test_a_stretch_that_shares_no_direction_is_left_out_and_the_figures_are_json():
+    rng = np.random.default_rng(0)
+    t = np.arange(2000) * 0.01  # 20 s: four stretches
+    field = rng.normal(size=(2000, 3))
+    field[:, 2] = np.abs(field[:, 2]) + 0.5  # the first three stretches: the upper half only
+    field[1500:] = [0.0, 0.0, -1.0]  # the last: one direction nobody else saw
+    field /= np.linalg.norm(field, axis=1)[:, None]
+    acc = np.tile([0.0, 0.0, 9.81], (2000, 1))
+    checks = consistency.check(t, acc, 50.0 * field, 50.0 * np.eye(3), np.zeros(3), None)
+    levels = checks.figures["field_stretches"]["levels"]
+    assert [row[2] is None for row in levels] == [False, False, False, True]
+    json.dumps(checks.figures, allow_nan=False)

@@ -122,6 +122,11 @@ class Checks:
     figures: dict = field(default_factory=dict)
 
 
+def _finite(x: float) -> float | None:
+    """``x``, or None for NaN and infinity: the figures go into a JSON result."""
+    return float(x) if np.isfinite(x) else None
+
+
 def _norm_spread(calibrated: np.ndarray) -> float:
     n = np.linalg.norm(calibrated, axis=1)
     return float(np.std(n) / np.mean(n))
@@ -229,7 +234,8 @@ def _field_change(
             changed = _changed(stretches)
     figures: dict = {
         "stretch_s": FIELD_STRETCH_S,
-        "levels": [[s.start_s, s.end_s, s.level] for s in stretches],
+        # null where a stretch shares no direction with the others (JSON has no NaN)
+        "levels": [[s.start_s, s.end_s, _finite(s.level)] for s in stretches],
     }
     if not changed:
         return [], [], figures
@@ -287,7 +293,7 @@ def check(
 
     if gyro_bias is not None:
         bias = float(np.rad2deg(np.max(np.abs(gyro_bias))))
-        figures["gyro_bias_max_deg_s"] = bias
+        figures["gyro_bias_max_deg_s"] = _finite(bias)
         if not np.isfinite(bias) or bias > MAX_GYRO_BIAS_DEG_S:
             refusals.append(
                 f"its gyroscope bias of {bias:.1f} °/s is beyond any MEMS gyroscope's (limit "
@@ -295,7 +301,7 @@ def check(
             )
     if ellipsoid_A is not None:
         eig = np.linalg.eigvalsh(0.5 * (ellipsoid_A + np.asarray(ellipsoid_A).T))
-        figures["ellipsoid_A_min_eigenvalue"] = float(eig[0])
+        figures["ellipsoid_A_min_eigenvalue"] = _finite(eig[0])
         if not np.all(np.isfinite(eig)) or eig[0] <= 0.0:
             refusals.append(
                 "its fitted ellipsoid is not one (the matrix A is not positive definite, "
@@ -306,7 +312,7 @@ def check(
         return Checks(refusals, [], figures)
     singular = np.linalg.svd(D, compute_uv=False)
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
-    figures["D_condition"] = condition
+    figures["D_condition"] = _finite(condition)
     if condition > MAX_D_CONDITION:
         refusals.append(
             f"its D stretches one axis {condition:.3g}× against another (condition number; "
@@ -321,7 +327,7 @@ def check(
         "plain_fit": _norm_spread(plain_cal),
         "result": _norm_spread(calibrated),
     }
-    figures["field_norm_spread"] = spread
+    figures["field_norm_spread"] = {k: _finite(v) for k, v in spread.items()}
     limit = max(spread["raw"], NORM_SPREAD_MAX_RATIO * spread["plain_fit"]) + NORM_SPREAD_MARGIN
     if not spread["result"] <= limit:
         refusals.append(
@@ -332,7 +338,11 @@ def check(
 
     dip_plain, n_dip = _dip_spread_deg(acc, plain_cal)
     dip_result, _ = _dip_spread_deg(acc, calibrated)
-    figures["dip_spread_deg"] = {"plain_fit": dip_plain, "result": dip_result, "samples": n_dip}
+    figures["dip_spread_deg"] = {
+        "plain_fit": _finite(dip_plain),
+        "result": _finite(dip_result),
+        "samples": n_dip,
+    }
     if n_dip >= MIN_DIP_SAMPLES and not (
         dip_result <= DIP_SPREAD_MAX_RATIO * dip_plain
         or dip_result <= dip_plain + DIP_SPREAD_MARGIN_DEG

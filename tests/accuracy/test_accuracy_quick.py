@@ -143,3 +143,16 @@ def test_ratio_verdict_uses_both_the_median_ratio_and_the_ratio_of_medians():
     assert v.ratio_median == pytest.approx(1.0)
     assert v.ratio_of_medians == pytest.approx(5.0 / 3.0)
     assert not v.passed
+
+
+def test_a_refusal_of_a_good_result_fails_the_check_and_of_a_wrong_one_does_not():
+    wrong = {
+        "seed": 1,
+        "contradicted": "D is badly conditioned",
+        "ml_deg": 107.0,
+        "floor_deg": 13.0,
+    }
+    good = {"seed": 2, "contradicted": "D is badly conditioned", "ml_deg": 0.05, "floor_deg": 0.04}
+    clean = {"seed": 3, "contradicted": None, "ml_deg": 0.05, "floor_deg": 0.04}
+    assert accuracy._refusals_are_right([wrong, clean]).passed
+    assert not accuracy._refusals_are_right([wrong, good, clean]).passed

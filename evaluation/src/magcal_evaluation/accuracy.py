@@ -48,7 +48,7 @@ from magcal.calib.initial.ellipsoid import fit_ellipsoid_algebraic, symmetric_fi
 from magcal.calib.initial.estimate import InitialEstimate
 from magcal.calib.likelihood.params import ModelParams
 from magcal.calib.likelihood.problem import LikelihoodProblem
-from magcal.errors import InsufficientDataError
+from magcal.errors import InsufficientDataError, ResultContradictedError
 from magcal.io.session import Session
 from magcal.sim.scenarios import ScenarioConfig, SimTruth, preset, simulate
 
@@ -206,7 +206,7 @@ def _calibrate_guarded(session: Session, method: str, out: dict) -> object | Non
     tool's own checks (then calibrated with force, labelled), any other exception (returns
     None), numpy RuntimeWarnings, time."""
     out["refused"] = out["forced"] = False
-    out["error"] = None
+    out["error"] = out["contradicted"] = None
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", RuntimeWarning)
@@ -215,6 +215,11 @@ def _calibrate_guarded(session: Session, method: str, out: dict) -> object | Non
                 cal = calibrate(session, method)
             except InsufficientDataError:
                 out["refused"] = out["forced"] = True
+                cal = calibrate(session, method, force=True)
+            except ResultContradictedError as exc:
+                # The result check refused what the run produced: scored as forced, and
+                # judged by _refusals_are_right against the truth.
+                out["contradicted"] = " ".join(str(exc).split())
                 cal = calibrate(session, method, force=True)
         except Exception as exc:  # counted as a failed run, never hidden
             out["error"] = f"{type(exc).__name__}: {exc}"
@@ -314,6 +319,7 @@ def run_scale(seed: int, quick: bool = False) -> dict:
     out["error"] = raw["error"] or unit["error"]
     out["refused"] = raw["refused"] or unit["refused"]
     out["forced"] = raw["forced"] or unit["forced"]
+    out["contradicted"] = raw["contradicted"] or unit["contradicted"]
     out["seconds"] = raw["seconds"] + unit["seconds"]
     out["runtime_warnings"] = raw["runtime_warnings"] + unit["runtime_warnings"]
     if "ratio" in raw and "ratio" in unit:
@@ -416,6 +422,43 @@ def _forced_reason(run: dict) -> str:
     return "see the run's warnings"
 
 
+#: A result the tool refuses as contradicted by its own session must really be wrong: its
+#: heading error (forced) at least this many times the known-attitude floor, or at least
+#: :data:`WRONG_RESULT_HEADING_DEG` (a compass that points into the wrong quadrant is no use
+#: whatever the floor). A refusal of a better result is a false refusal and fails the check.
+WRONG_RESULT_FLOOR_RATIO = 10.0
+WRONG_RESULT_HEADING_DEG = 45.0
+
+
+def _refusals_are_right(runs: list[dict]) -> Criterion:
+    refused = [r for r in runs if r.get("contradicted")]
+    false = [
+        r
+        for r in refused
+        if not (
+            r.get("ml_deg") is not None
+            and r.get("floor_deg")
+            and (
+                r["ml_deg"] >= WRONG_RESULT_FLOOR_RATIO * r["floor_deg"]
+                or r["ml_deg"] >= WRONG_RESULT_HEADING_DEG
+            )
+        )
+    ]
+    shown = "; ".join(
+        f"seed {r['seed']}: {r.get('ml_deg', float('nan')):.3g}° forced"
+        f" ({r.get('ml_deg', float('nan')) / r['floor_deg']:.3g}× floor)"
+        if r.get("floor_deg")
+        else f"seed {r['seed']}: no heading figure"
+        for r in refused
+    )
+    return Criterion(
+        f"a result refused as contradicted by its session is wrong (forced heading error "
+        f"≥ {WRONG_RESULT_FLOOR_RATIO:g} × floor or ≥ {WRONG_RESULT_HEADING_DEG:g}°)",
+        f"{len(refused)} refused" + (f" ({shown})" if refused else "") + f", {len(false)} false",
+        not false,
+    )
+
+
 def _no_errors(c: dict) -> Criterion:
     return Criterion(
         "every run calibrates (no exception, no observability refusal)",
@@ -461,6 +504,7 @@ def _ratio_verdict(key: str, runs: list[dict], bound: float, aim: float | None) 
     worst = max(h["ratio_median"], h["ratio_of_medians"])
     crit = [
         _no_errors(c),
+        _refusals_are_right(runs),
         Criterion(
             f"ML heading error ≤ {bound:g} × floor (both the median of per-run ratios and the "
             "ratio of medians)",
@@ -496,6 +540,7 @@ def verdict_noise_free(runs: list[dict]) -> Verdict:
     tol = NOISE_FREE_REL_TOL
     crit = [
         _no_errors(c),
+        _refusals_are_right(runs),
         Criterion(
             f"init: median relative error of D Dᵀ and of o ≤ {tol:g}",
             f"D Dᵀ {_median(dd):.2g} (max {dd.max() if dd.size else np.nan:.2g}), "
@@ -518,6 +563,7 @@ def verdict_small_noise(runs: list[dict]) -> Verdict:
     tol = SMALL_NOISE_REL_TOL
     crit = [
         _no_errors(c),
+        _refusals_are_right(runs),
         Criterion(
             f"ML: median relative error of D and of o ≤ {tol:g}",
             f"D {_median(d):.2g} (max {d.max() if d.size else np.nan:.2g}), "
@@ -559,6 +605,7 @@ def verdict_table2(runs: list[dict]) -> Verdict:
     ekf_fail = sum(r.get("ekf_error") is not None for r in done)
     crit = [
         _no_errors(c),
+        _refusals_are_right(runs),
         Criterion(
             "the SDP's A is positive definite in every run",
             f"{sdp_pd}/{len(done)} runs",
@@ -608,6 +655,7 @@ def verdict_scale(runs: list[dict]) -> Verdict:
     tol = SCALE_RATIO_REL_TOL
     crit = [
         _no_errors(c),
+        _refusals_are_right(runs),
         Criterion(
             f"median ML/floor at raw scale within {tol:.0%} of unit scale (same seeds)",
             f"raw {_median(raw):.3f}, unit {_median(unit):.3f} (difference {rel:.2%}; per run "
@@ -639,6 +687,7 @@ def verdict_handheld(runs: list[dict]) -> Verdict:
     warned = sum(bool(r.get("alignment_warning")) for r in done)
     crit = [
         _no_errors(c),
+        _refusals_are_right(runs),
         Criterion(
             "ML no worse than the plain symmetric ellipsoid fit (in no run)",
             f"median ML {h['ml']:.3g}° vs symmetric {h['sym']:.3g}°; ML worse in "

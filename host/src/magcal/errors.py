@@ -24,3 +24,9 @@ class InsufficientDataError(MagcalError):
 
 class CalibrationError(MagcalError):
     """A numerical step failed (solver failure, non-finite cost, ...)."""
+
+
+class ResultContradictedError(CalibrationError):
+    """A finished calibration contradicts its own session (a gyroscope bias no gyroscope has,
+    a collapsed ellipsoid, a worse field norm or dip than a plain fit, a field that changed
+    during the recording). ``--force`` turns it into a warning."""

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from magcal.calib.diagnostics import observability, quality
+from magcal.calib.diagnostics import consistency, observability, quality
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
 from magcal.calib.initial.estimate import InitialEstimate, initial_estimate
 from magcal.calib.likelihood import mekf
@@ -187,6 +187,19 @@ def calibrate(
     # parameters that were in force while it was recorded (the frame D and o live in).
     if session.meta:
         extra["session_meta"] = {str(k): str(v) for k, v in session.meta.items()}
+
+    # The same checks of the result against its own session for every method.
+    checks = consistency.check(
+        session.t,
+        session.acc,
+        session.mag,
+        p.D,
+        p.o,
+        p.gyro_bias,
+        None if method_record is None else np.asarray(method_record["A"]),
+    )
+    extra["consistency"] = checks.figures
+    warnings += consistency.refusals_or_warnings(checks, method, force)
 
     result = CalibrationResult(
         method=method,

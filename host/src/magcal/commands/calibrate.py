@@ -34,7 +34,10 @@ def add_parser(sub) -> None:
     p.add_argument(
         "--force",
         action="store_true",
-        help="calibrate even when the session cannot determine it (with a warning)",
+        help="calibrate even when the session cannot determine it, and write a result its own "
+        "session contradicts (a gyroscope bias or D no sensor has, a field norm or dip worse "
+        "than a plain ellipsoid fit's, a field that changed during the recording), each with "
+        "a warning",
     )
     p.add_argument(
         "--gradient",

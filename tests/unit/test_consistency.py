@@ -1,0 +1,183 @@
+"""A result its own session contradicts is refused: each check of
+``magcal.calib.diagnostics.consistency`` on constructed data, the refusal through
+``calibrate`` and ``magcal calibrate`` (exit 2, nothing written; ``--force`` writes it with the
+refusal as a warning), and good simulated sessions of every preset pass."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from magcal.calib.calibrate import calibrate
+from magcal.calib.diagnostics import consistency
+from magcal.cli import EXIT_ERROR, main
+from magcal.errors import ResultContradictedError
+from magcal.io.result import read_result
+from magcal.io.session import write_session
+from magcal.sim.scenarios import preset, simulate
+
+
+@pytest.fixture(scope="module")
+def mems():
+    return simulate(preset("mems"), 1)
+
+
+@pytest.fixture(scope="module")
+def handheld():
+    """Fast hand-held motion: every 5 s of it visits most field directions, so a change of the
+    field shows at the same directions (a slow tumble's halves see different ones)."""
+    return simulate(preset("handheld"), 1)
+
+
+def _check(session, D, o, bias=None, A=None):
+    return consistency.check(session.t, session.acc, session.mag, D, o, bias, A)
+
+
+def _refuse(checks):
+    consistency.refusals_or_warnings(checks, "ml", force=False)
+
+
+def test_the_true_calibration_passes(mems):
+    session, truth = mems
+    st = truth.sensor
+    checks = _check(session, st.D, st.o, st.gyro_bias)
+    assert checks.refusals == [] and checks.warnings == []
+    assert checks.figures["D_condition"] < 2.0
+
+
+def test_a_gyroscope_bias_of_40_deg_s_is_refused(mems):
+    session, truth = mems
+    st = truth.sensor
+    checks = _check(session, st.D, st.o, np.deg2rad([40.0, 0.0, 0.0]))
+    with pytest.raises(ResultContradictedError, match=r"gyroscope bias of 40\.0 °/s.*limit 25"):
+        _refuse(checks)
+    # Just inside the limit, nothing to say.
+    assert _check(session, st.D, st.o, np.deg2rad([0.0, -24.0, 0.0])).refusals == []
+
+
+def test_a_d_with_condition_1e5_is_refused(mems):
+    session, truth = mems
+    st = truth.sensor
+    u, s, vt = np.linalg.svd(st.D)
+    D = u @ np.diag([s[0], s[0], s[0] * 1e-5]) @ vt
+    checks = _check(session, D, st.o)
+    assert checks.figures["D_condition"] == pytest.approx(1e5, rel=1e-6)
+    with pytest.raises(ResultContradictedError, match=r"stretches one axis 1e\+05×.*limit 10"):
+        _refuse(checks)
+
+
+def test_a_non_finite_d_and_an_ellipsoid_that_is_not_one_are_refused(mems):
+    session, truth = mems
+    st = truth.sensor
+    with pytest.raises(ResultContradictedError, match="not finite"):
+        _refuse(_check(session, np.full((3, 3), np.nan), st.o))
+    A = np.diag([1.0, 1.0, -0.1])
+    with pytest.raises(ResultContradictedError, match="not positive definite"):
+        _refuse(_check(session, st.D, st.o, A=A))
+
+
+def test_a_worse_field_norm_than_raw_and_plain_fit_is_refused(handheld):
+    session, truth = handheld
+    st = truth.sensor
+    # The offset moved by most of the field: the norm swings with orientation.
+    o = st.o + 0.8 * st.D[:, 0]
+    checks = _check(session, st.D, o)
+    spread = checks.figures["field_norm_spread"]
+    assert spread["result"] > max(spread["raw"], 2 * spread["plain_fit"])
+    with pytest.raises(ResultContradictedError, match=r"corrected field norm varies by .* %"):
+        _refuse(checks)
+
+
+def test_a_wrong_alignment_with_the_accelerometer_is_refused(mems):
+    session, truth = mems
+    st = truth.sensor
+    c, s = np.cos(np.deg2rad(20.0)), np.sin(np.deg2rad(20.0))
+    turned = st.D @ np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+    checks = _check(session, turned, st.o)
+    assert checks.figures["field_norm_spread"]["result"] == pytest.approx(
+        checks.figures["field_norm_spread"]["plain_fit"], rel=0.05
+    )  # the same ellipsoid: only the dip can tell
+    with pytest.raises(ResultContradictedError, match=r"dip angle .* scatters by"):
+        _refuse(checks)
+
+
+def _field_jump(session, o, factor):
+    """The session with the field (not the offset) scaled by ``factor`` from halfway on."""
+    mag = session.mag.copy()
+    half = session.t >= session.t[0] + 0.5 * (session.t[-1] - session.t[0])
+    mag[half] = o + factor * (mag[half] - o)
+    return dataclasses.replace(session, mag=mag)
+
+
+def test_a_field_that_jumps_20_percent_halfway_is_refused_naming_the_stretch(handheld):
+    session, truth = handheld
+    jumped = _field_jump(session, truth.sensor.o, 1.2)
+    with pytest.raises(
+        ResultContradictedError,
+        match=r"field changed during the recording.* between 30 s and 60 s.*away from it",
+    ):
+        calibrate(jumped, "init")
+    forced = calibrate(jumped, "init", force=True).result
+    assert any("forced" in w and "field changed" in w for w in forced.warnings)
+    assert forced.extra["consistency"]["field_stretches"]["impact"] > 0.02
+
+
+def test_a_short_change_is_a_warning(handheld):
+    session, truth = handheld
+    mag = session.mag.copy()
+    last = session.t >= session.t[-1] - 3.0  # the last 3 s of 60: a sensor set down by steel
+    mag[last] = truth.sensor.o + 1.2 * (mag[last] - truth.sensor.o)
+    result = calibrate(dataclasses.replace(session, mag=mag), "init").result
+    assert any(w.startswith("the magnetic field changed") for w in result.warnings)
+
+
+@pytest.mark.parametrize(
+    ("name", "overrides", "methods"),
+    [
+        ("mems", {}, ("ml", "init", "ckf", "two-step")),
+        ("handheld", {}, ("ml", "init", "ckf", "two-step")),
+        ("raw-counts", {}, ("ml", "init")),
+        ("mems", {"translational_acc_rms": 2.0}, ("ml", "init")),
+        # Noisy and 4 s long: the ML result is good, the ellipsoid-only ones often are not.
+        ("table2", {}, ("ml",)),
+    ],
+)
+def test_good_simulated_sessions_are_not_refused(name, overrides, methods):
+    for seed in (0, 1):
+        session, _ = simulate(preset(name, **overrides), seed)
+        for method in methods:
+            result = calibrate(session, method).result
+            assert "consistency" in result.extra
+            assert not any("changed" in w for w in result.warnings)
+
+
+def test_cli_refuses_with_exit_2_and_writes_nothing_unless_forced(handheld, tmp_path, capsys):
+    session, truth = handheld
+    path = tmp_path / "jump.csv"
+    write_session(path, _field_jump(session, truth.sensor.o, 1.2))
+    out = tmp_path / "r.json"
+    assert main(["calibrate", str(path), "--method", "init", "-o", str(out)]) == EXIT_ERROR
+    err = capsys.readouterr().err
+    assert err.startswith("magcal calibrate: ") and err.count("\n") == 1
+    assert "field changed" in err and "--force" in err
+    assert not out.exists()
+    assert main(["calibrate", str(path), "--method", "init", "--force", "-o", str(out)]) == 0
+    warnings = read_result(out).warnings
+    assert any("forced: the result contradicts its own session" in w for w in warnings)
+
+
+def test_a_stretch_that_shares_no_direction_is_left_out_and_the_figures_are_json():
+    rng = np.random.default_rng(0)
+    t = np.arange(2000) * 0.01  # 20 s: four stretches
+    field = rng.normal(size=(2000, 3))
+    field[:, 2] = np.abs(field[:, 2]) + 0.5  # the first three stretches: the upper half only
+    field[1500:] = [0.0, 0.0, -1.0]  # the last: one direction nobody else saw
+    field /= np.linalg.norm(field, axis=1)[:, None]
+    acc = np.tile([0.0, 0.0, 9.81], (2000, 1))
+    checks = consistency.check(t, acc, 50.0 * field, 50.0 * np.eye(3), np.zeros(3), None)
+    levels = checks.figures["field_stretches"]["levels"]
+    assert [row[2] is None for row in levels] == [False, False, False, True]
+    json.dumps(checks.figures, allow_nan=False)

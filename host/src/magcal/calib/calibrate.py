@@ -189,6 +189,7 @@ def calibrate(
         extra["session_meta"] = {str(k): str(v) for k, v in session.meta.items()}
 
     # The same checks of the result against its own session for every method.
+    t0 = time.perf_counter()
     checks = consistency.check(
         session.t,
         session.acc,
@@ -197,7 +198,9 @@ def calibrate(
         p.o,
         p.gyro_bias,
         None if method_record is None else np.asarray(method_record["A"]),
+        session_fit=None if method in ATTITUDE_FREE else fit,
     )
+    seconds["consistency"] = time.perf_counter() - t0
     extra["consistency"] = checks.figures
     warnings += consistency.refusals_or_warnings(checks, method, force)
 

@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from magcal.calib.diagnostics.replay import inclination_dip_deg
-from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp, symmetric_fit
+from magcal.calib.initial.ellipsoid import EllipsoidFit, fit_ellipsoid_sdp, symmetric_fit
 from magcal.calib.norm_only.live import fibonacci_sphere
 from magcal.errors import ResultContradictedError
 
@@ -186,9 +186,13 @@ def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]
     ]
 
 
-def _plain_correction(mag: np.ndarray, rows: np.ndarray | slice = slice(None)) -> np.ndarray:
-    """(N, 3) the magnetometer corrected by the plain fit (symmetric D) of ``mag[rows]``."""
-    fit = fit_ellipsoid_sdp(mag[rows], force=True)
+def _plain_correction(
+    mag: np.ndarray, rows: np.ndarray | slice = slice(None), fit: EllipsoidFit | None = None
+) -> np.ndarray:
+    """(N, 3) the magnetometer corrected by the plain fit (symmetric D) of ``mag[rows]``;
+    ``fit`` is the SDP fit of those rows when the caller has it already."""
+    if fit is None:
+        fit = fit_ellipsoid_sdp(mag[rows], force=True)
     return np.linalg.solve(symmetric_fit(fit), (mag - fit.o).T).T
 
 
@@ -277,6 +281,7 @@ def check(
     o: np.ndarray,
     gyro_bias: np.ndarray | None,
     ellipsoid_A: np.ndarray | None = None,
+    session_fit: EllipsoidFit | None = None,
 ) -> Checks:
     """Measure a result against its session.
 
@@ -284,6 +289,8 @@ def check(
     D, o        : (3, 3), (3,) the result's correction, magnetometer units
     gyro_bias   : (3,) rad/s, or None for a result without one
     ellipsoid_A : (3, 3) a norm-only method's fitted ellipsoid matrix, or None
+    session_fit : the SDP ellipsoid fit of the whole session's magnetometer, when the caller
+                  has it (the plain fit is its symmetric part); fitted here otherwise
     """
     mag = np.asarray(mag, dtype=float)
     D = np.asarray(D, dtype=float)
@@ -319,7 +326,7 @@ def check(
             f"limit {MAX_D_CONDITION:.0f}): no magnetometer's soft iron does"
         )
 
-    plain_cal = _plain_correction(mag)
+    plain_cal = _plain_correction(mag, fit=session_fit)
     calibrated = np.linalg.solve(D, (mag - o).T).T if condition < np.inf else plain_cal
 
     spread = {

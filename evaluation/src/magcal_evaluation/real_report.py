@@ -6,7 +6,7 @@
 Calibrates each case of the data folder (see :mod:`magcal_evaluation.real`) with every
 method, scores it with the reference attitude against the plain fit and the known-attitude
 floor, and writes a Markdown report (the command, date, machine, commit, the heading table,
-the estimates per method, the acceptance criteria) and the raw figures beside it (``.json``).
+the estimates per method, the acceptance criteria) and every case's figures as JSON (--raw).
 A refused method is shown "refused", and its forced result (force=True) is scored too. One
 process per case, --workers at a time. Exits 1 when a criterion fails (after writing).
 """
@@ -152,8 +152,9 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "## Estimates per method",
         "",
         "Gyroscope bias: the result's, norm (vector), °/s (init and the norm-only methods "
-        "take it from the session's rest periods, zero without any). Misalignment: the rotation of the magnetometer axes "
-        "against the body axes, the rotation part of D by polar decomposition "
+        "take it from the session's rest periods, zero without any). "
+        "Misalignment: the rotation of the magnetometer axes against the body axes, the "
+        "rotation part of D by polar decomposition "
         "(`magcal.calib.diagnostics.uncertainty.misalignment_deg`): angle (rotation vector), "
         "degrees. Time offset: the magnetometer's delay against the inertial sensors, when the "
         'result has one (`time_offset_s`), else "–". Time: one `calibrate()` call, s.',
@@ -200,6 +201,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the real-data folder (default: shared/realdata beside the checkout)",
     )
     ap.add_argument("--out", default="bench/real.md", help="Markdown report path")
+    ap.add_argument(
+        "--raw",
+        default="out/real.json",
+        help="the figures of every case as JSON (default %(default)s)",
+    )
     ap.add_argument("--workers", type=int, default=2, help="processes (default 2)")
     ap.add_argument("--cases", default="", help="comma-separated subset of the cases")
     args = ap.parse_args(argv)
@@ -252,14 +258,16 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(render_markdown(results, verdicts, meta) + "\n", encoding="utf-8")
-    with open(out.with_suffix(".json"), "w", encoding="utf-8") as f:
+    raw = Path(args.raw)
+    raw.parent.mkdir(parents=True, exist_ok=True)
+    with open(raw, "w", encoding="utf-8") as f:
         json.dump({"meta": meta, "cases": results}, f, indent=1, default=float)
         f.write("\n")
 
     for c in verdicts:
         res = "n/a" if c.passed is None else ("pass" if c.passed else "FAIL")
         print(f"{res:>4}  {c.text}: {c.measured}", file=sys.stderr)
-    print(f"wrote {out} in {wall:.0f} s", file=sys.stderr)
+    print(f"wrote {out} and {raw} in {wall:.0f} s", file=sys.stderr)
     errors = [r["case"] for r in results if "error" in r]
     if errors:
         print(f"cases that raised: {', '.join(errors)}", file=sys.stderr)

@@ -6,7 +6,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT := out
 
-.PHONY: setup demo test test-native lint accuracy cramer-rao bench clean firmware-lib
+.PHONY: setup demo test test-native lint accuracy real cramer-rao bench clean firmware-lib
 
 # The portable library is every file in firmware/src; ports (POSIX SIL device, Cortex-M4
 # target) live in firmware/port/ and are built by their own targets.
@@ -78,6 +78,13 @@ build/libmagcal_fw.so: $(FW_SRC) $(FW_HDR)
 
 accuracy: setup
 	$(PY) -m magcal_evaluation.accuracy_report --runs 20 --table2-runs 150 --out bench/accuracy.md --plots $(OUT)/accuracy
+
+# Every method on real recordings with an optical reference attitude, against the plain
+# ellipsoid fit and the known-attitude floor (REALDATA: the data set, shared/realdata beside
+# the checkout by default). Exits 1 when an acceptance criterion fails, after writing.
+REALDATA ?= ../shared/realdata
+real: setup
+	$(PY) -m magcal_evaluation.real_report --data $(REALDATA) --out bench/real.md --raw $(OUT)/real.json
 
 # The Cramér–Rao bound of the MEMS checks with unknown translational accelerations.
 cramer-rao: setup

@@ -2,6 +2,10 @@
 
 - :mod:`~magcal_evaluation.accuracy`: the accuracy checks on seeded simulations (``make
   accuracy``, report by :mod:`~magcal_evaluation.accuracy_report`)
+- :mod:`~magcal_evaluation.real`: every method on real recordings with an optical reference
+  attitude, against the plain ellipsoid fit and the known-attitude floor (``make real``,
+  report by :mod:`~magcal_evaluation.real_report`; the excerpt in ``evaluation/data/real``
+  cut by :mod:`~magcal_evaluation.real_excerpt`)
 - :mod:`~magcal_evaluation.cramer_rao`: the Cramér–Rao bound on the heading error with
   unknown translational accelerations (``make cramer-rao``, report by
   :mod:`~magcal_evaluation.cramer_rao_report`)

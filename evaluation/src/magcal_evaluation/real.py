@@ -1,0 +1,520 @@
+"""magcal on real recordings with an optical reference attitude: the heading metric, the
+plain-fit baseline, the known-attitude floor, every method, the acceptance criteria.
+
+Pure functions on arrays (plus the reading of a data folder); the report that runs them is
+:mod:`magcal_evaluation.real_report` (``make real``).
+
+The data folder (default :data:`DEFAULT_DATA_DIR`, the checkout's sibling ``shared/realdata``)
+holds ``cases.json`` (the cases, in order, with their ``source``), ``sessions/CASE.csv`` (the
+magcal session a calibration is made from) and ``truth/CASE.npz`` (what it is scored on: for
+each trial ``i`` the times ``t_i`` (s), the raw magnetometer ``mag_i`` (the session's unit),
+the reference attitude ``quat_wxyz_i`` (body → world, world x east, y north, z up), the
+scored samples ``valid_i``; and ``declination_deg``, the field's heading in the world frame).
+
+**The metric** (:func:`heading_errors_rad`). A calibration ``(D, o)`` corrects a sample to
+``m = D⁻¹(y − o)`` in the body axes; the reference attitude rotates it into the world; its
+heading ``atan2(east, north) − declination``, wrapped to (−180°, 180°], is the error. The RMS
+over a trial's scored samples, and the median over a case's trials, in degrees
+(:func:`case_heading_deg`).
+
+**The plain fit** (:func:`plain_fit`): the ellipsoid of the magnetometer data alone and its
+symmetric ``D = (D̃D̃ᵀ)^½`` (:func:`magcal.calib.initial.ellipsoid.symmetric_fit`: no rotation
+between magnetometer and body axes), what a calibrator that ignores the other sensors gives.
+The ellipsoid is magcal's algebraic fit
+(:func:`magcal.calib.initial.ellipsoid.fit_ellipsoid_algebraic`: least squares of the
+quadric's algebraic residual in centred, scaled coordinates, no positive-definiteness
+constraint). It fails (None) when the quadric is no ellipsoid, as on a recording whose field
+changes with position. magcal's own SDP fit (``fit_ellipsoid_sdp``) would instead return the
+best ellipsoid there is; :func:`plain_fit_sdp` gives that variant for comparison.
+
+**The known-attitude floor** (:func:`known_attitude_floor`): least squares of ``y`` on
+``D R(t)ᵀ m + o`` with the reference ``R(t)`` (body → world), solving ``D`` (9), ``o`` (3)
+and the unit field ``m`` in the world frame (its heading and dip). It is fitted on every
+sample of the recording that has a reference attitude, scored on the scored ones, and its
+heading error is taken from its own field heading: the floor solves the world frame's north
+along with the rest. What remains is the field's inhomogeneity and the reference's error.
+
+Frames: :func:`magcal.calib.diagnostics.quality.known_attitude_fit` solves ``D, o`` for a
+*given* field ``m_n`` and attitude ``q_nb``; it only forms ``R(q_nb)ᵀ m_n``, so any world
+frame serves as long as the attitude and the field are expressed in the same one. Here it is
+called with the reference's world frame (east, north, up) directly, and the field direction
+is solved around it (:func:`known_attitude_floor`). magcal's navigation frame (x magnetic
+north, y west, z up) is that world frame turned about the vertical:
+``v_n = Rz(90° − ψ_m) v_world`` with ``ψ_m`` the field's heading (east of north), which the
+metric never needs, since it compares headings in the world frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import scipy.optimize
+
+from magcal.calib import frames
+from magcal.calib.calibrate import METHODS, calibrate
+from magcal.calib.diagnostics import quality
+from magcal.calib.diagnostics.uncertainty import misalignment_deg
+from magcal.calib.initial.ellipsoid import (
+    fit_ellipsoid_algebraic,
+    fit_ellipsoid_sdp,
+    symmetric_fit,
+)
+from magcal.errors import MagcalError
+from magcal.io.session import Session, read_session
+from magcal_evaluation import REPO_ROOT
+
+#: The data folder in a checkout: ``shared/realdata`` beside the repository.
+DEFAULT_DATA_DIR = REPO_ROOT.parent / "shared" / "realdata"
+
+#: The acceptance criteria (:func:`criteria`). ML no worse than the plain fit on any case ...
+ML_PER_CASE_MAX_RATIO_TO_PLAIN = 1.03
+#: ... and better by this factor in the median over cases.
+ML_MEDIAN_MAX_RATIO_TO_PLAIN = 0.92
+#: On the recordings of this source (no magnetometer lag, reference on the recording itself),
+#: the median ML/floor ...
+FLOOR_SOURCE = "BROAD"
+ML_MEDIAN_MAX_RATIO_TO_FLOOR = 1.25
+#: A recording whose field changes with position, and the clean part of the same recording:
+#: refused with a message about the field, or calibrated within this factor of the clean part.
+CHANGING_FIELD_CASE = "fiumarg_rec11_full"
+CLEAN_PART_CASE = "fiumarg_rec11_undist"
+CHANGING_FIELD_MAX_RATIO_TO_CLEAN = 1.1
+#: What a refusal of a changing field says (case-insensitive).
+CHANGING_FIELD_MESSAGE = re.compile(
+    r"field.*(chang|vari|inhomogen|position|disturb)|(chang|vari|inhomogen|disturb).*field",
+    re.IGNORECASE | re.DOTALL,
+)
+#: No method may be worse than this factor of the plain fit without refusing.
+ANY_METHOD_MAX_RATIO_TO_PLAIN = 2.0
+
+#: Known-attitude floor: the alternating least squares that start the Levenberg–Marquardt
+#: fit (each one cheap; a few bring it close).
+FLOOR_ALTERNATIONS = 5
+FLOOR_TOLERANCE = 1e-12
+
+
+class RealDataError(MagcalError):
+    """The data folder is missing or incomplete."""
+
+
+# ----------------------------------------------------------------------------- reading
+
+
+@dataclass(frozen=True, eq=False)
+class Trial:
+    """One scored recording.
+
+    t     : (N,) s;  mag : (N, 3) raw magnetometer, the session's unit
+    q_wb  : (N, 4) reference attitude, body → world (x east, y north, z up), scalar first;
+            NaN where the reference has no attitude
+    valid : (N,) bool, the samples the metric scores
+    """
+
+    name: str
+    t: np.ndarray
+    mag: np.ndarray
+    q_wb: np.ndarray
+    valid: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Case:
+    """A session to calibrate and the trials it is scored on."""
+
+    name: str
+    info: dict
+    session: Session
+    trials: tuple[Trial, ...]
+    declination_deg: float
+
+    @property
+    def source(self) -> str:
+        return str(self.info.get("source", ""))
+
+
+def case_names(data_dir: str | Path) -> list[str]:
+    """The cases of ``data_dir/cases.json``, in its order. Raises :class:`RealDataError` when
+    the folder or the file is missing."""
+    data_dir = Path(data_dir)
+    index = data_dir / "cases.json"
+    if not data_dir.is_dir():
+        raise RealDataError(
+            f"real recordings: no folder {data_dir}; put the real-data set there (cases.json, "
+            "sessions/, truth/) or name another with --data"
+        )
+    if not index.is_file():
+        raise RealDataError(
+            f"real recordings: {data_dir} has no cases.json; is it the real-data set?"
+        )
+    return list(json.loads(index.read_text(encoding="utf-8")))
+
+
+def load_truth(path: str | Path) -> tuple[tuple[Trial, ...], float]:
+    """The trials and the declination (degrees) of a ``truth/CASE.npz``."""
+    with np.load(path) as z:
+        names = [str(n) for n in z["trial_names"]]
+        trials = tuple(
+            Trial(
+                name=name,
+                t=np.asarray(z[f"t_{i}"], dtype=float),
+                mag=np.asarray(z[f"mag_{i}"], dtype=float),
+                q_wb=np.asarray(z[f"quat_wxyz_{i}"], dtype=float),
+                valid=np.asarray(z[f"valid_{i}"], dtype=bool),
+            )
+            for i, name in enumerate(names)
+        )
+        declination = float(np.ravel(z["declination_deg"])[0])
+    return trials, declination
+
+
+def load_case(data_dir: str | Path, name: str) -> Case:
+    data_dir = Path(data_dir)
+    info = json.loads((data_dir / "cases.json").read_text(encoding="utf-8"))[name]
+    for sub, ext in (("sessions", "csv"), ("truth", "npz")):
+        if not (data_dir / sub / f"{name}.{ext}").is_file():
+            raise RealDataError(f"real recordings: {data_dir / sub / f'{name}.{ext}'} missing")
+    session = read_session(data_dir / "sessions" / f"{name}.csv")
+    trials, declination = load_truth(data_dir / "truth" / f"{name}.npz")
+    return Case(name, info, session, trials, declination)
+
+
+def scored_on_own_recording(case: Case) -> bool:
+    """True when the case is scored on the recording it is calibrated from (one trial with
+    the session's magnetometer samples): only then is a known-attitude floor a bound on what
+    a calibration of the session can do."""
+    if len(case.trials) != 1:
+        return False
+    trial = case.trials[0]
+    return trial.mag.shape == case.session.mag.shape and bool(
+        np.allclose(trial.mag, case.session.mag, rtol=1e-6, atol=1e-9 * np.abs(trial.mag).max())
+    )
+
+
+# ----------------------------------------------------------------------------- the metric
+
+
+def heading_errors_rad(
+    D: np.ndarray, o: np.ndarray, mag: np.ndarray, q_wb: np.ndarray, declination_deg: float
+) -> np.ndarray:
+    """(N,) rad: ``atan2(east, north) − declination`` of ``R(q_wb) D⁻¹(y − o)``, wrapped.
+
+    D : (3, 3), raw units per unit field;  o : (3,) raw units;  mag : (N, 3) raw units
+    q_wb : (N, 4) body → world (x east, y north, z up);  declination_deg : the field's heading
+    """
+    m_b = np.linalg.solve(np.asarray(D, dtype=float), (np.asarray(mag) - o).T).T
+    m_w = np.einsum("kij,kj->ki", frames.quat_to_matrix(q_wb), m_b)
+    return frames.wrap_angle(np.arctan2(m_w[:, 0], m_w[:, 1]) - math.radians(declination_deg))
+
+
+def trial_heading_deg(D: np.ndarray, o: np.ndarray, trial: Trial, declination_deg: float) -> float:
+    """RMS heading error (degrees) over the trial's scored samples."""
+    v = trial.valid
+    return quality.rms_deg(heading_errors_rad(D, o, trial.mag[v], trial.q_wb[v], declination_deg))
+
+
+def case_heading_deg(
+    D: np.ndarray, o: np.ndarray, case: Case, declination_deg: float | None = None
+) -> float:
+    """Median over the case's trials of :func:`trial_heading_deg` (declination: the case's
+    unless given)."""
+    decl = case.declination_deg if declination_deg is None else declination_deg
+    return float(np.median([trial_heading_deg(D, o, tr, decl) for tr in case.trials]))
+
+
+# ----------------------------------------------------------------------------- references
+
+
+def plain_fit(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The plain fit: (D (3, 3) symmetric, o (3,)) in raw units, or None when the algebraic
+    ellipsoid fit of ``mag`` (N, 3) is no ellipsoid. See the module's docstring."""
+    try:
+        fit = fit_ellipsoid_algebraic(mag)
+    except MagcalError:
+        return None
+    if fit is None:
+        return None
+    return symmetric_fit(fit), fit.o
+
+
+def plain_fit_sdp(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The same with magcal's SDP ellipsoid (positive definite by construction), or None
+    when it raises."""
+    try:
+        fit = fit_ellipsoid_sdp(mag)
+    except MagcalError:
+        return None
+    return symmetric_fit(fit), fit.o
+
+
+@dataclass(frozen=True, eq=False)
+class FloorFit:
+    """The known-attitude fit. D (3, 3), o (3,): raw units; m_w (3,): unit field in the world
+    frame; heading_deg: its heading east of north; dip_deg: positive down."""
+
+    D: np.ndarray
+    o: np.ndarray
+    m_w: np.ndarray
+    heading_deg: float
+    dip_deg: float
+
+
+def _field_of(heading: float, dip: float) -> np.ndarray:
+    """Unit field (east, north, up) of a heading east of north and a dip (down), rad."""
+    return np.array(
+        [math.sin(heading) * math.cos(dip), math.cos(heading) * math.cos(dip), -math.sin(dip)]
+    )
+
+
+def known_attitude_floor(mag: np.ndarray, q_wb: np.ndarray) -> FloorFit:
+    """Least squares of ``mag`` (N, 3) on ``D R(q_wb)ᵀ m + o`` over D, o and the unit ``m``.
+
+    The model is linear in (D, o) for a given m (``quality.known_attitude_fit``) and linear
+    in m for a given D: a few alternations from the bilinear solution (``D ⊗ m`` unknown as
+    27 coefficients, its best rank-one factor) start a Levenberg–Marquardt fit of all 14
+    unknowns, m as a heading and a dip.
+    """
+    mag = np.asarray(mag, dtype=float)
+    R_wb = frames.quat_to_matrix(q_wb)
+    R_bw = np.transpose(R_wb, (0, 2, 1))
+    n = mag.shape[0]
+    # y_i = Σ_jk D_ij m_k (R_bw)_jk + o_i: linear in the 27 products D_ij m_k.
+    X = np.hstack([R_bw.reshape(n, 9), np.ones((n, 1))])
+    coef, *_ = np.linalg.lstsq(X, mag, rcond=None)
+    products = coef[:9].T.reshape(9, 3)  # rows (i, j), columns k
+    m = np.linalg.svd(products)[2][0]
+    if m[2] > 0.0:  # the sign is D's and m's together; take the field pointing down
+        m = -m
+    for _ in range(FLOOR_ALTERNATIONS):
+        D, o = quality.known_attitude_fit(mag, q_wb, m)
+        A = np.einsum("ij,kjl->kil", D, R_bw).reshape(-1, 3)
+        m, *_ = np.linalg.lstsq(A, (mag - o).ravel(), rcond=None)
+        m /= np.linalg.norm(m)
+    D, o = quality.known_attitude_fit(mag, q_wb, m)
+
+    def unpack(p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        return p[:9].reshape(3, 3), p[9:12], _field_of(p[12], p[13])
+
+    def residual(p: np.ndarray) -> np.ndarray:
+        D_, o_, m_ = unpack(p)
+        return ((R_bw @ m_) @ D_.T + o_ - mag).ravel()
+
+    p0 = np.concatenate([D.ravel(), o, [math.atan2(m[0], m[1]), math.asin(-m[2])]])
+    sol = scipy.optimize.least_squares(
+        residual, p0, method="lm", xtol=FLOOR_TOLERANCE, ftol=FLOOR_TOLERANCE
+    )
+    D, o, m = unpack(sol.x)
+    return FloorFit(
+        D=D,
+        o=o,
+        m_w=m,
+        heading_deg=math.degrees(math.atan2(m[0], m[1])),
+        dip_deg=math.degrees(math.asin(-m[2])),
+    )
+
+
+def case_floor(case: Case) -> FloorFit | None:
+    """The floor of a case scored on its own recording (fitted on the samples that have a
+    reference attitude), else None."""
+    if not scored_on_own_recording(case):
+        return None
+    trial = case.trials[0]
+    have = np.all(np.isfinite(trial.q_wb), axis=1)
+    return known_attitude_floor(trial.mag[have], trial.q_wb[have])
+
+
+# ----------------------------------------------------------------------------- methods
+
+
+@dataclass
+class MethodRun:
+    """One method on one case. heading_deg: the metric (NaN when refused); refused: the
+    refusal's message or None; the rest describes the estimate (None when refused)."""
+
+    method: str
+    heading_deg: float = math.nan
+    refused: str | None = None
+    gyro_bias_deg_s: list[float] | None = None
+    misalignment_deg: float | None = None
+    misalignment_vec_deg: list[float] | None = None
+    time_offset_s: float | None = None
+    seconds: float = 0.0
+    warnings: list[str] = field(default_factory=list)
+
+
+def run_method(case: Case, method: str, *, force: bool = False) -> MethodRun:
+    """``calibrate(case.session, method, force=force)`` scored on the case."""
+    t0 = time.perf_counter()
+    try:
+        cal = calibrate(case.session, method, force=force)
+    except MagcalError as exc:
+        return MethodRun(method, refused=str(exc), seconds=time.perf_counter() - t0)
+    seconds = time.perf_counter() - t0
+    res = cal.result
+    mis = misalignment_deg(res.D)
+    offset = res.extra.get("time_offset_s")
+    return MethodRun(
+        method=method,
+        heading_deg=case_heading_deg(res.D, res.o, case),
+        gyro_bias_deg_s=None
+        if res.gyro_bias is None
+        else [float(x) for x in np.rad2deg(res.gyro_bias)],
+        misalignment_deg=float(np.linalg.norm(mis)),
+        misalignment_vec_deg=[float(x) for x in mis],
+        time_offset_s=None if offset is None else float(offset),
+        seconds=seconds,
+        warnings=list(res.warnings),
+    )
+
+
+def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
+    """Everything the report shows of one case, JSON-ready: ``plain``, ``plain_sdp`` and
+    ``floor`` (degrees or None), the floor's field heading and dip, and per method its
+    :class:`MethodRun` as a dict, plus ``forced`` (the run with force=True) when refused."""
+    t0 = time.perf_counter()
+    plain = plain_fit(case.session.mag)
+    sdp = plain_fit_sdp(case.session.mag)
+    floor = case_floor(case)
+    out: dict = {
+        "case": case.name,
+        "source": case.source,
+        "samples": len(case.session),
+        "trials": len(case.trials),
+        "plain": None if plain is None else case_heading_deg(*plain, case),
+        "plain_sdp": None if sdp is None else case_heading_deg(*sdp, case),
+        "floor": None
+        if floor is None
+        else case_heading_deg(floor.D, floor.o, case, floor.heading_deg),
+        "floor_field_heading_deg": None if floor is None else floor.heading_deg,
+        "floor_dip_deg": None if floor is None else floor.dip_deg,
+        "methods": {},
+    }
+    for method in methods:
+        run = run_method(case, method)
+        entry = dict(run.__dict__)
+        if run.refused is not None:
+            entry["forced"] = dict(run_method(case, method, force=True).__dict__)
+        out["methods"][method] = entry
+    out["seconds"] = time.perf_counter() - t0
+    return out
+
+
+# ----------------------------------------------------------------------------- criteria
+
+
+@dataclass(frozen=True)
+class Criterion:
+    """One acceptance criterion: its text, what was measured, and pass (True), fail (False)
+    or not applicable (None: the cases it needs are not in the data)."""
+
+    text: str
+    measured: str
+    passed: bool | None
+
+
+def ratio(a: float | None, b: float | None) -> float | None:
+    if a is None or b is None or not (math.isfinite(a) and math.isfinite(b)) or b <= 0.0:
+        return None
+    return a / b
+
+
+def criteria(results: list[dict]) -> list[Criterion]:
+    """The acceptance criteria on :func:`evaluate_case` results (ML: method "ml")."""
+    by_name = {r["case"]: r for r in results}
+    out = []
+
+    with_plain = [r for r in results if r["plain"] is not None and "ml" in r["methods"]]
+    per_case = []
+    for r in with_plain:
+        ml = r["methods"]["ml"]
+        q = ratio(ml["heading_deg"], r["plain"])
+        per_case.append((r["case"], q, ml["refused"] is not None))
+    bad = [
+        f"{name} {'refused' if refused else f'{q:.2f}'}"
+        for name, q, refused in per_case
+        if refused or q is None or q > ML_PER_CASE_MAX_RATIO_TO_PLAIN
+    ]
+    worst = max((q for _, q, _ in per_case if q is not None), default=None)
+    out.append(
+        Criterion(
+            f"ML ≤ {ML_PER_CASE_MAX_RATIO_TO_PLAIN} × plain fit on every case with a plain fit "
+            "(a refusal fails it)",
+            f"worst {worst:.2f}; beyond: {', '.join(bad) or 'none'}"
+            if worst is not None
+            else "no case",
+            None if not per_case else not bad,
+        )
+    )
+
+    qs = [q for _, q, _ in per_case if q is not None]
+    med = float(np.median(qs)) if qs else None
+    out.append(
+        Criterion(
+            f"median over cases of ML/plain ≤ {ML_MEDIAN_MAX_RATIO_TO_PLAIN}",
+            f"{med:.2f} over {len(qs)} cases" if med is not None else "no case",
+            None if med is None else med <= ML_MEDIAN_MAX_RATIO_TO_PLAIN,
+        )
+    )
+
+    floor_q = [
+        ratio(r["methods"]["ml"]["heading_deg"], r["floor"])
+        for r in results
+        if r["source"] == FLOOR_SOURCE and r["floor"] is not None and "ml" in r["methods"]
+    ]
+    refused_floor = any(q is None for q in floor_q)
+    fq = [q for q in floor_q if q is not None]
+    med_f = float(np.median(fq)) if fq else None
+    out.append(
+        Criterion(
+            f"{FLOOR_SOURCE} cases: median ML/floor ≤ {ML_MEDIAN_MAX_RATIO_TO_FLOOR}",
+            (f"{med_f:.2f} over {len(fq)} cases" if med_f is not None else "no case")
+            + (" (ML refused some)" if refused_floor else ""),
+            None
+            if med_f is None
+            else (med_f <= ML_MEDIAN_MAX_RATIO_TO_FLOOR and not refused_floor),
+        )
+    )
+
+    full, clean = by_name.get(CHANGING_FIELD_CASE), by_name.get(CLEAN_PART_CASE)
+    text = (
+        f"{CHANGING_FIELD_CASE} (the field changes with position): ML refuses it with a "
+        f"message about the field, or calibrates it within {CHANGING_FIELD_MAX_RATIO_TO_CLEAN}"
+        f" × ML on {CLEAN_PART_CASE}"
+    )
+    if full is None or clean is None or "ml" not in full["methods"]:
+        out.append(Criterion(text, "cases not in the data", None))
+    else:
+        ml_full, ml_clean = full["methods"]["ml"], clean["methods"]["ml"]
+        if ml_full["refused"] is not None:
+            ok = bool(CHANGING_FIELD_MESSAGE.search(ml_full["refused"]))
+            measured = f"refused: {ml_full['refused'][:160]}"
+        else:
+            q = ratio(ml_full["heading_deg"], ml_clean["heading_deg"])
+            ok = q is not None and q <= CHANGING_FIELD_MAX_RATIO_TO_CLEAN
+            measured = (
+                f"calibrated: {ml_full['heading_deg']:.2f}° against "
+                f"{ml_clean['heading_deg']:.2f}° on the clean part"
+                + (f" ({q:.2f}×)" if q is not None else " (clean part refused)")
+            )
+        out.append(Criterion(text, measured, ok))
+
+    worse = []
+    for r in with_plain:
+        for method, m in r["methods"].items():
+            q = ratio(m["heading_deg"], r["plain"])
+            if m["refused"] is None and (q is None or q > ANY_METHOD_MAX_RATIO_TO_PLAIN):
+                worse.append(f"{r['case']} {method} {'–' if q is None else f'{q:.1f}'}")
+    out.append(
+        Criterion(
+            f"no method worse than {ANY_METHOD_MAX_RATIO_TO_PLAIN:g} × plain fit without "
+            "refusing (cases with a plain fit)",
+            ", ".join(worse) or "none",
+            None if not with_plain else not worse,
+        )
+    )
+    return out

@@ -1,0 +1,141 @@
+"""The real-data metric, the plain fit and the known-attitude floor on synthetic data with a
+known attitude (:mod:`magcal_evaluation.real`)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from magcal.calib import frames
+from magcal_evaluation import real
+
+DECLINATION_DEG = 23.0
+DIP_DEG = 60.0
+FIELD_UT = 48.0
+
+
+def _field_w() -> np.ndarray:
+    return real._field_of(math.radians(DECLINATION_DEG), math.radians(DIP_DEG))
+
+
+def _simulate(D, o, q_wb, noise_ut=0.0, seed=0):
+    """y = D R(q_wb)ᵀ m_w + o (+ noise), (N, 3) µT."""
+    R_bw = np.transpose(frames.quat_to_matrix(q_wb), (0, 2, 1))
+    y = (R_bw @ _field_w()) @ np.asarray(D).T + o
+    return y + noise_ut * np.random.default_rng(seed).standard_normal(y.shape)
+
+
+def _distortion(seed: int, symmetric: bool) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    A = np.eye(3) + 0.15 * rng.standard_normal((3, 3))
+    if symmetric:
+        A = 0.5 * (A + A.T)
+    return FIELD_UT * A, 30.0 * rng.standard_normal(3)
+
+
+def _level_attitudes(n: int) -> np.ndarray:
+    """Level attitudes (body z up) at yaws spread over the circle."""
+    yaw = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    return np.column_stack([np.cos(yaw / 2), np.zeros(n), np.zeros(n), np.sin(yaw / 2)])
+
+
+def _trial(mag, q_wb) -> real.Trial:
+    n = mag.shape[0]
+    return real.Trial("synthetic", np.arange(n) * 0.01, mag, q_wb, np.ones(n, bool))
+
+
+def test_true_calibration_gives_zero_heading_error():
+    q = frames.so3_grid(500)
+    D, o = _distortion(1, symmetric=False)
+    y = _simulate(D, o, q)
+    err = real.heading_errors_rad(D, o, y, q, DECLINATION_DEG)
+    assert np.max(np.abs(err)) < 1e-9
+    assert real.trial_heading_deg(D, o, _trial(y, q), DECLINATION_DEG) < 1e-7
+
+
+@pytest.mark.parametrize("alpha_deg", [3.0, -10.0, 170.0])
+def test_a_rotation_of_D_about_the_vertical_shifts_the_heading_by_its_angle(alpha_deg):
+    # Level attitudes: a rotation of the body axes about body z (= up) by α turns the
+    # corrected field by −α about the vertical, i.e. its heading (east of north) by +α.
+    q = _level_attitudes(72)
+    D, o = _distortion(2, symmetric=False)
+    y = _simulate(D, o, q)
+    a = math.radians(alpha_deg)
+    U = np.array([[math.cos(a), -math.sin(a), 0.0], [math.sin(a), math.cos(a), 0.0], [0, 0, 1]])
+    err = real.heading_errors_rad(D @ U, o, y, q, DECLINATION_DEG)
+    np.testing.assert_allclose(err, a, atol=1e-9)
+    assert real.trial_heading_deg(D @ U, o, _trial(y, q), DECLINATION_DEG) == pytest.approx(
+        abs(alpha_deg), abs=1e-7
+    )
+
+
+def test_the_error_is_wrapped_and_the_median_is_over_trials():
+    q = _level_attitudes(36)
+    D, o = _distortion(3, symmetric=False)
+    y = _simulate(D, o, q)
+    # A declination off by 350° is an error of 10°, not 350°.
+    assert real.trial_heading_deg(D, o, _trial(y, q), DECLINATION_DEG - 350.0) == pytest.approx(
+        10.0, abs=1e-7
+    )
+    trials = tuple(_trial(y, q) for _ in range(3))
+    case = real.Case("c", {}, None, trials, DECLINATION_DEG + 5.0)
+    assert real.case_heading_deg(D, o, case) == pytest.approx(5.0, abs=1e-7)
+
+
+def test_invalid_samples_are_not_scored():
+    q = frames.so3_grid(200)
+    D, o = _distortion(4, symmetric=False)
+    y = _simulate(D, o, q)
+    y[::2] += 100.0  # garbage where the reference is not scored
+    valid = np.zeros(200, bool)
+    valid[1::2] = True
+    trial = real.Trial("t", np.arange(200.0), y, q, valid)
+    assert real.trial_heading_deg(D, o, trial, DECLINATION_DEG) < 1e-7
+
+
+def test_plain_fit_recovers_a_symmetric_distortion():
+    q = frames.so3_grid(800)
+    D, o = _distortion(5, symmetric=True)
+    y = _simulate(D, o, q)
+    D_fit, o_fit = real.plain_fit(y)
+    np.testing.assert_allclose(D_fit, D, rtol=0, atol=1e-6 * FIELD_UT)
+    np.testing.assert_allclose(o_fit, o, rtol=0, atol=1e-6 * FIELD_UT)
+
+
+def test_plain_fit_cannot_see_a_misalignment():
+    # D = P U: the plain fit finds P and misses the rotation U, so it is worse than the
+    # floor by about U's angle.
+    q = frames.so3_grid(800)
+    P, o = _distortion(6, symmetric=True)
+    U = frames.quat_to_matrix(frames.rotvec_to_quat(np.deg2rad([0.0, 0.0, 4.0])))
+    y = _simulate(P @ U, o, q)
+    D_fit, _ = real.plain_fit(y)
+    np.testing.assert_allclose(D_fit, P, atol=1e-6 * FIELD_UT)
+    assert real.trial_heading_deg(D_fit, o, _trial(y, q), DECLINATION_DEG) > 2.0
+
+
+@pytest.mark.parametrize("noise_ut", [0.0, 0.3])
+def test_known_attitude_floor_recovers_the_truth(noise_ut):
+    q = frames.so3_grid(1500)
+    D, o = _distortion(7, symmetric=False)
+    y = _simulate(D, o, q, noise_ut=noise_ut, seed=7)
+    fit = real.known_attitude_floor(y, q)
+    tol = 1e-6 if noise_ut == 0.0 else 0.02  # relative; 0.3 µT noise on a 48 µT field
+    np.testing.assert_allclose(fit.D, D, atol=tol * FIELD_UT)
+    np.testing.assert_allclose(fit.o, o, atol=tol * FIELD_UT)
+    np.testing.assert_allclose(fit.m_w, _field_w(), atol=tol)
+    assert fit.heading_deg == pytest.approx(DECLINATION_DEG, abs=100 * tol)
+    assert fit.dip_deg == pytest.approx(DIP_DEG, abs=100 * tol)
+    # ... and the plain fit of the same data is no better than the floor.
+    D_p, o_p = real.plain_fit(y)
+    trial = _trial(y, q)
+    floor = real.trial_heading_deg(fit.D, fit.o, trial, fit.heading_deg)
+    assert floor <= real.trial_heading_deg(D_p, o_p, trial, DECLINATION_DEG) + 1e-9
+
+
+def test_missing_data_folder_is_named(tmp_path):
+    missing = tmp_path / "realdata"
+    with pytest.raises(real.RealDataError, match=str(missing)):
+        real.case_names(missing)

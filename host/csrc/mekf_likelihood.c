@@ -600,25 +600,21 @@ typedef struct {
     double Mi_bar[9];  /* Σ m̄ of Σm⁻¹ (besides K)              */
     double K_bar[9];   /* Σ of K̄                                */
     size_t n0;         /* samples with the accelerometer and c_t = 0 */
-    size_t nm;         /* samples with the magnetometer          */
 } grad_acc_t;
 
 /* The accelerometer's share of the reverse of step_forward's update at sample k (present
- * there): from the adjoints ū of u and J̄ of J (Jb, symmetric) into the torque tq and the
- * model adjoints, including those of Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I). */
-static ALWAYS_INLINE void acc_reverse(const pass_t *p, size_t k, const double *restrict R,
-                                      const double *restrict u_bar, const double *restrict Jb,
-                                      double *restrict tq, grad_acc_t *restrict acc)
+ * there, its information Ai): from the adjoints ū of u and J̄ of J (Jb, symmetric) into the
+ * torque tq, and the adjoint of Ai into Ai_bar (for acc_information_reverse). */
+static ALWAYS_INLINE void acc_reverse(const pass_t *p, size_t k, const double *restrict Ai,
+                                      const double *restrict R, const double *restrict u_bar,
+                                      const double *restrict Jb, double *restrict tq,
+                                      double *restrict Ai_bar)
 {
     const mc_mekf_data_t *d = p->d;
-    mc_mekf_model_t *gm = &acc->g;
     const double g = p->g;
     const double *r0 = R, *r1 = R + 3, *r2 = R + 6;
-    const double cx = acc_extra(d, k);
-    double Ai_buf[9], det_Sa;
-    const double *Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
     const double *ya = d->acc + 3 * k;
-    double ea[3], za[3], za_bar[3], ea_bar[3], Ai_bar[9], p0[3], p1[3], t3[3];
+    double ea[3], za[3], za_bar[3], ea_bar[3], p0[3], p1[3], t3[3];
     for (int i = 0; i < 3; ++i) ea[i] = ya[i] - g * r2[i];
     mat_vec(Ai, ea, za);
     /* u_a = (g r1·za, −g r0·za, 0) = g_n × (R za): the rows 0, 1 of R get v̄a zaᵀ,
@@ -650,8 +646,14 @@ static ALWAYS_INLINE void acc_reverse(const pass_t *p, size_t k, const double *r
     for (int i = 0; i < 3; ++i) ea_bar[i] = -g * (ea_bar[i] + 0.5 * za[i]);
     cross3(ea_bar, r2, t3);
     for (int i = 0; i < 3; ++i) tq[i] += t3[i];
+}
 
-    /* Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I) */
+/* Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I): the adjoints of Σa from Āi. */
+static ALWAYS_INLINE void acc_information_reverse(double cx, const double *restrict Ai,
+                                                  const double *restrict Ai_bar,
+                                                  grad_acc_t *restrict acc)
+{
+    mc_mekf_model_t *gm = &acc->g;
     if (cx == 0.0) {
         for (int t = 0; t < 6; ++t) acc->Ai0_bar[UPPER[t]] += Ai_bar[UPPER[t]];
         acc->n0 += 1;
@@ -747,7 +749,6 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, int ha, int hm
     const mc_mekf_data_t *d = p->d;
     mc_mekf_model_t *gm = &acc->g;
     double R[9], tq[3];
-    quat_to_mat(rec + TAPE_Q1, R);
 
     if (ha || hm) {
         /* q_out = exp_q(η/2) ⊙ q1: η̄ = Jr(η)ᵀ R δ̄_out; and the cost's −½ uᵀη. The torque
@@ -756,6 +757,7 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, int ha, int hm
         double Y[9], Pu[9], w[3], eta_bar[3];
         sym_unpack(rec + TAPE_Y, Y);
         sym_unpack(rec + TAPE_PU, Pu);
+        quat_to_mat(rec + TAPE_Q1, R);
         memcpy(tq, tq_out, sizeof tq);
         mat_vec(R, tq_out, w);
         rotvec_apply(eta, w, NULL, eta_bar);
@@ -773,13 +775,18 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, int ha, int hm
         sym_sandwich(Y, Lam_bar, Pp_bar);
         for (int i = 0; i < 9; ++i) P_bar[i] = 0.5 * Y[i] - Pp_bar[i];
         /* J = J_a + J_m, u = u_a + u_m: each measurement present takes J̄ = Λ̄ and ū. */
-        if (ha) acc_reverse(p, k, R, u_bar, Lam_bar, tq, acc);
-        if (hm) {
-            acc->nm += 1;
-            mag_reverse(p, rec, R, u_bar, Lam_bar, tq, acc);
+        double cx = 0.0, Ai_buf[9], det_Sa, Ai_bar[9];
+        const double *Ai = NULL;
+        if (ha) {
+            cx = acc_extra(d, k);
+            Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
+            acc_reverse(p, k, Ai, R, u_bar, Lam_bar, tq, Ai_bar);
         }
+        if (hm) mag_reverse(p, rec, R, u_bar, Lam_bar, tq, acc);
+        if (ha) acc_information_reverse(cx, Ai, Ai_bar, acc);
     } else {
         /* No update: q_out = q1, Pu = Pp. */
+        quat_to_mat(rec + TAPE_Q1, R);
         memcpy(tq, tq_out, sizeof tq);
         memcpy(P_bar, Pu_bar_in, 9 * sizeof(double));
     }
@@ -908,8 +915,25 @@ static void load_prior(const mc_mekf_data_t *d, double *q, double *P)
 #define HOT_PASS NOINLINE
 #endif
 
+/* Each pass is compiled twice more: `masked` is a constant in the inlined loop bodies
+ * below, and with 0 (no mask given: every sample has the accelerometer, and the
+ * magnetometer with use_mag) the per-sample mask loads and the branches on them fold away,
+ * so sessions without masks run the code they ran before masks existed. */
+static ALWAYS_INLINE int any_mask(const mc_mekf_data_t *d)
+{
+    return d->has_acc || (d->use_mag && d->has_mag);
+}
+
+/* The measurements at sample k: *ha accelerometer, *hm magnetometer. */
+static ALWAYS_INLINE void sample_has(const mc_mekf_data_t *d, size_t k, int masked, int *ha,
+                                     int *hm)
+{
+    *ha = masked ? has_acc(d, k) : 1;
+    *hm = masked ? has_mag(d, k) : d->use_mag != 0;
+}
+
 /* The forward pass without tape; outputs are filled when out is not NULL. */
-static HOT_PASS double cost_pass(const pass_t *p, const mc_mekf_outputs_t *out)
+static ALWAYS_INLINE double cost_loop(const pass_t *p, const mc_mekf_outputs_t *out, int masked)
 {
     const mc_mekf_data_t *data = p->d;
     double q[4], P[9];
@@ -919,7 +943,8 @@ static HOT_PASS double cost_pass(const pass_t *p, const mc_mekf_outputs_t *out)
     step_t s;
     const int want = out && (out->q_filt || out->innov || out->normalised);
     for (size_t k = 0; k < data->n; ++k) {
-        const int ha = has_acc(data, k), hm = has_mag(data, k);
+        int ha, hm;
+        sample_has(data, k, masked, &ha, &hm);
         if (!step_forward(p, k, ha, hm, q, P, &s)) return NAN;
         cost += s.cost;
         logdet_add(&ld, s.det);
@@ -940,6 +965,16 @@ static HOT_PASS double cost_pass(const pass_t *p, const mc_mekf_outputs_t *out)
     return cost + 0.5 * logdet_total(&ld);
 }
 
+static HOT_PASS double cost_pass_unmasked(const pass_t *p, const mc_mekf_outputs_t *out)
+{
+    return cost_loop(p, out, 0);
+}
+
+static HOT_PASS double cost_pass_masked(const pass_t *p, const mc_mekf_outputs_t *out)
+{
+    return cost_loop(p, out, 1);
+}
+
 /* The checks shared by both entry points: pointers the passes read, and samples. */
 static int valid_arguments(const mc_mekf_model_t *model, const mc_mekf_data_t *data)
 {
@@ -953,11 +988,11 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
     if (!valid_arguments(model, data)) return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
-    return cost_pass(&p, out);
+    return any_mask(data) ? cost_pass_masked(&p, out) : cost_pass_unmasked(&p, out);
 }
 
 /* Forward pass writing the tape. Returns the cost, or NaN on failure. */
-static HOT_PASS double forward_tape_pass(const pass_t *p, double *tape)
+static ALWAYS_INLINE double forward_tape_loop(const pass_t *p, double *tape, int masked)
 {
     const mc_mekf_data_t *data = p->d;
     double q[4], P[9];
@@ -968,7 +1003,8 @@ static HOT_PASS double forward_tape_pass(const pass_t *p, double *tape)
     const size_t n = data->n;
     for (size_t k = 0; k < n; ++k) {
         double *rec = tape + MC_MEKF_TAPE_DOUBLES * k;
-        const int ha = has_acc(data, k), hm = has_mag(data, k);
+        int ha, hm;
+        sample_has(data, k, masked, &ha, &hm);
         if (!step_forward(p, k, ha, hm, q, P, &s)) return NAN;
         /* The record's fields the reverse pass reads for this sample: q1 always, the update's
          * with any measurement, the magnetometer's with it. */
@@ -995,18 +1031,41 @@ static HOT_PASS double forward_tape_pass(const pass_t *p, double *tape)
     return cost + 0.5 * logdet_total(&ld);
 }
 
+static HOT_PASS double forward_tape_pass_unmasked(const pass_t *p, double *tape)
+{
+    return forward_tape_loop(p, tape, 0);
+}
+
+static HOT_PASS double forward_tape_pass_masked(const pass_t *p, double *tape)
+{
+    return forward_tape_loop(p, tape, 1);
+}
+
 /* Reverse pass over the tape; the final state does not enter the cost. */
-static HOT_PASS void reverse_pass(const pass_t *p, const double *tape, grad_acc_t *acc)
+static ALWAYS_INLINE void reverse_loop(const pass_t *p, const double *tape, grad_acc_t *acc,
+                                       int masked)
 {
     const mc_mekf_data_t *data = p->d;
     double tq[3] = {0, 0, 0}, P_bar[9] = {0};
     for (size_t kk = data->n; kk-- > 0;) {
         double tq_in[3], Pb_in[9];
-        step_reverse(p, kk, has_acc(data, kk), has_mag(data, kk),
-                     tape + MC_MEKF_TAPE_DOUBLES * kk, tq, P_bar, tq_in, Pb_in, acc);
+        int ha, hm;
+        sample_has(data, kk, masked, &ha, &hm);
+        step_reverse(p, kk, ha, hm, tape + MC_MEKF_TAPE_DOUBLES * kk, tq, P_bar, tq_in, Pb_in,
+                     acc);
         memcpy(tq, tq_in, sizeof tq);
         memcpy(P_bar, Pb_in, sizeof P_bar);
     }
+}
+
+static HOT_PASS void reverse_pass_unmasked(const pass_t *p, const double *tape, grad_acc_t *acc)
+{
+    reverse_loop(p, tape, acc, 0);
+}
+
+static HOT_PASS void reverse_pass_masked(const pass_t *p, const double *tape, grad_acc_t *acc)
+{
+    reverse_loop(p, tape, acc, 1);
 }
 
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data, double *tape,
@@ -1019,13 +1078,18 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
         return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
-    const double cost = forward_tape_pass(&p, tape);
+    const int masked = any_mask(data);
+    const double cost =
+        masked ? forward_tape_pass_masked(&p, tape) : forward_tape_pass_unmasked(&p, tape);
     /* NaN: a covariance broke down mid-pass and the tape is incomplete. ±inf: the adjoints
      * would be inf or NaN. Either way the gradient stays zero. */
     if (!isfinite(cost)) return cost;
     grad_acc_t acc;
     memset(&acc, 0, sizeof acc);
-    reverse_pass(&p, tape, &acc);
+    if (masked)
+        reverse_pass_masked(&p, tape, &acc);
+    else
+        reverse_pass_unmasked(&p, tape, &acc);
 
     /* The reverse pass accumulated symmetric adjoints on their upper triangle only. */
     sym_fill(acc.g.Sw);
@@ -1047,8 +1111,13 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
         sym_sandwich(model->D, acc.K_bar, DKb);
         for (int i = 0; i < 9; ++i) acc.Mi_bar[i] += DKb[i];
         /* Mi = Σm⁻¹ and nm · ½ log det Σm (nm: samples with the magnetometer) */
+        size_t nm = data->n;
+        if (data->has_mag) {
+            nm = 0;
+            for (size_t k = 0; k < data->n; ++k) nm += data->has_mag[k] != 0;
+        }
         sym_sandwich(p.Mi, acc.Mi_bar, t);
-        for (int i = 0; i < 9; ++i) grad->Sm[i] += 0.5 * (double)acc.nm * p.Mi[i] - t[i];
+        for (int i = 0; i < 9; ++i) grad->Sm[i] += 0.5 * (double)nm * p.Mi[i] - t[i];
     }
     return cost;
 }

@@ -8,6 +8,8 @@
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
 
+#include <string.h>
+
 #include "mekf_likelihood.h"
 
 /* A buffer format that means one native-order IEEE double: "d" / "@d" (native), "=d"
@@ -74,6 +76,32 @@ static double *get_float64(PyObject *obj, Py_buffer *buf, Py_ssize_t count, int 
     return (double *)buf->buf;
 }
 
+/* Acquire `obj` as a mask of `count` one-byte values (numpy bool '?' or uint8 'B'; 0 =
+ * absent, anything else present) into `buf`, read-only. Returns the data, or NULL with an
+ * exception set; released with release_buffer as get_float64's. */
+static const unsigned char *get_mask(PyObject *obj, Py_buffer *buf, Py_ssize_t count,
+                                     const char *name)
+{
+    if (PyObject_GetBuffer(obj, buf, PyBUF_FORMAT | PyBUF_C_CONTIGUOUS) < 0) {
+        buf->obj = NULL;
+        prefix_error(name);
+        return NULL;
+    }
+    const char *fmt = buf->format ? buf->format : "B";
+    if (fmt[0] == '@' || fmt[0] == '=' || fmt[0] == '<' || fmt[0] == '>' || fmt[0] == '!') ++fmt;
+    if (buf->itemsize != 1 || (strcmp(fmt, "?") != 0 && strcmp(fmt, "B") != 0)) {
+        PyErr_Format(PyExc_TypeError,
+                     "%s: expected bool or uint8 values, got buffer format '%s' (item size %zd)",
+                     name, buf->format ? buf->format : "B", buf->itemsize);
+        return NULL;
+    }
+    if (buf->len != count) {
+        PyErr_Format(PyExc_ValueError, "%s: expected %zd values, got %zd", name, count, buf->len);
+        return NULL;
+    }
+    return (const unsigned char *)buf->buf;
+}
+
 static void release_buffer(Py_buffer *buf)
 {
     if (buf->obj) PyBuffer_Release(buf); /* also resets buf->obj */
@@ -92,6 +120,8 @@ enum {
     B_OUT0, /* cost: q_filt; cost_grad: tape */
     B_OUT1, /* cost: innov;  cost_grad: grad */
     B_OUT2, /* cost: normalised               */
+    B_HAS_ACC,
+    B_HAS_MAG,
     B_COUNT
 };
 
@@ -105,7 +135,8 @@ static void release_all(buffers_t *bufs)
 }
 
 /* The inputs shared by both entry points. `dt` sets the number of samples n; acc_extra_var
- * may be None (no inflation). Returns 0 with an exception set. */
+ * (in[5]) and the masks has_acc, has_mag (in[8], in[9]) may be None (no inflation; present
+ * at every sample). Returns 0 with an exception set. */
 static int prepare(PyObject *const *in, double g, int use_mag, buffers_t *bufs,
                    mc_mekf_model_t *model, mc_mekf_data_t *data)
 {
@@ -136,6 +167,11 @@ static int prepare(PyObject *const *in, double g, int use_mag, buffers_t *bufs,
     if (!P0) return 0;
     memcpy(data->q0, q0, sizeof data->q0);
     memcpy(data->P0, P0, sizeof data->P0);
+    data->has_acc = data->has_mag = NULL;
+    if (in[8] != Py_None && !(data->has_acc = get_mask(in[8], &bufs->b[B_HAS_ACC], n, "has_acc")))
+        return 0;
+    if (in[9] != Py_None && !(data->has_mag = get_mask(in[9], &bufs->b[B_HAS_MAG], n, "has_mag")))
+        return 0;
     data->g = g;
     data->use_mag = use_mag;
     return 1;
@@ -154,11 +190,13 @@ static double *optional_output(PyObject *obj, Py_buffer *buf, Py_ssize_t count, 
 static PyObject *py_cost(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *in[8], *q_obj, *innov_obj, *norm_obj;
+    PyObject *in[10], *q_obj, *innov_obj, *norm_obj;
     double g;
     int use_mag;
-    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOOO", &in[0], &in[1], &in[2], &in[3], &in[4], &in[5],
-                          &g, &in[6], &in[7], &use_mag, &q_obj, &innov_obj, &norm_obj))
+    in[8] = in[9] = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOOO|OO", &in[0], &in[1], &in[2], &in[3], &in[4],
+                          &in[5], &g, &in[6], &in[7], &use_mag, &q_obj, &innov_obj, &norm_obj,
+                          &in[8], &in[9]))
         return NULL;
     buffers_t bufs;
     memset(&bufs, 0, sizeof bufs);
@@ -185,11 +223,13 @@ static PyObject *py_cost(PyObject *self, PyObject *args)
 static PyObject *py_cost_grad(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *in[8], *tape_obj, *grad_obj;
+    PyObject *in[10], *tape_obj, *grad_obj;
     double g;
     int use_mag;
-    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOO", &in[0], &in[1], &in[2], &in[3], &in[4], &in[5],
-                          &g, &in[6], &in[7], &use_mag, &tape_obj, &grad_obj))
+    in[8] = in[9] = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOO|OO", &in[0], &in[1], &in[2], &in[3], &in[4],
+                          &in[5], &g, &in[6], &in[7], &use_mag, &tape_obj, &grad_obj, &in[8],
+                          &in[9]))
         return NULL;
     buffers_t bufs;
     memset(&bufs, 0, sizeof bufs);
@@ -217,12 +257,13 @@ static PyObject *py_cost_grad(PyObject *self, PyObject *args)
 static PyMethodDef methods[] = {
     {"cost", py_cost, METH_VARARGS,
      "cost(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, q_out, innov_out, "
-     "norm_out) -> cost\n\nArrays: C-contiguous float64; acc_extra_var and the outputs may "
-     "be None."},
+     "norm_out[, has_acc, has_mag]) -> cost\n\nArrays: C-contiguous float64; acc_extra_var "
+     "and the outputs may be None. has_acc, has_mag: (n) bool or uint8, which measurements "
+     "each sample has; None (the default) means all."},
     {"cost_grad", py_cost_grad, METH_VARARGS,
-     "cost_grad(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, tape, grad_out) "
-     "-> cost\n\nArrays: C-contiguous float64; tape holds TAPE_DOUBLES_PER_SAMPLE * n and "
-     "grad_out MODEL_DOUBLES values."},
+     "cost_grad(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, tape, grad_out"
+     "[, has_acc, has_mag]) -> cost\n\nArrays: C-contiguous float64; tape holds "
+     "TAPE_DOUBLES_PER_SAMPLE * n and grad_out MODEL_DOUBLES values; the masks as in cost."},
     {NULL, NULL, 0, NULL},
 };
 

@@ -14,9 +14,13 @@
  *     J = [g_n×]ᵀ (R Ai Rᵀ) [g_n×] + [m×]ᵀ (R K Rᵀ) [m×],   K = Dᵀ Sm⁻¹ D (once per pass),
  *     u = g_n × (R za) + (R Dᵀ zm) × m,                       za = Ai εa, zm = Sm⁻¹ εm.
  *   g_n = (0, 0, −g), so the accelerometer term only fills the upper-left 2×2 block.
+ * - Masks (has_acc, has_mag): a measurement absent at a sample is the omission of its terms
+ *   (its share of J and u, of εᵀR⁻¹ε and of log det R), and a sample with neither skips
+ *   the update (Pu = Pp, q_out = q1, no cost). The reverse pass omits the same terms; the
+ *   pass constants below are counted over the samples that use them.
  * - Ai = (Sa + c_t I)⁻¹ is the constant Sa⁻¹ for the (many) samples with c_t = 0: it is
  *   inverted once per pass, and in the reverse pass its adjoint is summed over those samples
- *   and turned into a Sa adjoint once at the end.
+ *   (those with the accelerometer) and turned into a Sa adjoint once at the end.
  * - The quaternion is renormalised after each update (one Newton step: it is unit to a few
  *   ulps). Parameter perturbations move it only along the unit sphere, where renormalisation
  *   is the identity to first order, so the reverse pass omits it and stays exact; it carries
@@ -32,9 +36,12 @@
  *   common c_t = 0 samples share the pass constant Σa⁻¹). Taping Ai instead would add 6
  *   doubles to every record (records have one size) to save an inverse on the few inflated
  *   samples. Memory is O(n · state) and independent of the number of parameters (600,000
- *   samples: 192 MB).
- * - log det S: the constant parts are logged once per pass, the per-step determinants
- *   are multiplied and logged about once per hundred steps.
+ *   samples: 192 MB). A sample's record is written only as far as the reverse pass reads
+ *   it (the magnetometer terms with the magnetometer, the update's with any measurement).
+ * - log det S: the constant parts (log det Σa, log det Σm) are logged once per pass and
+ *   added per sample that has the measurement (in the gradient: times the count of those
+ *   samples); the per-step determinants are multiplied and logged about once per hundred
+ *   steps.
  */
 #include "mekf_likelihood.h"
 
@@ -344,6 +351,17 @@ static ALWAYS_INLINE double acc_extra(const mc_mekf_data_t *d, size_t k)
     return d->acc_extra_var ? d->acc_extra_var[k] : 0.0;
 }
 
+/* Whether the accelerometer and the magnetometer measured at sample k. */
+static ALWAYS_INLINE int has_acc(const mc_mekf_data_t *d, size_t k)
+{
+    return d->has_acc ? d->has_acc[k] != 0 : 1;
+}
+
+static ALWAYS_INLINE int has_mag(const mc_mekf_data_t *d, size_t k)
+{
+    return d->use_mag && (d->has_mag ? d->has_mag[k] != 0 : 1);
+}
+
 /* Accelerometer information Ai = (Σa + c I)⁻¹ into buf, or the pass constant when c = 0.
  * Returns NULL when Σa + c I is not positive definite; *det receives its determinant. */
 static ALWAYS_INLINE const double *acc_information(const pass_t *p, double c, double *restrict buf,
@@ -410,10 +428,14 @@ static ALWAYS_INLINE void logdet_add(logdet_acc_t *a, double x)
 
 static ALWAYS_INLINE double logdet_total(const logdet_acc_t *a) { return a->sum + log(a->prod); }
 
-/* One step from (q, P) before sample k. Returns 0 when a covariance is not positive
- * definite. Inlined into both passes, so the fields a pass does not read cost nothing. */
-static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *restrict q,
-                               const double *restrict P, step_t *restrict s)
+/* One step from (q, P) before sample k, with the measurements present there (ha, hm:
+ * has_acc and has_mag at k). Returns 0 when a covariance is not positive definite. Inlined
+ * into both passes, so the fields a pass does not read cost nothing. Without measurements
+ * only q1, R, Pp, the innovations (NaN) and the outputs (q_out = q1, Pu = Pp, cost 0,
+ * det 1) are set. */
+static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, int ha, int hm,
+                                      const double *restrict q, const double *restrict P,
+                                      step_t *restrict s)
 {
     const mc_mekf_model_t *m = p->m;
     const mc_mekf_data_t *d = p->d;
@@ -432,30 +454,52 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *r
         memcpy(s->Pp, P, sizeof s->Pp);
     }
     const double *r0 = s->R, *r1 = s->R + 3, *r2 = s->R + 6;
+    if (!ha && !hm) {
+        /* No measurement: the prediction is carried on. */
+        for (int i = 0; i < 3; ++i) {
+            s->ea[i] = NAN;
+            s->em[i] = d->use_mag ? NAN : 0.0;
+        }
+        memcpy(s->Pu, s->Pp, sizeof s->Pu);
+        memcpy(s->q_out, s->q1, sizeof s->q_out);
+        s->cost = 0.0;
+        s->det = 1.0;
+        return 1;
+    }
 
-    /* Accelerometer: εa = ya + Rᵀ g_n = ya − g r2 (r_i: rows of R). */
-    double Ai_buf[9], det_Sa = 1.0;
-    const double cx = acc_extra(d, k);
-    const double *Ai = acc_information(p, cx, Ai_buf, &det_Sa);
-    if (!Ai) return 0;
-    const double *ya = d->acc + 3 * k;
-    double za[3], s0[3], s1[3], J[9];
-    for (int i = 0; i < 3; ++i) s->ea[i] = ya[i] - g * r2[i];
-    mat_vec(Ai, s->ea, za);
-    double e2 = dot3(s->ea, za);
-    /* u_a = g_n × (R za); J_a = [g_n×]ᵀ (R Ai Rᵀ) [g_n×] needs rows 0 and 1 of R only. */
-    s->u[0] = g * dot3(r1, za);
-    s->u[1] = -g * dot3(r0, za);
-    s->u[2] = 0.0;
-    mat_vec(Ai, r0, s0);
-    mat_vec(Ai, r1, s1);
-    const double g2 = g * g;
-    J[0] = g2 * dot3(r1, s1);
-    J[1] = -g2 * dot3(r1, s0);
-    J[4] = g2 * dot3(r0, s0);
+    /* Accelerometer: εa = ya + Rᵀ g_n = ya − g r2 (r_i: rows of R). Without it, its
+     * information, innovation and log det terms are left out (the sums start at 0). */
+    double Ai_buf[9], det_Sa = 1.0, cx = 0.0, e2 = 0.0, J[9];
+    const double *Ai = NULL;
+    if (ha) {
+        cx = acc_extra(d, k);
+        Ai = acc_information(p, cx, Ai_buf, &det_Sa);
+        if (!Ai) return 0;
+        const double *ya = d->acc + 3 * k;
+        double za[3], s0[3], s1[3];
+        for (int i = 0; i < 3; ++i) s->ea[i] = ya[i] - g * r2[i];
+        mat_vec(Ai, s->ea, za);
+        e2 = dot3(s->ea, za);
+        /* u_a = g_n × (R za); J_a = [g_n×]ᵀ (R Ai Rᵀ) [g_n×] needs rows 0 and 1 of R only. */
+        s->u[0] = g * dot3(r1, za);
+        s->u[1] = -g * dot3(r0, za);
+        s->u[2] = 0.0;
+        mat_vec(Ai, r0, s0);
+        mat_vec(Ai, r1, s1);
+        const double g2 = g * g;
+        J[0] = g2 * dot3(r1, s1);
+        J[1] = -g2 * dot3(r1, s0);
+        J[4] = g2 * dot3(r0, s0);
+    } else {
+        for (int i = 0; i < 3; ++i) {
+            s->ea[i] = NAN;
+            s->u[i] = 0.0;
+        }
+        J[0] = J[1] = J[4] = 0.0;
+    }
     J[2] = J[5] = J[8] = 0.0;
 
-    if (d->use_mag) {
+    if (hm) {
         /* εm = ym − D Rᵀ m − o; u_m = (R Dᵀ zm) × m; J_m = [m×]ᵀ (R K Rᵀ) [m×]. */
         const double *ym = d->mag + 3 * k;
         double mb[3], ym_pred[3], um[3], RK[9], Jm[9];
@@ -479,7 +523,7 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *r
         J[5] += Jm[5];
         J[8] += Jm[8];
     } else {
-        memset(s->em, 0, sizeof s->em);
+        for (int i = 0; i < 3; ++i) s->em[i] = d->use_mag ? NAN : 0.0;
     }
     sym_fill(J);
 
@@ -488,9 +532,11 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *r
     for (int i = 0; i < 9; ++i) Lam[i] = s->Y[i] + J[i];
     if (!sym_inverse(Lam, s->Pu, &det_Lam)) return 0;
     mat_vec(s->Pu, s->u, s->eta);
-    /* log det S = log det Sa_t + log det Sm + log det Pp + log det Λ: the constant logs
-     * go into the cost, the determinants into s->det for the pass's logdet_acc_t. */
-    s->det = cx == 0.0 ? det_Pp * det_Lam : det_Sa * det_Pp * det_Lam;
+    /* log det S = log det Sa_t + log det Sm + log det Pp + log det Λ (of the measurements
+     * present): the constant logs go into the cost, the determinants into s->det for the
+     * pass's logdet_acc_t. */
+    const int acc_const = ha && cx == 0.0; /* the accelerometer with the pass's Σa⁻¹ */
+    s->det = ha && !acc_const ? det_Sa * det_Pp * det_Lam : det_Pp * det_Lam;
     /* εᵀS⁻¹ε = εᵀR⁻¹ε − uᵀη. The difference cancels catastrophically when a noise
      * covariance is nearly singular (an optimiser's trial point can make it so) and can then
      * even go negative. When less than QUAD_CANCEL of e2 survives, the same value is formed
@@ -500,11 +546,15 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *r
     const double *eta = s->eta;
     double quad = e2 - dot3(s->u, eta);
     if (!(quad >= QUAD_CANCEL * e2)) {
-        double ra[3], t[3];
-        for (int i = 0; i < 3; ++i) ra[i] = s->ea[i] + g * (eta[1] * r0[i] - eta[0] * r1[i]);
-        mat_vec(Ai, ra, t);
-        quad = dot3(ra, t);
-        if (d->use_mag) {
+        double t[3];
+        quad = 0.0;
+        if (ha) {
+            double ra[3];
+            for (int i = 0; i < 3; ++i) ra[i] = s->ea[i] + g * (eta[1] * r0[i] - eta[0] * r1[i]);
+            mat_vec(Ai, ra, t);
+            quad = dot3(ra, t);
+        }
+        if (hm) {
             double w[3], Rtw[3], Hmeta[3], rm[3];
             cross3(m->m, eta, w); /* Hm η = D Rᵀ (m × η) */
             mat_tvec(s->R, w, Rtw);
@@ -516,7 +566,7 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, const double *r
         mat_vec(s->Y, eta, t);
         quad += dot3(eta, t);
     }
-    s->cost = 0.5 * (quad + (cx == 0.0 ? p->ld_Sa0 : 0.0) + p->ld_Sm);
+    s->cost = 0.5 * (quad + (acc_const ? p->ld_Sa0 : 0.0) + (hm ? p->ld_Sm : 0.0));
 
     double half_eta[3], E[4];
     for (int i = 0; i < 3; ++i) half_eta[i] = 0.5 * s->eta[i];
@@ -549,65 +599,22 @@ typedef struct {
     double Ai0_bar[9]; /* Σ of Āi over the samples with c_t = 0 */
     double Mi_bar[9];  /* Σ m̄ of Σm⁻¹ (besides K)              */
     double K_bar[9];   /* Σ of K̄                                */
-    size_t n0;         /* samples with c_t = 0                   */
+    size_t n0;         /* samples with the accelerometer and c_t = 0 */
 } grad_acc_t;
 
-/* Reverse of step_forward for sample k from its tape record.
- *
- * Attitude adjoints are body-frame torques: δ̄ such that dV = δ̄·δ when an attitude q
- * moves to q ⊙ exp_q(δ/2) (R(q) to R(q)(I + [δ×])). The quaternion stays on the unit
- * sphere, so this is all of its adjoint; it also makes renormalisation the identity. Along
- * the chain q → q1 = q ⊙ Δ → q_out = exp_q(η/2) ⊙ q1:
- *   δ_q1 = R(Δ)ᵀ δ_q + Jr(2φ) 2dφ,   δ_out = δ_q1 + R(q1)ᵀ Jr(η) dη.
- * A term R̄ of R = R(q1) adds vex(RᵀR̄ − R̄ᵀR): Σᵢ R̄ᵢ × rᵢ over its rows, b × (Rᵀa) for
- * R̄ = a bᵀ, and (M₂₁ − M₁₂, M₀₂ − M₂₀, M₁₀ − M₀₁) for RᵀR̄ = M. Most such M are products
- * the gradient forms anyway, which saves building R̄.
- *
- * δ̄_out and P̄_out (= P̄u) arrive from later steps; δ̄_q and P̄ of the step's inputs are
- * assigned. */
-static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *restrict rec,
-                                       const double *restrict tq_out,
-                                       const double *restrict Pu_bar_in, double *restrict tq_in,
-                                       double *restrict P_bar, grad_acc_t *restrict acc)
+/* The accelerometer's share of the reverse of step_forward's update at sample k (present
+ * there, its information Ai): from the adjoints ū of u and J̄ of J (Jb, symmetric) into the
+ * torque tq, and the adjoint of Ai into Ai_bar (for acc_information_reverse). */
+static ALWAYS_INLINE void acc_reverse(const pass_t *p, size_t k, const double *restrict Ai,
+                                      const double *restrict R, const double *restrict u_bar,
+                                      const double *restrict Jb, double *restrict tq,
+                                      double *restrict Ai_bar)
 {
-    const mc_mekf_model_t *m = p->m;
     const mc_mekf_data_t *d = p->d;
-    mc_mekf_model_t *gm = &acc->g;
     const double g = p->g;
-    const double *q1 = rec + TAPE_Q1, *u = rec + TAPE_U, *eta = rec + TAPE_ETA;
-    double Y[9], Pu[9], R[9];
-    sym_unpack(rec + TAPE_Y, Y);
-    sym_unpack(rec + TAPE_PU, Pu);
-    quat_to_mat(q1, R);
     const double *r0 = R, *r1 = R + 3, *r2 = R + 6;
-
-    /* q_out = exp_q(η/2) ⊙ q1: η̄ = Jr(η)ᵀ R δ̄_out; and the cost's −½ uᵀη. The torque on
-     * q1 starts as δ̄_out. */
-    double tq[3], w[3], eta_bar[3];
-    memcpy(tq, tq_out, sizeof tq);
-    mat_vec(R, tq_out, w);
-    rotvec_apply(eta, w, NULL, eta_bar);
-    for (int i = 0; i < 3; ++i) eta_bar[i] -= 0.5 * u[i];
-    /* η = Pu u; the cost's −½ uᵀη */
-    double u_bar[3], Pu_bar[9], Lam_bar[9], Pp_bar[9];
-    mat_vec(Pu, eta_bar, u_bar);
-    for (int i = 0; i < 3; ++i) u_bar[i] -= 0.5 * eta[i];
-    memcpy(Pu_bar, Pu_bar_in, sizeof Pu_bar);
-    sym_add_outer(Pu_bar, eta_bar, u);
-    /* Pu = Λ⁻¹ and ½ log det Λ: Λ̄ = −Pu P̄u Pu + ½ Pu; J̄ = Λ̄ */
-    sym_sandwich(Pu, Pu_bar, Lam_bar);
-    for (int i = 0; i < 9; ++i) Lam_bar[i] = 0.5 * Pu[i] - Lam_bar[i];
-    /* Λ = Y + J, Y = Pp⁻¹ and ½ log det Pp: P̄p = −Y Λ̄ Y + ½ Y */
-    sym_sandwich(Y, Lam_bar, Pp_bar);
-    for (int i = 0; i < 9; ++i) P_bar[i] = 0.5 * Y[i] - Pp_bar[i];
-    const double *Jb = Lam_bar;
-
-    /* Accelerometer. */
-    const double cx = acc_extra(d, k);
-    double Ai_buf[9], det_Sa;
-    const double *Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
     const double *ya = d->acc + 3 * k;
-    double ea[3], za[3], za_bar[3], ea_bar[3], Ai_bar[9], p0[3], p1[3], t3[3];
+    double ea[3], za[3], za_bar[3], ea_bar[3], p0[3], p1[3], t3[3];
     for (int i = 0; i < 3; ++i) ea[i] = ya[i] - g * r2[i];
     mat_vec(Ai, ea, za);
     /* u_a = (g r1·za, −g r0·za, 0) = g_n × (R za): the rows 0, 1 of R get v̄a zaᵀ,
@@ -639,57 +646,14 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
     for (int i = 0; i < 3; ++i) ea_bar[i] = -g * (ea_bar[i] + 0.5 * za[i]);
     cross3(ea_bar, r2, t3);
     for (int i = 0; i < 3; ++i) tq[i] += t3[i];
+}
 
-    if (d->use_mag) {
-        const double *em = rec + TAPE_EM, *zm = rec + TAPE_ZM, *xm = rec + TAPE_XM,
-                     *vm = rec + TAPE_VM;
-        double Kn[9], mb[3];
-        sym_unpack(rec + TAPE_KN, Kn);
-        mat_tvec(R, m->m, mb);
-
-        /* u_m = vm × m: v̄m = m × ū, m̄ += ū × vm; vm = R xm: δ̄ += xm × x̄m; xm = Dᵀ zm */
-        double vm_bar[3], xm_bar[3], zm_bar[3], em_bar[3], mb_bar[3], m_bar[3];
-        cross3(m->m, u_bar, vm_bar);
-        cross3(u_bar, vm, m_bar);
-        mat_tvec(R, vm_bar, xm_bar);
-        cross3(xm, xm_bar, t3);
-        for (int i = 0; i < 3; ++i) tq[i] += t3[i];
-        mat_vec(m->D, xm_bar, zm_bar);
-        for (int i = 0; i < 3; ++i) zm_bar[i] += 0.5 * em[i];
-        /* zm = Mi εm (and e2 reads εm) */
-        sym_add_outer_upper(acc->Mi_bar, zm_bar, em);
-        mat_vec(p->Mi, zm_bar, em_bar);
-        for (int i = 0; i < 3; ++i) em_bar[i] += 0.5 * zm[i];
-        /* εm = ym − D mb − o; mb = Rᵀ m: m̄ −= R (Dᵀ ε̄m), δ̄ += mb × Dᵀε̄m */
-        mat_tvec(m->D, em_bar, mb_bar); /* −m̄b */
-        for (int i = 0; i < 3; ++i) {
-            gm->o[i] -= em_bar[i];
-            for (int j = 0; j < 3; ++j) gm->D[3 * i + j] += zm[i] * xm_bar[j] - em_bar[i] * mb[j];
-        }
-        mat_vec(R, mb_bar, t3);
-        for (int i = 0; i < 3; ++i) m_bar[i] -= t3[i];
-        cross3(mb, mb_bar, t3);
-        for (int i = 0; i < 3; ++i) tq[i] += t3[i];
-
-        /* J_m = [m×]ᵀ Kn [m×], Kn = R K Rᵀ: [m×]‾ = 2 Kn [m×] J̄ (only its skew part reaches
-         * m; row i of Kn [m×] is Knᵢ × m), and K̄ += Z = Rᵀ [m×] J̄ [m×]ᵀ R = B J̄ Bᵀ with
-         * B = Rᵀ[m×] = [mb×] Rᵀ, whose column j is mb × rⱼ. RᵀR̄ = 2 Z K. */
-        double T[9], Bt[9], Z[9];
-        for (int i = 0; i < 3; ++i) cross3(Kn + 3 * i, m->m, T + 3 * i);
-        m_bar[0] += 2.0 * (dot3(T + 6, Jb + 3) - dot3(T + 3, Jb + 6));
-        m_bar[1] += 2.0 * (dot3(T, Jb + 6) - dot3(T + 6, Jb));
-        m_bar[2] += 2.0 * (dot3(T + 3, Jb) - dot3(T, Jb + 3));
-        for (int i = 0; i < 3; ++i) gm->m[i] += m_bar[i];
-        for (int j = 0; j < 3; ++j) cross3(mb, R + 3 * j, Bt + 3 * j); /* rows of Bᵀ */
-        sym_sandwich_t(Bt, Jb, Z);
-        for (int t = 0; t < 6; ++t) acc->K_bar[UPPER[t]] += Z[UPPER[t]];
-        const double *K = p->K;
-        tq[0] += 2.0 * (dot3(Z + 6, K + 3) - dot3(Z + 3, K + 6));
-        tq[1] += 2.0 * (dot3(Z, K + 6) - dot3(Z + 6, K));
-        tq[2] += 2.0 * (dot3(Z + 3, K) - dot3(Z, K + 3));
-    }
-
-    /* Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I) */
+/* Ai = (Σa + c I)⁻¹ and ½ log det(Σa + c I): the adjoints of Σa from Āi. */
+static ALWAYS_INLINE void acc_information_reverse(double cx, const double *restrict Ai,
+                                                  const double *restrict Ai_bar,
+                                                  grad_acc_t *restrict acc)
+{
+    mc_mekf_model_t *gm = &acc->g;
     if (cx == 0.0) {
         for (int t = 0; t < 6; ++t) acc->Ai0_bar[UPPER[t]] += Ai_bar[UPPER[t]];
         acc->n0 += 1;
@@ -701,6 +665,130 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
             Sa_bar[i] = 0.5 * Ai[i] - Sa_bar[i];
             gm->Sa[i] += Sa_bar[i];
         }
+    }
+}
+
+/* The magnetometer's share of the reverse of step_forward's update at sample k (present
+ * there), from its tape record; as acc_reverse. */
+static ALWAYS_INLINE void mag_reverse(const pass_t *p, const double *restrict rec,
+                                      const double *restrict R, const double *restrict u_bar,
+                                      const double *restrict Jb, double *restrict tq,
+                                      grad_acc_t *restrict acc)
+{
+    const mc_mekf_model_t *m = p->m;
+    mc_mekf_model_t *gm = &acc->g;
+    double t3[3];
+    const double *em = rec + TAPE_EM, *zm = rec + TAPE_ZM, *xm = rec + TAPE_XM,
+                 *vm = rec + TAPE_VM;
+    double Kn[9], mb[3];
+    sym_unpack(rec + TAPE_KN, Kn);
+    mat_tvec(R, m->m, mb);
+
+    /* u_m = vm × m: v̄m = m × ū, m̄ += ū × vm; vm = R xm: δ̄ += xm × x̄m; xm = Dᵀ zm */
+    double vm_bar[3], xm_bar[3], zm_bar[3], em_bar[3], mb_bar[3], m_bar[3];
+    cross3(m->m, u_bar, vm_bar);
+    cross3(u_bar, vm, m_bar);
+    mat_tvec(R, vm_bar, xm_bar);
+    cross3(xm, xm_bar, t3);
+    for (int i = 0; i < 3; ++i) tq[i] += t3[i];
+    mat_vec(m->D, xm_bar, zm_bar);
+    for (int i = 0; i < 3; ++i) zm_bar[i] += 0.5 * em[i];
+    /* zm = Mi εm (and e2 reads εm) */
+    sym_add_outer_upper(acc->Mi_bar, zm_bar, em);
+    mat_vec(p->Mi, zm_bar, em_bar);
+    for (int i = 0; i < 3; ++i) em_bar[i] += 0.5 * zm[i];
+    /* εm = ym − D mb − o; mb = Rᵀ m: m̄ −= R (Dᵀ ε̄m), δ̄ += mb × Dᵀε̄m */
+    mat_tvec(m->D, em_bar, mb_bar); /* −m̄b */
+    for (int i = 0; i < 3; ++i) {
+        gm->o[i] -= em_bar[i];
+        for (int j = 0; j < 3; ++j) gm->D[3 * i + j] += zm[i] * xm_bar[j] - em_bar[i] * mb[j];
+    }
+    mat_vec(R, mb_bar, t3);
+    for (int i = 0; i < 3; ++i) m_bar[i] -= t3[i];
+    cross3(mb, mb_bar, t3);
+    for (int i = 0; i < 3; ++i) tq[i] += t3[i];
+
+    /* J_m = [m×]ᵀ Kn [m×], Kn = R K Rᵀ: [m×]‾ = 2 Kn [m×] J̄ (only its skew part reaches
+     * m; row i of Kn [m×] is Knᵢ × m), and K̄ += Z = Rᵀ [m×] J̄ [m×]ᵀ R = B J̄ Bᵀ with
+     * B = Rᵀ[m×] = [mb×] Rᵀ, whose column j is mb × rⱼ. RᵀR̄ = 2 Z K. */
+    double T[9], Bt[9], Z[9];
+    for (int i = 0; i < 3; ++i) cross3(Kn + 3 * i, m->m, T + 3 * i);
+    m_bar[0] += 2.0 * (dot3(T + 6, Jb + 3) - dot3(T + 3, Jb + 6));
+    m_bar[1] += 2.0 * (dot3(T, Jb + 6) - dot3(T + 6, Jb));
+    m_bar[2] += 2.0 * (dot3(T + 3, Jb) - dot3(T, Jb + 3));
+    for (int i = 0; i < 3; ++i) gm->m[i] += m_bar[i];
+    for (int j = 0; j < 3; ++j) cross3(mb, R + 3 * j, Bt + 3 * j); /* rows of Bᵀ */
+    sym_sandwich_t(Bt, Jb, Z);
+    for (int t = 0; t < 6; ++t) acc->K_bar[UPPER[t]] += Z[UPPER[t]];
+    const double *K = p->K;
+    tq[0] += 2.0 * (dot3(Z + 6, K + 3) - dot3(Z + 3, K + 6));
+    tq[1] += 2.0 * (dot3(Z, K + 6) - dot3(Z + 6, K));
+    tq[2] += 2.0 * (dot3(Z + 3, K) - dot3(Z, K + 3));
+}
+
+/* Reverse of step_forward for sample k from its tape record.
+ *
+ * Attitude adjoints are body-frame torques: δ̄ such that dV = δ̄·δ when an attitude q
+ * moves to q ⊙ exp_q(δ/2) (R(q) to R(q)(I + [δ×])). The quaternion stays on the unit
+ * sphere, so this is all of its adjoint; it also makes renormalisation the identity. Along
+ * the chain q → q1 = q ⊙ Δ → q_out = exp_q(η/2) ⊙ q1:
+ *   δ_q1 = R(Δ)ᵀ δ_q + Jr(2φ) 2dφ,   δ_out = δ_q1 + R(q1)ᵀ Jr(η) dη.
+ * A term R̄ of R = R(q1) adds vex(RᵀR̄ − R̄ᵀR): Σᵢ R̄ᵢ × rᵢ over its rows, b × (Rᵀa) for
+ * R̄ = a bᵀ, and (M₂₁ − M₁₂, M₀₂ − M₂₀, M₁₀ − M₀₁) for RᵀR̄ = M. Most such M are products
+ * the gradient forms anyway, which saves building R̄.
+ *
+ * δ̄_out and P̄_out (= P̄u) arrive from later steps; δ̄_q and P̄ of the step's inputs are
+ * assigned. */
+static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, int ha, int hm,
+                                       const double *restrict rec,
+                                       const double *restrict tq_out,
+                                       const double *restrict Pu_bar_in, double *restrict tq_in,
+                                       double *restrict P_bar, grad_acc_t *restrict acc)
+{
+    const mc_mekf_model_t *m = p->m;
+    const mc_mekf_data_t *d = p->d;
+    mc_mekf_model_t *gm = &acc->g;
+    double R[9], tq[3];
+
+    if (ha || hm) {
+        /* q_out = exp_q(η/2) ⊙ q1: η̄ = Jr(η)ᵀ R δ̄_out; and the cost's −½ uᵀη. The torque
+         * on q1 starts as δ̄_out. */
+        const double *u = rec + TAPE_U, *eta = rec + TAPE_ETA;
+        double Y[9], Pu[9], w[3], eta_bar[3];
+        sym_unpack(rec + TAPE_Y, Y);
+        sym_unpack(rec + TAPE_PU, Pu);
+        quat_to_mat(rec + TAPE_Q1, R);
+        memcpy(tq, tq_out, sizeof tq);
+        mat_vec(R, tq_out, w);
+        rotvec_apply(eta, w, NULL, eta_bar);
+        for (int i = 0; i < 3; ++i) eta_bar[i] -= 0.5 * u[i];
+        /* η = Pu u; the cost's −½ uᵀη */
+        double u_bar[3], Pu_bar[9], Lam_bar[9], Pp_bar[9];
+        mat_vec(Pu, eta_bar, u_bar);
+        for (int i = 0; i < 3; ++i) u_bar[i] -= 0.5 * eta[i];
+        memcpy(Pu_bar, Pu_bar_in, sizeof Pu_bar);
+        sym_add_outer(Pu_bar, eta_bar, u);
+        /* Pu = Λ⁻¹ and ½ log det Λ: Λ̄ = −Pu P̄u Pu + ½ Pu; J̄ = Λ̄ */
+        sym_sandwich(Pu, Pu_bar, Lam_bar);
+        for (int i = 0; i < 9; ++i) Lam_bar[i] = 0.5 * Pu[i] - Lam_bar[i];
+        /* Λ = Y + J, Y = Pp⁻¹ and ½ log det Pp: P̄p = −Y Λ̄ Y + ½ Y */
+        sym_sandwich(Y, Lam_bar, Pp_bar);
+        for (int i = 0; i < 9; ++i) P_bar[i] = 0.5 * Y[i] - Pp_bar[i];
+        /* J = J_a + J_m, u = u_a + u_m: each measurement present takes J̄ = Λ̄ and ū. */
+        double cx = 0.0, Ai_buf[9], det_Sa, Ai_bar[9];
+        const double *Ai = NULL;
+        if (ha) {
+            cx = acc_extra(d, k);
+            Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
+            acc_reverse(p, k, Ai, R, u_bar, Lam_bar, tq, Ai_bar);
+        }
+        if (hm) mag_reverse(p, rec, R, u_bar, Lam_bar, tq, acc);
+        if (ha) acc_information_reverse(cx, Ai, Ai_bar, acc);
+    } else {
+        /* No update: q_out = q1, Pu = Pp. */
+        quat_to_mat(rec + TAPE_Q1, R);
+        memcpy(tq, tq_out, sizeof tq);
+        memcpy(P_bar, Pu_bar_in, 9 * sizeof(double));
     }
 
     if (k > 0) {
@@ -728,10 +816,12 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, const double *
 /* ---------------------------------------------------------------- passes */
 
 /* Cholesky-whitened innovation L⁻¹ε with S = H Pp Hᵀ + blockdiag(Σa + c I, Σm) = L Lᵀ
- * (6×6 or 3×3), the noise from the pass's symmetrised covariances. Diagnostics only: H is
- * rebuilt here, Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×]. All NaN when a pivot of S is not positive
- * (S is positive definite whenever the step succeeded, so only rounding can get here). */
-static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *out)
+ * over the measurements present (ha, hm: 6×6, 3×3 or none), the noise from the pass's
+ * symmetrised covariances; an absent measurement's entries are NaN (0 for the magnetometer
+ * without use_mag). Diagnostics only: H is rebuilt here, Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×].
+ * All NaN when a pivot of S is not positive (S is positive definite whenever the step
+ * succeeded, so only rounding can get here). */
+static void whiten(const pass_t *p, const step_t *s, size_t k, int ha, int hm, double *out)
 {
     const mc_mekf_model_t *m = p->m;
     const double g = p->g;
@@ -752,18 +842,22 @@ static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *o
                 RtMx[3 * i + j] = R[i] * Mx[j] + R[3 + i] * Mx[3 + j] + R[6 + i] * Mx[6 + j];
         mat_mul(m->D, RtMx, H + 9);
     }
-    for (int i = 0; i < 3; ++i) {
-        eps[i] = s->ea[i];
-        eps[3 + i] = s->em[i];
-    }
-    const double cx = acc_extra(p->d, k);
+    /* rows[i]: the row of the full 6-vector (acc 0–2, mag 3–5) that entry i stands for */
+    int rows[6], ny = 0;
+    for (int i = 0; i < 3; ++i)
+        if (ha) rows[ny++] = i;
+    for (int i = 3; i < 6; ++i)
+        if (hm) rows[ny++] = i;
+    for (int i = 0; i < ny; ++i) eps[i] = rows[i] < 3 ? s->ea[rows[i]] : s->em[rows[i] - 3];
+    const double cx = ha ? acc_extra(p->d, k) : 0.0;
     for (int i = 0; i < ny; ++i)
         for (int j = 0; j < ny; ++j) {
+            const int ri = rows[i], rj = rows[j];
             double v = 0.0;
             for (int a = 0; a < 3; ++a)
-                for (int b = 0; b < 3; ++b) v += H[3 * i + a] * s->Pp[3 * a + b] * H[3 * j + b];
-            if (i < 3 && j < 3) v += p->Sa[3 * i + j] + (i == j ? cx : 0.0);
-            if (i >= 3 && j >= 3) v += p->Sm[3 * (i - 3) + (j - 3)];
+                for (int b = 0; b < 3; ++b) v += H[3 * ri + a] * s->Pp[3 * a + b] * H[3 * rj + b];
+            if (ri < 3 && rj < 3) v += p->Sa[3 * ri + rj] + (ri == rj ? cx : 0.0);
+            if (ri >= 3 && rj >= 3) v += p->Sm[3 * (ri - 3) + (rj - 3)];
             S[ny * i + j] = v;
         }
     for (int j = 0; j < ny; ++j) {
@@ -785,7 +879,11 @@ static void whiten(const pass_t *p, const step_t *s, size_t k, int ny, double *o
         for (int a = 0; a < i; ++a) v -= L[ny * i + a] * w[a];
         w[i] = v / L[ny * i + i];
     }
-    for (int i = 0; i < 6; ++i) out[i] = i < ny ? w[i] : 0.0;
+    for (int i = 0; i < 3; ++i) {
+        out[i] = NAN;
+        out[3 + i] = p->d->use_mag ? NAN : 0.0;
+    }
+    for (int i = 0; i < ny; ++i) out[rows[i]] = w[i];
 }
 
 static void load_prior(const mc_mekf_data_t *d, double *q, double *P)
@@ -817,8 +915,25 @@ static void load_prior(const mc_mekf_data_t *d, double *q, double *P)
 #define HOT_PASS NOINLINE
 #endif
 
+/* Each pass is compiled twice more: `masked` is a constant in the inlined loop bodies
+ * below, and with 0 (no mask given: every sample has the accelerometer, and the
+ * magnetometer with use_mag) the per-sample mask loads and the branches on them fold away,
+ * so sessions without masks run the code they ran before masks existed. */
+static ALWAYS_INLINE int any_mask(const mc_mekf_data_t *d)
+{
+    return d->has_acc || (d->use_mag && d->has_mag);
+}
+
+/* The measurements at sample k: *ha accelerometer, *hm magnetometer. */
+static ALWAYS_INLINE void sample_has(const mc_mekf_data_t *d, size_t k, int masked, int *ha,
+                                     int *hm)
+{
+    *ha = masked ? has_acc(d, k) : 1;
+    *hm = masked ? has_mag(d, k) : d->use_mag != 0;
+}
+
 /* The forward pass without tape; outputs are filled when out is not NULL. */
-static HOT_PASS double cost_pass(const pass_t *p, const mc_mekf_outputs_t *out)
+static ALWAYS_INLINE double cost_loop(const pass_t *p, const mc_mekf_outputs_t *out, int masked)
 {
     const mc_mekf_data_t *data = p->d;
     double q[4], P[9];
@@ -828,7 +943,9 @@ static HOT_PASS double cost_pass(const pass_t *p, const mc_mekf_outputs_t *out)
     step_t s;
     const int want = out && (out->q_filt || out->innov || out->normalised);
     for (size_t k = 0; k < data->n; ++k) {
-        if (!step_forward(p, k, q, P, &s)) return NAN;
+        int ha, hm;
+        sample_has(data, k, masked, &ha, &hm);
+        if (!step_forward(p, k, ha, hm, q, P, &s)) return NAN;
         cost += s.cost;
         logdet_add(&ld, s.det);
         memcpy(q, s.q_out, sizeof q);
@@ -842,10 +959,20 @@ static HOT_PASS double cost_pass(const pass_t *p, const mc_mekf_outputs_t *out)
                     out->innov[6 * k + 3 + i] = s.em[i];
                 }
             }
-            if (out->normalised) whiten(p, &s, k, data->use_mag ? 6 : 3, out->normalised + 6 * k);
+            if (out->normalised) whiten(p, &s, k, ha, hm, out->normalised + 6 * k);
         }
     }
     return cost + 0.5 * logdet_total(&ld);
+}
+
+static HOT_PASS double cost_pass_unmasked(const pass_t *p, const mc_mekf_outputs_t *out)
+{
+    return cost_loop(p, out, 0);
+}
+
+static HOT_PASS double cost_pass_masked(const pass_t *p, const mc_mekf_outputs_t *out)
+{
+    return cost_loop(p, out, 1);
 }
 
 /* The checks shared by both entry points: pointers the passes read, and samples. */
@@ -861,11 +988,11 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
     if (!valid_arguments(model, data)) return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
-    return cost_pass(&p, out);
+    return any_mask(data) ? cost_pass_masked(&p, out) : cost_pass_unmasked(&p, out);
 }
 
 /* Forward pass writing the tape. Returns the cost, or NaN on failure. */
-static HOT_PASS double forward_tape_pass(const pass_t *p, double *tape)
+static ALWAYS_INLINE double forward_tape_loop(const pass_t *p, double *tape, int masked)
 {
     const mc_mekf_data_t *data = p->d;
     double q[4], P[9];
@@ -876,13 +1003,19 @@ static HOT_PASS double forward_tape_pass(const pass_t *p, double *tape)
     const size_t n = data->n;
     for (size_t k = 0; k < n; ++k) {
         double *rec = tape + MC_MEKF_TAPE_DOUBLES * k;
-        if (!step_forward(p, k, q, P, &s)) return NAN;
+        int ha, hm;
+        sample_has(data, k, masked, &ha, &hm);
+        if (!step_forward(p, k, ha, hm, q, P, &s)) return NAN;
+        /* The record's fields the reverse pass reads for this sample: q1 always, the update's
+         * with any measurement, the magnetometer's with it. */
         memcpy(rec + TAPE_Q1, s.q1, 4 * sizeof(double));
-        sym_pack(s.Y, rec + TAPE_Y);
-        sym_pack(s.Pu, rec + TAPE_PU);
-        memcpy(rec + TAPE_U, s.u, 3 * sizeof(double));
-        memcpy(rec + TAPE_ETA, s.eta, 3 * sizeof(double));
-        if (data->use_mag) {
+        if (ha || hm) {
+            sym_pack(s.Y, rec + TAPE_Y);
+            sym_pack(s.Pu, rec + TAPE_PU);
+            memcpy(rec + TAPE_U, s.u, 3 * sizeof(double));
+            memcpy(rec + TAPE_ETA, s.eta, 3 * sizeof(double));
+        }
+        if (hm) {
             sym_pack(s.Kn, rec + TAPE_KN);
             memcpy(rec + TAPE_EM, s.em, 3 * sizeof(double));
             memcpy(rec + TAPE_ZM, s.zm, 3 * sizeof(double));
@@ -898,16 +1031,41 @@ static HOT_PASS double forward_tape_pass(const pass_t *p, double *tape)
     return cost + 0.5 * logdet_total(&ld);
 }
 
-/* Reverse pass over the tape; the final state does not enter the cost. */
-static HOT_PASS void reverse_pass(const pass_t *p, const double *tape, grad_acc_t *acc)
+static HOT_PASS double forward_tape_pass_unmasked(const pass_t *p, double *tape)
 {
+    return forward_tape_loop(p, tape, 0);
+}
+
+static HOT_PASS double forward_tape_pass_masked(const pass_t *p, double *tape)
+{
+    return forward_tape_loop(p, tape, 1);
+}
+
+/* Reverse pass over the tape; the final state does not enter the cost. */
+static ALWAYS_INLINE void reverse_loop(const pass_t *p, const double *tape, grad_acc_t *acc,
+                                       int masked)
+{
+    const mc_mekf_data_t *data = p->d;
     double tq[3] = {0, 0, 0}, P_bar[9] = {0};
-    for (size_t kk = p->d->n; kk-- > 0;) {
+    for (size_t kk = data->n; kk-- > 0;) {
         double tq_in[3], Pb_in[9];
-        step_reverse(p, kk, tape + MC_MEKF_TAPE_DOUBLES * kk, tq, P_bar, tq_in, Pb_in, acc);
+        int ha, hm;
+        sample_has(data, kk, masked, &ha, &hm);
+        step_reverse(p, kk, ha, hm, tape + MC_MEKF_TAPE_DOUBLES * kk, tq, P_bar, tq_in, Pb_in,
+                     acc);
         memcpy(tq, tq_in, sizeof tq);
         memcpy(P_bar, Pb_in, sizeof P_bar);
     }
+}
+
+static HOT_PASS void reverse_pass_unmasked(const pass_t *p, const double *tape, grad_acc_t *acc)
+{
+    reverse_loop(p, tape, acc, 0);
+}
+
+static HOT_PASS void reverse_pass_masked(const pass_t *p, const double *tape, grad_acc_t *acc)
+{
+    reverse_loop(p, tape, acc, 1);
 }
 
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data, double *tape,
@@ -920,14 +1078,18 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
         return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
-    const double cost = forward_tape_pass(&p, tape);
+    const int masked = any_mask(data);
+    const double cost =
+        masked ? forward_tape_pass_masked(&p, tape) : forward_tape_pass_unmasked(&p, tape);
     /* NaN: a covariance broke down mid-pass and the tape is incomplete. ±inf: the adjoints
      * would be inf or NaN. Either way the gradient stays zero. */
     if (!isfinite(cost)) return cost;
     grad_acc_t acc;
     memset(&acc, 0, sizeof acc);
-    reverse_pass(&p, tape, &acc);
-    const size_t n = data->n;
+    if (masked)
+        reverse_pass_masked(&p, tape, &acc);
+    else
+        reverse_pass_unmasked(&p, tape, &acc);
 
     /* The reverse pass accumulated symmetric adjoints on their upper triangle only. */
     sym_fill(acc.g.Sw);
@@ -937,7 +1099,7 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
     sym_fill(acc.K_bar);
     *grad = acc.g;
     double t[9];
-    /* Samples with c_t = 0: Ai = Σa⁻¹ and n0 · ½ log det Σa */
+    /* Samples with the accelerometer and c_t = 0: Ai = Σa⁻¹ and n0 · ½ log det Σa */
     sym_sandwich(p.Ai0, acc.Ai0_bar, t);
     for (int i = 0; i < 9; ++i) grad->Sa[i] += 0.5 * (double)acc.n0 * p.Ai0[i] - t[i];
     if (data->use_mag) {
@@ -948,9 +1110,14 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
         for (int i = 0; i < 9; ++i) grad->D[i] += 2.0 * t[i];
         sym_sandwich(model->D, acc.K_bar, DKb);
         for (int i = 0; i < 9; ++i) acc.Mi_bar[i] += DKb[i];
-        /* Mi = Σm⁻¹ and n · ½ log det Σm */
+        /* Mi = Σm⁻¹ and nm · ½ log det Σm (nm: samples with the magnetometer) */
+        size_t nm = data->n;
+        if (data->has_mag) {
+            nm = 0;
+            for (size_t k = 0; k < data->n; ++k) nm += data->has_mag[k] != 0;
+        }
         sym_sandwich(p.Mi, acc.Mi_bar, t);
-        for (int i = 0; i < 9; ++i) grad->Sm[i] += 0.5 * (double)n * p.Mi[i] - t[i];
+        for (int i = 0; i < 9; ++i) grad->Sm[i] += 0.5 * (double)nm * p.Mi[i] - t[i];
     }
     return cost;
 }

@@ -30,7 +30,15 @@ typedef char
     mc_mekf_model_is_flat[sizeof(mc_mekf_model_t) == MC_MEKF_MODEL_DOUBLES * sizeof(double) ? 1 : -1];
 
 /* The data of one session; arrays row-major. Magnetometer values are in the model's units
- * (D, o; the host normalises them). */
+ * (D, o; the host normalises them).
+ *
+ * Every sample k is a time step (the gyroscope drives it) followed by an update with the
+ * measurements present at k: has_acc[k] and has_mag[k] say which (0 or 1; a NULL mask means
+ * present at every sample). A sample with one of them is updated with that one alone; a
+ * sample with neither is a pure time update: the predicted attitude and covariance are
+ * carried on and it adds nothing to the cost. An absent measurement's values (acc[k],
+ * acc_extra_var[k]; mag[k]) are not read, so they may be NaN. This is how sensors at
+ * different rates share one time base. */
 typedef struct {
     size_t n;                    /* samples, ≥ 1                                        */
     const double *dt;            /* (n) s; dt[k] = time of sample k − time of k−1; dt[0]
@@ -40,22 +48,30 @@ typedef struct {
     const double *mag;           /* (n, 3); not read (may be NULL) when use_mag is 0    */
     const double *acc_extra_var; /* (n) (m/s²)², c_t added to the diagonal of Sa; NULL
                                   * means all zeros                                     */
+    const unsigned char *has_acc; /* (n) 0/1: accelerometer present at sample k; NULL:
+                                   * at every sample                                    */
+    const unsigned char *has_mag; /* (n) 0/1: magnetometer present at sample k; NULL: at
+                                   * every sample. Not read when use_mag is 0           */
     double g;                    /* gravity magnitude, m/s²                             */
     double q0[4];                /* prior attitude q_nb (normalised before use)         */
     double P0[9];                /* prior error covariance, rad² (symmetrised before use) */
-    int use_mag;                 /* 0: inertial-only filter                             */
+    int use_mag;                 /* 0: inertial-only filter (no magnetometer anywhere)  */
 } mc_mekf_data_t;
 
 /* Optional per-sample outputs of the forward pass (any pointer may be NULL). */
 typedef struct {
-    double *q_filt;     /* (n, 4) attitude after each update                          */
-    double *innov;      /* (n, 6) innovations (magnetometer part 0 without magnetometer) */
-    double *normalised; /* (n, 6) Cholesky-whitened innovations (likewise; NaN where the
-                         * innovation covariance has a non-positive pivot)            */
+    double *q_filt;     /* (n, 4) attitude after each update (after the time update at a
+                         * sample with no measurement)                                */
+    double *innov;      /* (n, 6) innovations, accelerometer then magnetometer: NaN for a
+                         * measurement absent at that sample (has_acc, has_mag), 0 for
+                         * the magnetometer part when use_mag is 0                    */
+    double *normalised; /* (n, 6) Cholesky-whitened innovations of the measurements
+                         * present (likewise NaN and 0; all NaN where the innovation
+                         * covariance has a non-positive pivot)                      */
 } mc_mekf_outputs_t;
 
-/* Forward pass: V(θ) = ½ Σ_t (ε_tᵀ S_t⁻¹ ε_t + log det S_t), without the constant
- * 3 or 6 · ½ log 2π per sample. `out` may be NULL.
+/* Forward pass: V(θ) = ½ Σ_t (ε_tᵀ S_t⁻¹ ε_t + log det S_t) over the measurements present,
+ * without the constant ½ log 2π per measured component. `out` may be NULL.
  * Returns the cost, or NaN when an argument is invalid (model, data, data->dt, data->gyr,
  * data->acc NULL, data->mag NULL with use_mag, n = 0) or a covariance stops being positive
  * definite. */

@@ -110,6 +110,28 @@ def test_acc_extra_var_none_means_no_inflation(problem):
     assert cost(with_arg(args, EXTRA, None)) == cost(with_arg(args, EXTRA, np.zeros(N)))
 
 
+def test_masks_are_bool_or_uint8_of_the_right_length(problem):
+    _, _, args = problem
+    mask = np.arange(N) % 3 > 0
+    c = cost(args, None, None, None)
+    assert _mekf.cost(*args, None, None, None, mask, None) != c
+    assert _mekf.cost(*args, None, None, None, mask.astype(np.uint8), None) == _mekf.cost(
+        *args, None, None, None, mask, None
+    )
+    tape, grad = mekf.new_tape(N), np.empty(mekf.MODEL_DOUBLES)
+    assert _mekf.cost_grad(*args, tape, grad, None, mask) == pytest.approx(
+        _mekf.cost(*args, None, None, None, None, mask), rel=1e-14
+    )
+    with pytest.raises(TypeError, match="has_acc: expected bool or uint8 values, got .*'d'"):
+        _mekf.cost(*args, None, None, None, mask.astype(float), None)
+    with pytest.raises(TypeError, match="has_mag: expected bool or uint8 values"):
+        _mekf.cost_grad(*args, tape, grad, None, mask.astype(np.int32))
+    with pytest.raises(ValueError, match=rf"has_mag: expected {N} values, got {N - 1}"):
+        _mekf.cost(*args, None, None, None, None, mask[:-1].copy())
+    with pytest.raises(ValueError, match="has_acc: .*contiguous"):
+        _mekf.cost(*args, None, None, None, np.repeat(mask, 2)[::2], None)
+
+
 def test_outputs_must_be_writable_float64_of_the_right_length(problem):
     _, _, args = problem
     read_only = np.empty((N, 4))

@@ -11,6 +11,11 @@ State: ``q̃_nb`` plus a navigation-frame orientation error ``η`` with covarian
   accelerometer count less at outliers (knocks; see
   ``initial/sensor_levels.accelerometer_extra_variance``).
 * The first sample is only a measurement update from the given prior ``(q₀, P₀)``.
+* Each sample is updated with the measurements present there (``FilterData.has_acc``,
+  ``has_mag``): ``y``, ``H`` and ``S`` keep the rows of those only, and a sample with
+  neither is a pure time update that adds nothing to the cost. This is how an IMU and a
+  slower magnetometer share one time base: every IMU sample propagates, the magnetometer
+  updates only where it measured.
 
 Two implementations compute the same numbers:
 
@@ -60,6 +65,11 @@ class FilterData:
     g             : gravity magnitude, m/s²
     q0            : (4,) prior attitude q_nb at sample 0
     P0            : (3, 3) rad², prior covariance of the orientation error
+    has_acc       : (N,) bool, the accelerometer measured at sample t
+    has_mag       : (N,) bool, the magnetometer measured at sample t
+
+    Where a measurement is absent its values (``acc[t]`` and ``acc_extra_var[t]``;
+    ``mag[t]``) are not read and may be NaN.
     """
 
     dt: np.ndarray
@@ -70,6 +80,8 @@ class FilterData:
     g: float
     q0: np.ndarray
     P0: np.ndarray
+    has_acc: np.ndarray
+    has_mag: np.ndarray
 
     def __len__(self) -> int:
         return int(self.dt.shape[0])
@@ -81,6 +93,10 @@ class FilterOutput:
     q_filt      : (N, 4) filtered attitude q_nb after each measurement update
     innovations : (N, 6) y_t − ŷ_t|t−1 (acc then mag)
     normalised  : (N, 6) L_t⁻¹ (y_t − ŷ_t|t−1), S_t = L_t L_tᵀ (Cholesky)
+
+    In both, a measurement absent at sample t (``FilterData.has_acc``, ``has_mag``) has NaN,
+    and the magnetometer's columns are 0 in a filter without magnetometer (``use_mag``
+    false). At a sample with no measurement ``q_filt`` is the predicted attitude.
     """
 
     cost: float
@@ -99,16 +115,22 @@ def make_filter_data(
     acc_extra_var: np.ndarray | None = None,
     g: float | None = None,
     prior_sigma_rad: float = INITIAL_ATTITUDE_SIGMA_RAD,
+    has_acc: np.ndarray | None = None,
+    has_mag: np.ndarray | None = None,
 ) -> FilterData:
-    """Assemble :class:`FilterData`; ``g`` defaults to the median accelerometer norm, so a
-    small accelerometer scale error or local gravity does not bias the inclination."""
+    """Assemble :class:`FilterData`; ``g`` defaults to the median accelerometer norm (over
+    the samples with the accelerometer), so a small accelerometer scale error or local
+    gravity does not bias the inclination. ``has_acc``, ``has_mag`` ((N,) bool) say which
+    samples have each measurement; the default is every sample."""
     t = np.asarray(t, dtype=float)
     dt = np.empty_like(t)
     dt[0] = 0.0
     dt[1:] = np.diff(t)
     acc = np.ascontiguousarray(acc, dtype=float)
+    has_acc = _mask(has_acc, len(t), "has_acc")
+    has_mag = _mask(has_mag, len(t), "has_mag")
     if g is None:
-        g = float(np.median(np.linalg.norm(acc, axis=1)))
+        g = float(np.median(np.linalg.norm(acc[has_acc], axis=1)))
     if acc_extra_var is None:
         acc_extra_var = np.zeros(len(t))
     return FilterData(
@@ -120,7 +142,19 @@ def make_filter_data(
         g=float(g),
         q0=frames.quat_normalize(np.asarray(q0, dtype=float)),
         P0=np.eye(3) * prior_sigma_rad**2,
+        has_acc=has_acc,
+        has_mag=has_mag,
     )
+
+
+def _mask(mask: np.ndarray | None, n: int, name: str) -> np.ndarray:
+    """(n,) bool: ``mask``, or all True for None."""
+    if mask is None:
+        return np.ones(n, dtype=bool)
+    mask = np.asarray(mask)
+    if mask.shape != (n,) or mask.dtype != bool:
+        raise ValueError(f"{name}: expected ({n},) bool, got {mask.shape} {mask.dtype}")
+    return np.ascontiguousarray(mask)
 
 
 # ---------------------------------------------------------------- the C kernel
@@ -192,6 +226,7 @@ def _model_buffer(p: ModelParams) -> np.ndarray:
 
 
 def _data_args(data: FilterData) -> tuple:
+    """The kernel's data arguments, in its order (the masks go separately: _mask_args)."""
     return (
         np.ascontiguousarray(data.dt, dtype=float),
         np.ascontiguousarray(data.gyr, dtype=float),
@@ -204,6 +239,15 @@ def _data_args(data: FilterData) -> tuple:
     )
 
 
+def _mask_args(data: FilterData) -> tuple:
+    """The kernel's (has_acc, has_mag): None for a mask that is all True, which the kernel
+    reads as present at every sample without loading a mask per sample."""
+    return tuple(
+        None if mask.all() else np.ascontiguousarray(mask, dtype=bool)
+        for mask in (data.has_acc, data.has_mag)
+    )
+
+
 def filter_pass(
     p: ModelParams,
     data: FilterData,
@@ -213,7 +257,15 @@ def filter_pass(
     normalised: np.ndarray | None = None,
 ) -> float:
     """Forward pass; fills the optional (N, 4), (N, 6), (N, 6) outputs. Returns V(θ)."""
-    return _mekf.cost(_model_buffer(p), *_data_args(data), bool(use_mag), q_filt, innov, normalised)
+    return _mekf.cost(
+        _model_buffer(p),
+        *_data_args(data),
+        bool(use_mag),
+        q_filt,
+        innov,
+        normalised,
+        *_mask_args(data),
+    )
 
 
 def _check_tape(tape: np.ndarray, n_samples: int) -> None:
@@ -241,14 +293,15 @@ def cost_and_model_gradient(
     else:
         _check_tape(tape, n)
     grad = np.empty(MODEL_DOUBLES)
-    cost = _mekf.cost_grad(_model_buffer(p), *_data_args(data), True, tape, grad)
+    cost = _mekf.cost_grad(_model_buffer(p), *_data_args(data), True, tape, grad, *_mask_args(data))
     return cost, ModelGradient(
         **{name: grad[_MODEL_SLICES[name]].reshape(shape) for name, shape in _MODEL_FIELDS}
     )
 
 
 def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True) -> FilterOutput:
-    """Textbook MEKF with the full 6×6 (or 3×3) innovation covariance. Slow; for tests."""
+    """Textbook MEKF with the full innovation covariance over the measurements present at
+    each sample (6×6, 3×3 or none). Slow; for tests."""
     n = len(data)
     g_n = frames.gravity_n(data.g)
     m_n = p.m_n
@@ -269,14 +322,21 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
             P = P + dt * dt * R @ p.Sigma_gyr @ R.T
         else:
             R = frames.quat_to_matrix(q)
+        # The rows of y = (y_a, y_m) measured at t; absent ones are NaN in the outputs.
+        rows = np.flatnonzero([data.has_acc[t]] * 3 + [use_mag and data.has_mag[t]] * 3)
+        innov[t, :ny] = np.nan
+        normed[t, :ny] = np.nan
+        if rows.size == 0:  # no measurement: the prediction is carried on
+            q_filt[t] = q
+            continue
         Rt = R.T
-        y_pred = np.concatenate([-Rt @ g_n, p.D @ Rt @ m_n + p.o])[:ny]
-        H = np.vstack([-Rt @ G, p.D @ Rt @ Mx])[:ny]
-        Rm = np.zeros((ny, ny))
+        y_pred = np.concatenate([-Rt @ g_n, p.D @ Rt @ m_n + p.o])[rows]
+        H = np.vstack([-Rt @ G, p.D @ Rt @ Mx])[rows]
+        Rm = np.zeros((6, 6))
         Rm[:3, :3] = p.Sigma_acc + data.acc_extra_var[t] * np.eye(3)
-        if use_mag:
-            Rm[3:, 3:] = p.Sigma_mag
-        y = np.concatenate([data.acc[t], data.mag[t]])[:ny]
+        Rm[3:, 3:] = p.Sigma_mag
+        Rm = Rm[np.ix_(rows, rows)]
+        y = np.concatenate([data.acc[t], data.mag[t]])[rows]
         eps = y - y_pred
         S = H @ P @ H.T + Rm
         L = np.linalg.cholesky(S)
@@ -290,8 +350,8 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
         P = IKH @ P @ IKH.T + K @ Rm @ K.T
         q = frames.quat_normalize(frames.quat_multiply(frames.quat_exp(0.5 * eta), q))
         q_filt[t] = q
-        innov[t, :ny] = eps
-        normed[t, :ny] = w
+        innov[t, rows] = eps
+        normed[t, rows] = w
     return FilterOutput(cost=float(cost), q_filt=q_filt, innovations=innov, normalised=normed)
 
 

@@ -73,7 +73,7 @@ TARGET_COST_REL_DIFF = 1e-6
 #: observability checks; the initial estimate (Algorithm 1 step 1), whose ellipsoid fit the
 #: pipeline runs first (to judge it) and ``initial_estimate`` then adds noise and alignment;
 #: ml (step 2); diagnostics.
-STAGES = ("checks", "ellipsoid", "noise", "alignment", "ml", "diagnostics")
+STAGES = ("checks", "ellipsoid", "noise", "alignment", "ml", "diagnostics", "consistency")
 INIT_STAGES = ("ellipsoid", "noise", "alignment")
 
 

@@ -145,8 +145,15 @@ def per_sample_costs(
         H[:, :3, 3:6] = Rt
         H[:, 3:, :3] = D @ Rt @ m_cross
         noise[:, :3, :3] = Sa + data.acc_extra_var[t] * eye3
+        # The measurements sample t has (FilterData.has_acc, has_mag), as the kernel does.
+        rows = [r for r, present in ((0, data.has_acc[t]), (3, data.has_mag[t])) if present]
+        if not rows:
+            costs[:, t] = 0.0
+            continue
+        rows = np.concatenate([np.arange(r, r + 3) for r in rows])
+        eps, H, noise_t = eps[:, rows], H[:, rows], noise[:, rows][:, :, rows]
         HP = H @ P
-        S = HP @ np.swapaxes(H, 1, 2) + noise
+        S = HP @ np.swapaxes(H, 1, 2) + noise_t
         L = np.linalg.cholesky(S)  # log det via Cholesky
         white = np.linalg.solve(L, eps[..., None])[..., 0]
         costs[:, t] = 0.5 * np.sum(white * white, axis=1) + np.sum(
@@ -156,7 +163,7 @@ def per_sample_costs(
         dx = np.einsum("bij,bj->bi", K, eps)
         # Joseph form: the covariance stays symmetric positive semidefinite in rounding.
         IKH = np.eye(9) - K @ H
-        P = IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ noise @ np.swapaxes(K, 1, 2)
+        P = IKH @ P @ np.swapaxes(IKH, 1, 2) + K @ noise_t @ np.swapaxes(K, 1, 2)
         P = 0.5 * (P + np.swapaxes(P, 1, 2))
         q = frames.quat_normalize(frames.quat_multiply(frames.quat_exp(0.5 * dx[:, :3]), q))
         x_acc = x_acc + dx[:, 3:]

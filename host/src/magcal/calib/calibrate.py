@@ -173,7 +173,7 @@ def calibrate(
     extra["Sigma_mag"] = p.Sigma_mag
     # V(θ̂) of eq. (6) alone; the optimiser's final_cost also holds the gyro-noise prior.
     extra["negative_log_likelihood"] = out.cost
-    extra["innovations"] = quality.innovation_stats(out.normalised).as_dict()
+    extra["innovations"] = quality.innovation_stats(out.present_normalised()).as_dict()
     extra["field_norm"] = {
         "before": quality.norm_stats(session.mag),
         "after": quality.norm_stats(calibrated),

@@ -183,7 +183,7 @@ def _write_plots(cal, session, directory: str) -> list[Path]:
             d / "field_norm.png",
         ),
         plots.plot_innovation_histogram(
-            cal.filter_output.normalised,
+            cal.filter_output.present_normalised(),
             d / "innovations.png",
             title=f"Normalised innovations ({cal.result.method})",
         ),

@@ -198,8 +198,9 @@ def evaluate_session(
         model = None  # build_report notes it once for the whole page
     if model is not None:
         out = replay.run_filter_at(session, model)
-        if np.isfinite(out.normalised).all():
-            innovations = quality.innovation_stats(out.normalised)
+        normalised = out.present_normalised()
+        if np.isfinite(normalised).all():
+            innovations = quality.innovation_stats(normalised)
             figures.append(
                 Figure(
                     "Normalised innovations",
@@ -208,7 +209,7 @@ def evaluate_session(
                     "parameters; a model that fits gives N(0, 1).",
                     _png(
                         lambda p: plots.plot_innovation_histogram(
-                            out.normalised, p, title=f"Normalised innovations, {label}"
+                            normalised, p, title=f"Normalised innovations, {label}"
                         )
                     ),
                 )

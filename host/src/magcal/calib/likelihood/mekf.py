@@ -104,6 +104,11 @@ class FilterOutput:
     innovations: np.ndarray
     normalised: np.ndarray
 
+    def present_normalised(self) -> np.ndarray:
+        """(M,) the normalised innovations of the measurements the samples had (those absent
+        are left out). NaN remains only where the filter broke down (a non-positive pivot)."""
+        return self.normalised[np.isfinite(self.innovations)]
+
 
 def make_filter_data(
     t: np.ndarray,

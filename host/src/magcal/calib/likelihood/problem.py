@@ -286,6 +286,7 @@ class LikelihoodProblem:
             starting_attitude(session.acc, mag_n, p_norm),
             acc_extra_var=levels.acc_extra_var,
             g=levels.g,
+            has_acc=levels.acc_used,
         )
         prior_mean, prior_precision = gyro_noise_prior(
             levels.noise.Sigma_gyr, levels.stationary_samples

@@ -35,7 +35,7 @@ QUICK_SEEDS = {
 NOT_MET_YET = {
     "mems-acc": (
         "with smooth 0.2-2 Hz translational accelerations of 0.3 m/s² the "
-        "ML misalignment sits at about 2× the known-attitude floor (20 seeds 2.04×; bound 2×), "
+        "ML misalignment sits at about 2× the known-attitude floor (20 seeds 2.01×; bound 2×), "
         "below the scenario's Cramér-Rao bound of 2.29× (make cramer-rao)"
     ),
 }

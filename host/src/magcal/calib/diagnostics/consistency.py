@@ -82,6 +82,8 @@ MIN_DIP_SAMPLES = 50
 FIELD_STRETCH_S = 5.0
 #: Field directions (a Fibonacci sphere, ≈14° apart) at which stretches are compared.
 FIELD_DIRECTIONS = 200
+#: Samples per block when each is assigned its nearest direction.
+_CELL_BLOCK = 4096
 #: Fewest samples of a stretch, and of the others, in one direction for it to be compared.
 FIELD_MIN_CELL_SAMPLES = 5
 #: A stretch whose field norm differs from the constant part's by more than this fraction is
@@ -153,7 +155,15 @@ def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]
     """
     t = np.asarray(t, dtype=float)
     norm = np.linalg.norm(calibrated, axis=1)
-    cell = np.argmax((calibrated / norm[:, None]) @ _DIRECTIONS.T, axis=1)
+    unit = calibrated / norm[:, None]
+    # The nearest direction of each sample, in blocks: a whole session's N × directions
+    # products would cost more memory than the calibration itself.
+    cell = np.concatenate(
+        [
+            np.argmax(unit[i : i + _CELL_BLOCK] @ _DIRECTIONS.T, axis=1)
+            for i in range(0, unit.shape[0], _CELL_BLOCK)
+        ]
+    )
     index = np.floor((t - t[0]) / FIELD_STRETCH_S).astype(int)
     n_stretch = int(index.max()) + 1
     if n_stretch < 2:

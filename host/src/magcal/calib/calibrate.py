@@ -19,7 +19,7 @@ from magcal.calib.likelihood import mekf
 from magcal.calib.likelihood.ml import MLEstimate, maximum_likelihood
 from magcal.calib.likelihood.optimize import OptimizeOptions
 from magcal.calib.likelihood.params import ModelParams
-from magcal.calib.likelihood.problem import LikelihoodProblem
+from magcal.calib.likelihood.problem import LikelihoodProblem, Priors
 from magcal.calib.norm_only import ckf, twostep
 from magcal.errors import MagcalError
 from magcal.io.result import CalibrationResult
@@ -92,6 +92,7 @@ def calibrate(
     gradient: str = "exact",
     options: OptimizeOptions = OptimizeOptions(),
     progress: Callable[[int, float, float], None] | None = None,
+    priors: Priors = Priors(),
 ) -> Calibration:
     """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
     or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see
@@ -142,10 +143,11 @@ def calibrate(
     est = None
     if method == "ml":
         t0 = time.perf_counter()
-        est = maximum_likelihood(session, init, gradient, options, progress)
+        est = maximum_likelihood(session, init, gradient, options, progress, priors)
         seconds["ml"] = time.perf_counter() - t0
         p = est.params
         r = est.report
+        extra["priors"] = priors.as_dict()
         extra["optimizer"] = {
             "gradient": gradient,
             "iterations": r.iterations,

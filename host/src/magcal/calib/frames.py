@@ -16,6 +16,8 @@ All functions are pure and vectorised over leading axes where that is cheap.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 
 GRAVITY_M_S2 = 9.81
@@ -224,3 +226,23 @@ def triad(up_b: np.ndarray, field_b: np.ndarray, field_n: np.ndarray) -> np.ndar
 
     R_nb = frame(np.array([0.0, 0.0, 1.0]), field_n) @ frame(up_b, field_b).T
     return matrix_to_quat(R_nb)
+
+
+def axis_permutation_rotations() -> np.ndarray:
+    """(24, 3, 3) the rotations that map axes onto axes: every signed permutation matrix with
+    determinant +1. A sensor is mounted as one of them (the autopilots' enumerated rotations
+    hold these and more) plus a small misalignment."""
+    out = []
+    for perm in itertools.permutations(range(3)):
+        for signs in itertools.product((1.0, -1.0), repeat=3):
+            U = np.zeros((3, 3))
+            U[np.arange(3), perm] = signs
+            if np.linalg.det(U) > 0.0:
+                out.append(U)
+    return np.array(out)
+
+
+def nearest_axis_permutation(R: np.ndarray) -> np.ndarray:
+    """(3, 3) the axis-permutation rotation closest to the rotation R (largest trace(R Uᵀ))."""
+    rotations = axis_permutation_rotations()
+    return rotations[int(np.argmax(np.einsum("ij,kij->k", np.asarray(R, dtype=float), rotations)))]

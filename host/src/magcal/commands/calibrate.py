@@ -45,8 +45,65 @@ def add_parser(sub) -> None:
         choices=["exact", "numeric"],
         help="exact (reverse mode) or the paper's finite differences",
     )
+    p.add_argument(
+        "--gyro-bias-prior",
+        type=angle_rate_prior,
+        default=DEFAULT_GYRO_BIAS_PRIOR,
+        metavar="WIDTH",
+        help="1-σ width of the prior on each axis of the gyroscope bias, centred on 0, e.g. "
+        "2deg/s or 0.03rad/s (a bare number is °/s); 'none' for no prior. Default "
+        f"{DEFAULT_GYRO_BIAS_PRIOR}: MEMS offsets are a few °/s",
+    )
+    p.add_argument(
+        "--misalignment-prior",
+        type=angle_prior,
+        default="none",
+        metavar="WIDTH",
+        help="1-σ width of a prior on the rotation between the magnetometer's and the IMU's "
+        "axes, centred on the nearest axis permutation, e.g. 5deg or 0.1rad (a bare number is "
+        "degrees); default none. For a magnetometer mounted along the IMU's axes: data that "
+        "cannot tell then fall back to aligned axes",
+    )
     p.add_argument("--truth", help="truth JSON of a simulated session: also print errors")
     p.set_defaults(run=run)
+
+
+#: --gyro-bias-prior's default, as the command line writes it (GYRO_BIAS_PRIOR_DEG_S of
+#: magcal.calib.likelihood.problem; not imported here, the parser loads no numerical code).
+DEFAULT_GYRO_BIAS_PRIOR = "5deg/s"
+_RATE_UNITS = {"deg/s": np.pi / 180.0, "°/s": np.pi / 180.0, "rad/s": 1.0}
+_ANGLE_UNITS = {"deg": np.pi / 180.0, "°": np.pi / 180.0, "rad": 1.0}
+
+
+def _width(text: str, units: dict[str, float], bare: str) -> float | None:
+    """A prior width in SI units (rad or rad/s) from "2deg/s", "0.1rad", "5" (``bare``'s unit)
+    or "none" (no prior)."""
+    import argparse
+
+    t = text.strip().replace(" ", "")
+    if t.lower() == "none":
+        return None
+    unit = next((u for u in sorted(units, key=len, reverse=True) if t.endswith(u)), None)
+    number = t[: -len(unit)] if unit else t
+    try:
+        value = float(number)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: give a width like 5{bare}, a number in {', '.join(units)}, or none"
+        ) from None
+    if not np.isfinite(value) or value <= 0.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: a width must be a positive number, or none")
+    return value * units[unit or bare]
+
+
+def angle_rate_prior(text: str) -> float | None:
+    """An argparse type: a gyroscope-bias prior width, rad/s (None: no prior)."""
+    return _width(text, _RATE_UNITS, "deg/s")
+
+
+def angle_prior(text: str) -> float | None:
+    """An argparse type: a misalignment prior width, rad (None: no prior)."""
+    return _width(text, _ANGLE_UNITS, "deg")
 
 
 def summary_rows(cal) -> list[tuple[str, str]]:
@@ -194,6 +251,7 @@ def run(args) -> int:
     from magcal.calib.calibrate import calibrate
     from magcal.calib.diagnostics import observability
     from magcal.calib.initial import ellipsoid
+    from magcal.calib.likelihood.problem import Priors
     from magcal.io.result import check_result_writable, write_result
     from magcal.io.session import os_error_advice, read_session
 
@@ -209,7 +267,14 @@ def run(args) -> int:
     progress = progress_printer()
     try:
         cal = calibrate(
-            session, args.method, force=args.force, gradient=args.gradient, progress=progress
+            session,
+            args.method,
+            force=args.force,
+            gradient=args.gradient,
+            progress=progress,
+            priors=Priors(
+                gyro_bias_rad_s=args.gyro_bias_prior, misalignment_rad=args.misalignment_prior
+            ),
         )
     finally:
         progress.done()

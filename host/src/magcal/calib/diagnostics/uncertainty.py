@@ -36,7 +36,7 @@ import scipy.linalg
 from magcal.calib import frames
 from magcal.calib.diagnostics import replay
 from magcal.calib.likelihood import params
-from magcal.calib.likelihood.problem import LikelihoodProblem, Normalisation
+from magcal.calib.likelihood.problem import LikelihoodProblem, Normalisation, Priors
 from magcal.errors import CalibrationError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
@@ -332,7 +332,10 @@ def calibration_uncertainty(
     """
     t0 = time.perf_counter()
     p = replay.model_params_from_result(result)
-    problem = LikelihoodProblem.at_parameters(session, p)
+    # The cost the estimate minimised: with the priors the result records (none for older
+    # results and methods without the ML step).
+    priors = Priors.from_dict(result.extra.get("priors"))
+    problem = LikelihoodProblem.at_parameters(session, p, priors)
     gradient = penalised_gradient(problem)
     g0 = gradient(problem.theta0)
     if not np.isfinite(g0).all():

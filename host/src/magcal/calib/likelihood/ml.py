@@ -16,7 +16,7 @@ import numpy as np
 from magcal.calib.initial.estimate import InitialEstimate
 from magcal.calib.likelihood.optimize import OptimizeOptions, OptimizeReport, minimize_bfgs
 from magcal.calib.likelihood.params import ModelParams
-from magcal.calib.likelihood.problem import LikelihoodProblem, on_canonical_branch
+from magcal.calib.likelihood.problem import LikelihoodProblem, Priors, on_canonical_branch
 from magcal.io.session import Session
 
 
@@ -34,9 +34,11 @@ def maximum_likelihood(
     gradient: str = "exact",
     options: OptimizeOptions = OptimizeOptions(),
     progress: Callable[[int, float, float], None] | None = None,
+    priors: Priors = Priors(),
 ) -> MLEstimate:
-    """Algorithm 1 step 2 from the initial estimate; ``gradient`` "exact" or "numeric"."""
-    problem = LikelihoodProblem.for_ml_step(session, init)
+    """Algorithm 1 step 2 from the initial estimate; ``gradient`` "exact" or "numeric";
+    ``priors`` make it a MAP estimate (:class:`~magcal.calib.likelihood.problem.Priors`)."""
+    problem = LikelihoodProblem.for_ml_step(session, init, priors=priors)
     # Exact gradients: cost and gradient together at every trial point, since nearly every
     # step is accepted at α = 1 and a cost-only line search would pay for the forward pass
     # twice. Finite differences (the paper's way): the line search tries points by cost

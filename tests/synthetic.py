@@ -1,5 +1,7 @@
 """Synthetic filter problems with known truth, shared by the filter-level tests."""
 
+import dataclasses
+
 import numpy as np
 
 from magcal.calib import frames
@@ -44,3 +46,25 @@ def synthetic_filter_problem(n=400, seed=0, rate_hz=100.0, inflation="mixed"):
     q0 = frames.quat_multiply(frames.rotvec_to_quat([0.05, -0.03, 0.1]), q[0])
     data = mekf.make_filter_data(t, gyr, acc, mag, q0, acc_extra_var=extra, g=9.81)
     return p, data, q
+
+
+def random_masks(n, seed):
+    """About a third of the samples without accelerometer, half without magnetometer, and
+    so some without either; sample 0 keeps both."""
+    rng = np.random.default_rng(seed)
+    has_acc = rng.random(n) > 0.35
+    has_mag = rng.random(n) > 0.5
+    has_acc[0] = has_mag[0] = True
+    return has_acc, has_mag
+
+
+def with_masks(data, has_acc, has_mag, *, blank=True):
+    """``data`` with the masks; with ``blank`` the absent values are NaN (not read)."""
+    acc, mag, extra = data.acc.copy(), data.mag.copy(), data.acc_extra_var.copy()
+    if blank:
+        acc[~has_acc] = np.nan
+        extra[~has_acc] = np.nan
+        mag[~has_mag] = np.nan
+    return dataclasses.replace(
+        data, acc=acc, mag=mag, acc_extra_var=extra, has_acc=has_acc, has_mag=has_mag
+    )

@@ -9,7 +9,7 @@ from magcal.calib.likelihood.problem import (
     negative_log_likelihood_and_gradient,
     numeric_gradient,
 )
-from tests.synthetic import synthetic_filter_problem
+from tests.synthetic import random_masks, synthetic_filter_problem, with_masks
 
 
 def central_difference(f, theta, h):
@@ -24,9 +24,12 @@ def central_difference(f, theta, h):
     return g
 
 
+@pytest.mark.parametrize("masked", [False, True])
 @pytest.mark.parametrize(("seed", "inflation"), [(0, "mixed"), (1, "none"), (2, "all")])
-def test_exact_gradient_matches_central_differences_at_random_points(seed, inflation):
+def test_exact_gradient_matches_central_differences_at_random_points(seed, inflation, masked):
     p, data, _ = synthetic_filter_problem(n=300, seed=seed, inflation=inflation)
+    if masked:  # some samples without accelerometer, magnetometer or either
+        data = with_masks(data, *random_masks(len(data), 10 + seed))
     rng = np.random.default_rng(100 + seed)
     theta = params.pack(p)
     # A random point away from the truth: perturb every parameter.

@@ -9,35 +9,8 @@ import pytest
 import scipy.linalg
 
 from magcal.calib import frames
-from magcal.calib.likelihood import _mekf, mekf, params
-from magcal.calib.likelihood.problem import (
-    negative_log_likelihood,
-    negative_log_likelihood_and_gradient,
-)
-from tests.synthetic import synthetic_filter_problem
-from tests.unit.test_gradient import central_difference
-
-
-def random_masks(n, seed):
-    """About a third of the samples without accelerometer, half without magnetometer, and
-    so some without either; sample 0 keeps both."""
-    rng = np.random.default_rng(seed)
-    has_acc = rng.random(n) > 0.35
-    has_mag = rng.random(n) > 0.5
-    has_acc[0] = has_mag[0] = True
-    return has_acc, has_mag
-
-
-def with_masks(data, has_acc, has_mag, *, blank=True):
-    """``data`` with the masks; with ``blank`` the absent values are NaN (not read)."""
-    acc, mag, extra = data.acc.copy(), data.mag.copy(), data.acc_extra_var.copy()
-    if blank:
-        acc[~has_acc] = np.nan
-        extra[~has_acc] = np.nan
-        mag[~has_mag] = np.nan
-    return dataclasses.replace(
-        data, acc=acc, mag=mag, acc_extra_var=extra, has_acc=has_acc, has_mag=has_mag
-    )
+from magcal.calib.likelihood import _mekf, mekf
+from tests.synthetic import random_masks, synthetic_filter_problem, with_masks
 
 
 def kernel_cost_grad(p, data, use_mag, masks):
@@ -112,27 +85,6 @@ def test_absent_values_are_not_read():
     assert np.isfinite(c_blank) and c_blank == c_kept
     for name, value in vars(g_blank).items():
         assert np.array_equal(value, getattr(g_kept, name)), name
-
-
-@pytest.mark.parametrize(("seed", "inflation"), [(0, "mixed"), (1, "none"), (2, "all")])
-def test_exact_gradient_with_masks_matches_central_differences(seed, inflation):
-    p, data, _ = synthetic_filter_problem(n=300, seed=seed, inflation=inflation)
-    data = with_masks(data, *random_masks(len(data), 10 + seed))
-    rng = np.random.default_rng(100 + seed)
-    theta = params.pack(p)
-    theta = (
-        theta
-        + rng.normal(size=theta.size)
-        * np.r_[np.full(12, 0.02), 0.02, np.full(3, 0.005), np.full(18, 0.2)]
-    )
-    _, g = negative_log_likelihood_and_gradient(theta, data)
-    fd = central_difference(
-        lambda th: negative_log_likelihood(th, data), theta, 1e-4 * np.maximum(1, abs(theta))
-    )
-    err = np.abs(g - fd)
-    assert np.linalg.norm(g - fd) <= 1e-6 * np.linalg.norm(fd)
-    floor = 1e-6 * np.linalg.norm(fd, np.inf) * 1e-2
-    assert np.all(err <= 1e-6 * np.abs(fd) + floor), params.PARAM_NAMES[int(np.argmax(err))]
 
 
 def hand_built_half_rate_magnetometer(p, data):

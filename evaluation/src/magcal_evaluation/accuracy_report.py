@@ -113,6 +113,22 @@ def _git_description() -> str:
     return commit + (" with uncommitted changes under host/" if status else "")
 
 
+def run_record(module: str, argv: list[str] | None, workers: int, commit_at_start: str) -> dict:
+    """What every report says of its run: the command that reproduces it, the date, the
+    machine, and the code (``commit_at_start``, flagged when the tree changed meanwhile)."""
+    now = _git_description()
+    return {
+        "command": f"python -m {module} "
+        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)),
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "cores": os.cpu_count(),
+        "workers": workers,
+        "python": platform.python_version(),
+        "commit": commit_at_start
+        + ("" if now == commit_at_start else f" (the tree changed to {now} during the run: rerun)"),
+    }
+
+
 def _f(x: float, fmt: str = "{:.3g}") -> str:
     return "–" if x is None or not np.isfinite(x) else fmt.format(x)
 
@@ -292,19 +308,8 @@ def main(argv: list[str] | None = None) -> int:
         f.write("\n")
 
     meta = {
-        "command": "python -m magcal_evaluation.accuracy_report "
-        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)),
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        **run_record(__spec__.name, argv, args.workers, commit_at_start),
         "wall_min": wall / 60.0,
-        "cores": os.cpu_count(),
-        "workers": args.workers,
-        "python": platform.python_version(),
-        "commit": commit_at_start
-        + (
-            ""
-            if _git_description() == commit_at_start
-            else f" (the tree changed to {_git_description()} during the run: rerun)"
-        ),
         "figure8": str(figure8) if figure8 else None,
         "exploratory": exploratory,
     }

@@ -20,12 +20,9 @@ for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
 import argparse  # noqa: E402
-import datetime  # noqa: E402
 import json  # noqa: E402
 import math  # noqa: E402
 import multiprocessing  # noqa: E402
-import platform  # noqa: E402
-import shlex  # noqa: E402
 import sys  # noqa: E402
 import time  # noqa: E402
 import warnings  # noqa: E402
@@ -36,7 +33,7 @@ import numpy as np  # noqa: E402
 from magcal.calib.calibrate import METHODS  # noqa: E402
 from magcal.ui import ProgressBar  # noqa: E402
 from magcal_evaluation import real  # noqa: E402
-from magcal_evaluation.accuracy_report import _git_description  # noqa: E402
+from magcal_evaluation.accuracy_report import _git_description, run_record  # noqa: E402
 
 
 def _task(args: tuple[str, str]) -> dict:
@@ -240,19 +237,8 @@ def main(argv: list[str] | None = None) -> int:
     verdicts = real.criteria([r for r in results if "error" not in r])
 
     meta = {
-        "command": "python -m magcal_evaluation.real_report "
-        + " ".join(shlex.quote(a) for a in (sys.argv[1:] if argv is None else argv)),
-        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        **run_record(__spec__.name, argv, args.workers, commit_at_start),
         "wall_s": wall,
-        "cores": os.cpu_count(),
-        "workers": args.workers,
-        "python": platform.python_version(),
-        "commit": commit_at_start
-        + (
-            ""
-            if _git_description() == commit_at_start
-            else f" (the tree changed to {_git_description()} during the run: rerun)"
-        ),
         "data": args.data,
     }
     out = Path(args.out)

@@ -31,12 +31,12 @@ METHODS = ("ml", "init", "ckf", "two-step")
 #: misalignment, the field's dip and the gyro bias then come from Algorithm 1's own steps
 #: 1a and 1c, so the result is a full D, o like "init". Each returns (EllipsoidFit, the
 #: result file's record of the run).
-ATTITUDE_FREE = {
+NORM_ONLY = {
     "ckf": ckf.calibration_ellipsoid,
     "two-step": twostep.calibration_ellipsoid,
 }
-#: The result's key for each attitude-free method's record of its run.
-ATTITUDE_FREE_KEYS = {"ckf": "ckf", "two-step": "two_step"}
+#: The result's key for each norm-only method's record of its run.
+NORM_ONLY_KEYS = {"ckf": "ckf", "two-step": "two_step"}
 
 NOISY_ELLIPSOID_WARNING = (
     "the ellipsoid fit reached the edge of positive definiteness although the data cover "
@@ -96,7 +96,7 @@ def calibrate(
 ) -> Calibration:
     """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
     or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see
-    :data:`ATTITUDE_FREE`)."""
+    :data:`NORM_ONLY`)."""
     if method not in METHODS:
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     seconds = {}
@@ -110,9 +110,9 @@ def calibrate(
     # too little rotation: say that instead of the fit's own advice to rotate more.
     t0 = time.perf_counter()
     method_record = None
-    if method in ATTITUDE_FREE:
+    if method in NORM_ONLY:
         # These report degenerate data themselves; --force has already passed the checks.
-        fit, method_record = ATTITUDE_FREE[method](session.mag, force=force)
+        fit, method_record = NORM_ONLY[method](session.mag, force=force)
         seconds[method] = time.perf_counter() - t0
     else:
         fit = fit_ellipsoid_sdp(session.mag, force=True)
@@ -139,7 +139,7 @@ def calibrate(
         },
     }
     if method_record is not None:
-        extra[ATTITUDE_FREE_KEYS[method]] = method_record
+        extra[NORM_ONLY_KEYS[method]] = method_record
     est = None
     if method == "ml":
         t0 = time.perf_counter()
@@ -200,7 +200,7 @@ def calibrate(
         p.o,
         p.gyro_bias,
         None if method_record is None else np.asarray(method_record["A"]),
-        session_fit=None if method in ATTITUDE_FREE else fit,
+        session_fit=None if method in NORM_ONLY else fit,
     )
     seconds["consistency"] = time.perf_counter() - t0
     extra["consistency"] = checks.figures

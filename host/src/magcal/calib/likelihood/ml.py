@@ -1,7 +1,7 @@
-"""Algorithm 1, step 2: minimise V(θ) (eq. 6) plus the gyroscope-noise prior from θ₀ with
-damped BFGS.
+"""Algorithm 1, step 2: minimise V(θ) (eq. 6) plus the priors (gyroscope noise and bias, and
+the misalignment when asked) from θ₀ with damped BFGS: a MAP estimate.
 
-The problem (data, normalisation, scales, prior, cost and gradients) is built by
+The problem (data, normalisation, scales, priors, cost and gradients) is built by
 ``problem.py``; this module runs the optimiser on it and maps the result back to raw
 magnetometer units on the canonical branch of the likelihood's symmetries.
 """

@@ -17,7 +17,6 @@ from magcal.calib.likelihood.problem import (
     Priors,
     misalignment_penalty,
     misalignment_vector,
-    rotation_part,
 )
 from magcal.commands.calibrate import angle_prior, angle_rate_prior
 from magcal.sim.scenarios import preset, simulate
@@ -37,9 +36,11 @@ def test_misalignment_vector_is_the_rotation_against_the_reference_to_first_orde
     # Error O(φ²): 2° is 0.035 rad, so agreement to a few 1e-3 relative to |φ|.
     assert np.allclose(misalignment_vector(D, U0), phi, atol=2e-3 * np.linalg.norm(phi) + 1e-4)
     assert np.allclose(
-        rotation_part(D), frames.quat_to_matrix(frames.rotvec_to_quat(phi)) @ U0, atol=1e-9
+        frames.nearest_rotation(D),
+        frames.quat_to_matrix(frames.rotvec_to_quat(phi)) @ U0,
+        atol=1e-9,
     )
-    assert np.allclose(frames.nearest_axis_permutation(rotation_part(D)), U0)
+    assert np.allclose(frames.nearest_axis_permutation(frames.nearest_rotation(D)), U0)
 
 
 def test_misalignment_penalty_gradient_matches_central_differences():

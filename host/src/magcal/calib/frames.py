@@ -228,6 +228,15 @@ def triad(up_b: np.ndarray, field_b: np.ndarray, field_n: np.ndarray) -> np.ndar
     return matrix_to_quat(R_nb)
 
 
+def nearest_rotation(x: np.ndarray) -> np.ndarray:
+    """(3, 3) the rotation nearest to a 3 × 3 matrix (Frobenius norm), via the SVD
+    x = U S Vᵀ: U Vᵀ with its last axis flipped when needed for det +1. For det x > 0 it is
+    the rotation R of the polar decomposition x = P R."""
+    u, _, vt = np.linalg.svd(np.asarray(x, dtype=float))
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
 def axis_permutation_rotations() -> np.ndarray:
     """(24, 3, 3) the rotations that map axes onto axes: every signed permutation matrix with
     determinant +1. A sensor is mounted as one of them (the autopilots' enumerated rotations

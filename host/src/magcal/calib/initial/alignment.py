@@ -32,7 +32,14 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from magcal.calib.frames import GRAVITY_M_S2, quat_to_matrix, rotvec_to_quat, skew, so3_grid
+from magcal.calib.frames import (
+    GRAVITY_M_S2,
+    nearest_rotation,
+    quat_to_matrix,
+    rotvec_to_quat,
+    skew,
+    so3_grid,
+)
 from magcal.errors import CalibrationError, InsufficientDataError
 
 #: Rotations in the global grid search (cost evaluations are 81 flops each; 1024 rotations
@@ -121,13 +128,6 @@ def vertical_from_accelerometer(acc: np.ndarray) -> np.ndarray:
             "sensor); remove them before calibrating"
         )
     return acc / norm
-
-
-def _rotation_from_matrix(x: np.ndarray) -> np.ndarray:
-    """Nearest rotation (Frobenius) to a 3 × 3 matrix, via SVD."""
-    u, _, vt = np.linalg.svd(x)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
 
 
 def _rotation_exp(phi: np.ndarray) -> np.ndarray:
@@ -241,7 +241,7 @@ def estimate_alignment_from_vertical(
     starts = []
     x = vec[:, 0].reshape(3, 3)
     for s in (1.0, -1.0):
-        starts.append(_rotation_from_matrix(s * x))
+        starts.append(nearest_rotation(s * x))
     # ... and the best points of a grid over SO(3).
     grid = quat_to_matrix(so3_grid(GRID_SIZE)).reshape(GRID_SIZE, 9)
     grid_cost = np.einsum("ki,ij,kj->k", grid, C, grid)

@@ -260,13 +260,6 @@ class Priors:
 NO_PRIORS = Priors(gyro_bias_rad_s=None, misalignment_rad=None)
 
 
-def rotation_part(D: np.ndarray) -> np.ndarray:
-    """(3, 3) the rotation R of the polar decomposition D = P R (P symmetric positive definite
-    for det D > 0), from the SVD D = U S Vᵀ: R = U Vᵀ."""
-    U, _, Vt = np.linalg.svd(np.asarray(D, dtype=float))
-    return U @ Vt
-
-
 def misalignment_vector(D: np.ndarray, reference: np.ndarray) -> np.ndarray:
     """(3,) rad: the rotation vector φ of D's rotation part against ``reference`` (3, 3), to
     first order in φ.
@@ -421,7 +414,7 @@ class LikelihoodProblem:
             scales=parameter_scales(p_norm, len(data)),
             prior_mean=prior_mean,
             prior_precision=prior_precision,
-            misalignment_reference=frames.nearest_axis_permutation(rotation_part(p.D)),
+            misalignment_reference=frames.nearest_axis_permutation(frames.nearest_rotation(p.D)),
             misalignment_sigma_rad=priors.misalignment_rad,
         )
 

@@ -148,6 +148,9 @@ def calibrate(
         p = est.params
         r = est.report
         extra["priors"] = priors.as_dict()
+        extra["time_offset_s"] = p.time_offset_s
+        if est.time_offset_test is not None:
+            extra["time_offset_test"] = est.time_offset_test.as_dict()
         extra["optimizer"] = {
             "gradient": gradient,
             "iterations": r.iterations,

@@ -23,9 +23,7 @@ def thinned(session, every: int):
 
 def heading_rms_deg(truth, result) -> float:
     s = truth.sensor
-    return quality.rms_deg(
-        quality.calibration_heading_errors(s.D, s.o, s.m_n, result.D, result.o)
-    )
+    return quality.rms_deg(quality.calibration_heading_errors(s.D, s.o, s.m_n, result.D, result.o))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -101,15 +99,20 @@ def test_exact_repeats_of_a_resending_stream_are_not_samples():
     np.testing.assert_array_equal(mag[~rep], fresh)
 
 
-def test_quantised_still_repeats_are_dropped_too():
-    # A quantised sensor at rest: noise below one count reads the same value often. The
-    # rule is the same (its rounding error repeats with it); a changed reading is kept.
+def test_quantised_still_repeats_are_samples():
+    # A quantised sensor: while still (the first 60 of 400 samples) it reads the same counts
+    # often; while turning never. Those repeats are real samples and are kept ...
     rng = np.random.default_rng(1)
-    mag = np.round(np.array([20.0, -5.0, 40.0]) + rng.normal(scale=0.3, size=(400, 3)))
-    rep = samples.repeated_samples(mag)
-    assert 0 < rep.sum() < 400
-    changed = np.r_[True, (mag[1:] != mag[:-1]).any(axis=1)]
-    np.testing.assert_array_equal(~rep, changed)
+    mag = np.round(smooth_field(400, rng) * 10.0)
+    mag[:60] = np.round(np.array([200.0, -50.0, 400.0]) + rng.normal(scale=0.3, size=(60, 3)))
+    exact = np.r_[False, (mag[1:] == mag[:-1]).all(axis=1)]
+    assert 5 < exact.sum() < 0.2 * 400
+    assert not samples.repeated_samples(mag).any()
+    # ... while a sensor still for most of the session repeats so often that they are not.
+    still = np.round(np.array([200.0, -50.0, 400.0]) + rng.normal(scale=0.3, size=(400, 3)))
+    rep = samples.repeated_samples(still)
+    assert rep.sum() > 0.2 * 400
+    np.testing.assert_array_equal(rep[1:], (still[1:] == still[:-1]).all(axis=1))
 
 
 def test_isolated_jumps_are_found_and_steps_and_fast_motion_are_not():
@@ -169,3 +172,50 @@ def test_multi_rate_session_calibrates_like_its_view(method):
     if method == "ml":
         # Every row propagated: the normalised innovations are white.
         assert 0.9 < r.extra["innovations"]["std"] < 1.1
+
+
+# ---------------------------------------------------------------------------------------------
+# Simulator
+
+
+def test_simulated_magnetometer_rate_and_lag(tmp_path):
+    import json
+    import subprocess
+    import sys
+
+    from magcal.calib import frames
+    from magcal.io.session import read_session
+
+    base, truth = simulate(preset("mems", duration_s=10.0), 5)
+    multi, _ = simulate(preset("mems", duration_s=10.0, mag_rate_hz=25.0), 5)
+    # The IMU and the magnetometer samples it keeps are those of the single-rate session.
+    np.testing.assert_array_equal(multi.gyr, base.gyr)
+    np.testing.assert_array_equal(multi.acc, base.acc)
+    np.testing.assert_array_equal(multi.mag[multi.has_mag], base.mag[multi.has_mag])
+    steps = np.diff(multi.t[multi.has_mag])
+    assert abs(float(np.mean(steps)) - 0.04) < 1e-3 and steps.max() < 0.041
+    # A lag: the noise-free field at t shows the attitude at t - lag.
+    lag = 0.05
+    lagged, _ = simulate(preset("mems", duration_s=10.0, mag_sigma=0.0, mag_lag_s=lag), 5)
+    s = truth.sensor
+    k = np.arange(100, 1000)
+    i = k - 5  # 0.05 s earlier at 100 Hz
+    expected = frames.quat_to_matrix(truth.q_nb[i]).transpose(0, 2, 1) @ s.m_n @ s.D.T + s.o
+    np.testing.assert_allclose(lagged.mag[k], expected, atol=1e-9)
+    # The command line writes a version 2 session and records the lag.
+    out = tmp_path / "s.csv"
+    args = ["--preset", "mems", "--duration", "5", "--mag-rate", "20", "--mag-lag-s", "0.02"]
+    subprocess.run([sys.executable, "-m", "magcal", "simulate", *args, "-o", str(out)], check=True)
+    assert out.read_text(encoding="utf-8").startswith("# magcal-session: 2")
+    assert read_session(out).has_mag.sum() == 20 * 7  # 5 s of motion plus 2 s of rest
+    saved = json.loads(out.with_suffix(".truth.json").read_text(encoding="utf-8"))
+    assert saved["time_offset_s"] == 0.02
+
+
+def test_default_simulation_is_unchanged():
+    # The new settings, at their defaults, change nothing: the same session as without them.
+    a, _ = simulate(preset("table2"), 7)
+    b, _ = simulate(preset("table2", mag_lag_s=0.0, mag_rate_hz=None), 7)
+    for name in ("t", "gyr", "acc", "mag"):
+        assert getattr(a, name).tobytes() == getattr(b, name).tobytes()
+    assert not a.multi_rate

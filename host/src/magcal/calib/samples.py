@@ -4,8 +4,9 @@ A multi-rate session (``magcal-session: 2``) has the IMU at its rate and the mag
 its own, lower one: rows without a magnetometer sample have NaN there (``Session.has_mag``).
 Two functions here serve every calibration method, in this order:
 
-* :func:`drop_magnetometer_glitches`: an exact repeat of the previous magnetometer sample,
-  and an isolated jump, are not samples: their rows become rows without the magnetometer;
+* :func:`drop_magnetometer_glitches`: a re-sent value (an exact repeat of the previous
+  magnetometer sample in a stream that repeats often) and an isolated jump are not samples:
+  their rows become rows without the magnetometer;
 * :func:`at_magnetometer_rows`: the session seen at the magnetometer's rows only, a
   single-rate session, for everything that works per magnetometer sample (the ellipsoid
   fits, the norm-only methods, the initial estimate, the sensor-level checks and the
@@ -24,6 +25,9 @@ import numpy as np
 
 from magcal.io.session import Session
 
+#: Exact repeats of the previous magnetometer sample are re-sent values, not samples, when
+#: more than this fraction of the stream's samples repeat (:func:`repeated_samples`).
+REPEATED_FRACTION = 0.2
 #: Neighbours on each side whose component-wise median an isolated jump is measured against.
 JUMP_NEIGHBOURS = 2
 #: A magnetometer sample is an isolated jump when its distance from the median of its
@@ -61,16 +65,21 @@ class MagnetometerSamples:
 
 
 def repeated_samples(mag: np.ndarray) -> np.ndarray:
-    """(K,) bool over magnetometer samples (K, 3): the sample equals the previous one exactly.
+    """(K,) bool over magnetometer samples (K, 3): the sample is a re-sent one, not new.
 
-    Every exact repeat counts, whatever the stream: a stream re-sending its latest reading
-    (an autopilot's telemetry faster than its compass) repeats it, and a quantised sensor
-    held still can read the same counts twice, but then its rounding error is the same in
-    both: the repeat adds no independent measurement, while the model would count it as
-    one. Dropping it loses little (a still sensor's next differing reading is used).
+    A sample equal to the previous one exactly is re-sent when such repeats are common in
+    the stream (more than :data:`REPEATED_FRACTION` of its samples): a stream re-sending its
+    latest reading (an autopilot's telemetry faster than its compass) repeats at least every
+    other sample, moving or not. A quantised sensor held still can also read the same counts
+    twice, but only while still, a small part of a calibration's motion: those repeats are
+    real samples and are kept. (A still, coarsely quantised sensor that repeats more often
+    loses them; the next reading that differs is used, so little is lost.) A real stream
+    with noise above its resolution (a phone at 25 Hz) never repeats all three axes.
     """
     rep = np.zeros(mag.shape[0], dtype=bool)
     rep[1:] = (mag[1:] == mag[:-1]).all(axis=1)
+    if rep.sum() <= REPEATED_FRACTION * mag.shape[0]:
+        rep[:] = False
     return rep
 
 
@@ -100,7 +109,7 @@ def isolated_jumps(mag: np.ndarray) -> np.ndarray:
 
 
 def drop_magnetometer_glitches(session: Session) -> tuple[Session, MagnetometerSamples]:
-    """The session with exact repeats (:func:`repeated_samples`), then isolated jumps
+    """The session with re-sent values (:func:`repeated_samples`), then isolated jumps
     (:func:`isolated_jumps`, among the remaining samples), turned into rows without the
     magnetometer, and the counts. The same object when nothing was dropped."""
     rows = np.flatnonzero(session.has_mag)
@@ -115,7 +124,9 @@ def drop_magnetometer_glitches(session: Session) -> tuple[Session, MagnetometerS
     mag = session.mag.copy()
     mag[rows[repeated]] = np.nan
     mag[kept[jumps]] = np.nan
-    return Session(t=session.t, gyr=session.gyr, acc=session.acc, mag=mag, meta=session.meta), counts
+    return Session(
+        t=session.t, gyr=session.gyr, acc=session.acc, mag=mag, meta=session.meta
+    ), counts
 
 
 def at_magnetometer_rows(session: Session) -> Session:

@@ -533,7 +533,7 @@ def _parse_slow(
                     empty[start : start + 3] = [True] * 3
                 elif any(cells):
                     names = COLUMNS[start : start + 3]
-                    blank = ", ".join(c for c, e in zip(names, cells) if e)
+                    blank = ", ".join(c for c, e in zip(names, cells, strict=True) if e)
                     raise _error(
                         name,
                         i,

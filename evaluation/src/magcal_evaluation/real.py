@@ -274,9 +274,10 @@ def case_heading_deg(
 
 def plain_fit(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The plain fit: (D (3, 3) symmetric, o (3,)) in raw units, or None when the algebraic
-    ellipsoid fit of ``mag`` (N, 3) is no ellipsoid. See the module's docstring."""
+    ellipsoid fit of ``mag`` (N, 3) is no ellipsoid. See the module's docstring. NaN rows
+    (no magnetometer sample in a multi-rate session) are left out."""
     try:
-        fit = fit_ellipsoid_algebraic(mag)
+        fit = fit_ellipsoid_algebraic(mag[~np.isnan(mag[:, 0])])
     except MagcalError:
         return None
     if fit is None:
@@ -288,7 +289,7 @@ def plain_fit_sdp(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The same with magcal's SDP ellipsoid (positive definite by construction), or None
     when it raises."""
     try:
-        fit = fit_ellipsoid_sdp(mag)
+        fit = fit_ellipsoid_sdp(mag[~np.isnan(mag[:, 0])])
     except MagcalError:
         return None
     return symmetric_fit(fit), fit.o

@@ -156,11 +156,13 @@ class Normalisation:
 def starting_attitude(acc: np.ndarray, mag: np.ndarray, p: ModelParams) -> np.ndarray:
     """q_nb (4,) at sample 0 by TRIAD from the first few samples and calibration ``p``.
 
-    acc : (N, 3) m/s²; mag : (N, 3) in ``p``'s magnetometer units.
+    acc : (N, 3) m/s²; mag : (N, 3) in ``p``'s magnetometer units; NaN rows (no sample
+    there, a multi-rate session) are skipped: the first few samples of each are used.
     """
-    k = min(mekf.INITIAL_ATTITUDE_SAMPLES, acc.shape[0])
-    up_b = acc[:k].mean(axis=0)
-    field_b = np.linalg.solve(p.D, mag[:k].mean(axis=0) - p.o)
+    acc = acc[~np.isnan(acc[:, 0])]
+    mag = mag[~np.isnan(mag[:, 0])]
+    up_b = acc[: mekf.INITIAL_ATTITUDE_SAMPLES].mean(axis=0)
+    field_b = np.linalg.solve(p.D, mag[: mekf.INITIAL_ATTITUDE_SAMPLES].mean(axis=0) - p.o)
     return frames.triad(up_b, field_b, p.m_n)
 
 
@@ -424,7 +426,10 @@ class LikelihoodProblem:
             starting_attitude(session.acc, mag_n, p_norm),
             acc_extra_var=levels.acc_extra_var,
             g=levels.g,
+            # A multi-rate session: every row propagates, each sensor updates where it
+            # measured (levels.acc_used is False where the row has no accelerometer).
             has_acc=levels.acc_used,
+            has_mag=session.has_mag,
         )
         prior_mean, prior_precision = gyro_noise_prior(
             levels.noise.Sigma_gyr, levels.stationary_samples
@@ -440,7 +445,9 @@ class LikelihoodProblem:
             norm=norm,
             theta0=params.pack(p_norm),
             scales=parameter_scales(
-                p_norm, len(data), float(np.sqrt(np.mean(np.sum(session.gyr**2, axis=1))))
+                p_norm,
+                int(data.has_mag.sum()),
+                float(np.sqrt(np.mean(np.sum(session.gyr**2, axis=1)))),
             ),
             prior_mean=prior_mean,
             prior_precision=prior_precision,

@@ -117,7 +117,7 @@ def maximum_likelihood(
         fun=line_search_cost,
         progress=progress_after_plain,
     )
-    threshold = float(scipy.stats.chi2.ppf(1.0 - TIME_OFFSET_TEST_LEVEL, df=1))
+    threshold = float(scipy.stats.chi2.isf(TIME_OFFSET_TEST_LEVEL, df=1))
     statistic = 2.0 * (plain.cost - delayed.cost)
     test = TimeOffsetTest(
         statistic=float(statistic),

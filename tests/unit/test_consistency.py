@@ -11,6 +11,7 @@ import json
 import numpy as np
 import pytest
 
+from magcal.calib import frames
 from magcal.calib.calibrate import calibrate
 from magcal.calib.diagnostics import consistency
 from magcal.cli import EXIT_ERROR, main
@@ -33,7 +34,7 @@ def handheld():
 
 
 def _check(session, D, o, bias=None, A=None):
-    return consistency.check(session.t, session.acc, session.mag, D, o, bias, A)
+    return consistency.check(session.t, session.acc, session.mag, D, o, bias, A, gyr=session.gyr)
 
 
 def _refuse(checks):
@@ -102,6 +103,31 @@ def test_a_wrong_alignment_with_the_accelerometer_is_refused(mems):
     )  # the same ellipsoid: only the dip can tell
     with pytest.raises(ResultContradictedError, match=r"dip angle .* scatters by"):
         _refuse(checks)
+
+
+def test_axes_turned_against_the_gyroscope_are_refused(mems):
+    session, truth = mems
+    st = truth.sensor
+    checks = _check(session, st.D, st.o, st.gyro_bias)
+    assert checks.figures["turn_miss_deg"]["result"] < checks.figures["turn_miss_deg"]["plain_fit"]
+    # Turned by 10° about the body's z axis: no change of the ellipsoid, and none of the dip
+    # at rest, but the field no longer turns as the gyroscope says.
+    c, s = np.cos(np.deg2rad(10.0)), np.sin(np.deg2rad(10.0))
+    turned = st.D @ np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    checks = _check(session, turned, st.o, st.gyro_bias)
+    miss = checks.figures["turn_miss_deg"]
+    assert miss["result"] > 1.5 * miss["plain_fit"] + 0.5
+    with pytest.raises(ResultContradictedError, match=r"turns against the gyroscope"):
+        _refuse(checks)
+
+
+def test_the_turn_miss_of_a_rotation_the_gyroscope_measured_is_zero():
+    t = np.arange(0.0, 5.0, 0.01)
+    rate = np.tile([0.3, -0.5, 0.8], (t.size, 1))
+    R = frames.quat_to_matrix(frames.integrate_rates(rate[:-1], np.diff(t)))
+    field = np.einsum("kji,j->ki", R, [0.4, 0.0, -0.9])  # Rᵀ m: the field in the body frame
+    miss, pairs = consistency.turn_miss_deg(t, rate, np.zeros(3), field)
+    assert miss < 1e-6 and pairs == np.sum(t + consistency.TURN_WINDOW_S <= t[-1] + 1e-9)
 
 
 def _field_jump(session, o, factor):

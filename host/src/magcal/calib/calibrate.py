@@ -240,6 +240,7 @@ def calibrate(
         p.gyro_bias,
         None if method_record is None else np.asarray(method_record["A"]),
         session_fit=None if method in NORM_ONLY else fit,
+        gyr=view.gyr,
     )
     seconds["consistency"] = time.perf_counter() - t0
     extra["consistency"] = checks.figures

@@ -97,6 +97,21 @@ def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
     return 2.0 * quat_log(q)
 
 
+def integrate_rates(rates: np.ndarray, dt: np.ndarray) -> np.ndarray:
+    """Attitudes q_k (N + 1, 4) from body rates: q_0 = 1, q_{k+1} = q_k ⊙ exp_q(½ rates_k dt_k).
+
+    rates : (N, 3) rad/s, body frame, each held over its interval dt (N,) s.
+    A prefix product in log₂ N vectorised passes (Hillis–Steele: the product is associative,
+    and each pass keeps the earlier factor on the left), so long sessions cost no Python loop.
+    """
+    q = np.concatenate([[[1.0, 0.0, 0.0, 0.0]], rotvec_to_quat(rates * dt[:, None])])
+    shift = 1
+    while shift < q.shape[0]:
+        q[shift:] = quat_multiply(q[:-shift], q[shift:])
+        shift *= 2
+    return quat_normalize(q)
+
+
 def quat_to_matrix(q: np.ndarray) -> np.ndarray:
     """Rotation matrix of a unit quaternion; ``quat_to_matrix(q_nb) = R_nb``."""
     q = np.asarray(q, dtype=float)

@@ -18,6 +18,12 @@ each a figure measured on the session and a named limit:
   :data:`DIP_SPREAD_MARGIN_DEG`. The plain fit has no misalignment, so for a magnetometer
   aligned with the IMU its dip spread is the baseline a correct result matches, and for a
   misaligned one a correct result beats it;
+* **turn against the gyroscope**: the corrected field, carried over :data:`TURN_WINDOW_S` by
+  the rotation the gyroscope measured, should meet itself again; the median angle it misses
+  by is compared with the plain fit's (:data:`TURN_MAX_RATIO`, :data:`TURN_MARGIN_DEG`). A
+  correction whose axes are turned against the gyroscope's fails it however well it fits
+  the field's norm and dip. For the methods that fit without the gyroscope (init, ckf,
+  two-step) these are held-out data;
 * **a field that changes during the recording** (steel or a magnet that does not move with the
   sensor): the session is cut into stretches of :data:`FIELD_STRETCH_S`; each stretch's field
   norm (plain fit) is compared with the other stretches' *at the same field directions*, so an
@@ -41,6 +47,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from magcal.calib import frames
 from magcal.calib.diagnostics.replay import inclination_dip_deg
 from magcal.calib.initial.ellipsoid import EllipsoidFit, fit_ellipsoid_sdp, symmetric_fit
 from magcal.calib.norm_only.live import fibonacci_sphere
@@ -76,6 +83,19 @@ DIP_SPREAD_MAX_RATIO = 1.25
 DIP_SPREAD_MARGIN_DEG = 0.5
 #: Fewest samples where the accelerometer reads gravity alone for the dip check.
 MIN_DIP_SAMPLES = 50
+
+#: Span over which the corrected field is carried by the gyroscope's rotation, s: long enough
+#: to turn by tens of degrees when the sensor is being turned, short enough that a few °/s of
+#: gyroscope bias move it by a few degrees at most (the same for the result and the plain fit).
+TURN_WINDOW_S = 1.0
+#: Largest ratio of the result's median miss to the plain fit's. Good results on simulated
+#: presets stay at ≤ 1 (the plain fit lacks the misalignment); on real recordings correct
+#: results reach 0.9–1.0, while results with twice the plain fit's heading error reach 2–3.
+TURN_MAX_RATIO = 1.5
+#: ... and the result's miss must exceed the plain fit's by this much, degrees.
+TURN_MARGIN_DEG = 0.5
+#: Fewest window pairs for the turn check.
+MIN_TURN_PAIRS = 50
 
 #: Length of the stretches whose fields are compared, s: long enough to hold a few
 #: orientations, short enough to name where a change happened.
@@ -141,6 +161,28 @@ def _dip_spread_deg(acc: np.ndarray, calibrated: np.ndarray) -> tuple[float, int
     if dip.size == 0:
         return float("nan"), 0
     return float(1.4826 * np.median(np.abs(dip - np.median(dip)))), int(dip.size)
+
+
+def turn_miss_deg(
+    t: np.ndarray, gyr: np.ndarray, gyro_bias: np.ndarray, calibrated: np.ndarray
+) -> tuple[float, int]:
+    """Median angle, degrees, between the corrected field's direction at t + :data:`TURN_WINDOW_S`
+    and its direction at t carried there by the gyroscope's rotation; and the pairs it is over.
+
+    gyr : (N, 3) rad/s, each row's rate held until the next row (the session's convention).
+    """
+    if t.size < 2:
+        return float("nan"), 0
+    q = frames.integrate_rates(gyr[:-1] - gyro_bias, np.diff(t))
+    u = calibrated / np.linalg.norm(calibrated, axis=1, keepdims=True)
+    # The field in the frame the gyroscope's integration starts from: constant if all agree.
+    w = np.einsum("kij,kj->ki", frames.quat_to_matrix(q), u)
+    later = np.searchsorted(t, t + TURN_WINDOW_S)
+    pairs = np.flatnonzero(later < t.size)
+    if pairs.size == 0:
+        return float("nan"), 0
+    cosines = np.clip(np.sum(w[pairs] * w[later[pairs]], axis=1), -1.0, 1.0)
+    return float(np.rad2deg(np.median(np.arccos(cosines)))), int(pairs.size)
 
 
 def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]:
@@ -292,10 +334,13 @@ def check(
     gyro_bias: np.ndarray | None,
     ellipsoid_A: np.ndarray | None = None,
     session_fit: EllipsoidFit | None = None,
+    gyr: np.ndarray | None = None,
 ) -> Checks:
     """Measure a result against its session.
 
     t, acc, mag : (N,) s, (N, 3) m/s², (N, 3) magnetometer units: the session
+    gyr         : (N, 3) rad/s, each row's rate held until the next row, for the turn check
+                  (skipped without it), with ``gyro_bias`` removed (zero when None)
     D, o        : (3, 3), (3,) the result's correction, magnetometer units
     gyro_bias   : (3,) rad/s, or None for a result without one
     ellipsoid_A : (3, 3) a norm-only method's fitted ellipsoid matrix, or None
@@ -370,6 +415,26 @@ def check(
             f"{DIP_SPREAD_MAX_RATIO}× and +{DIP_SPREAD_MARGIN_DEG}°): its alignment with the "
             "accelerometer is wrong"
         )
+
+    if gyr is not None:
+        bias = np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, dtype=float)
+        miss_plain, n_pairs = turn_miss_deg(t, gyr, bias, plain_cal)
+        miss_result, _ = turn_miss_deg(t, gyr, bias, calibrated)
+        figures["turn_miss_deg"] = {
+            "plain_fit": _finite(miss_plain),
+            "result": _finite(miss_result),
+            "pairs": n_pairs,
+            "window_s": TURN_WINDOW_S,
+        }
+        if n_pairs >= MIN_TURN_PAIRS and not (
+            miss_result <= TURN_MAX_RATIO * miss_plain + TURN_MARGIN_DEG
+        ):
+            refusals.append(
+                f"its corrected field turns against the gyroscope: carried {TURN_WINDOW_S:g} s "
+                f"by the measured rotation it misses itself by {miss_result:.2f}° (median), "
+                f"against {miss_plain:.2f}° for a plain ellipsoid fit (limit {TURN_MAX_RATIO}× "
+                f"+ {TURN_MARGIN_DEG}°): its axes are turned against the gyroscope's"
+            )
 
     field_refusals, warnings, figures["field_stretches"] = _field_change(t, mag, plain_cal)
     return Checks(refusals + field_refusals, warnings, figures)

@@ -164,3 +164,23 @@ def test_multi_rate_session_from_raw_streams(tmp_path):
     np.testing.assert_array_equal(s.has_mag, [0, 1, 0, 0, 0, 1, 0, 1, 0])
     np.testing.assert_array_equal(s.mag[s.has_mag], mag)
     assert "multi-rate" in s.meta["source"]
+
+
+def test_a_lagging_magnetometer_is_scored_at_its_own_time():
+    # A steady yaw at 2 rad/s; the magnetometer shows the field 20 ms late.
+    t = np.arange(0.0, 6.0, 0.005)
+    yaw = 2.0 * t
+    q = np.column_stack([np.cos(yaw / 2), np.zeros_like(t), np.zeros_like(t), np.sin(yaw / 2)])
+    delay = 0.02
+    late = 2.0 * (t - delay)
+    q_late = np.column_stack(
+        [np.cos(late / 2), np.zeros_like(t), np.zeros_like(t), np.sin(late / 2)]
+    )
+    D, o = _distortion(3, symmetric=False)
+    trial = real.Trial("lagging", t, _simulate(D, o, q_late), q, np.ones(t.size, bool))
+    same_time = real.trial_heading_deg(D, o, trial, DECLINATION_DEG)
+    assert same_time == pytest.approx(math.degrees(2.0 * delay), rel=1e-3)  # 2.29°
+    assert real.trial_heading_deg(D, o, trial, DECLINATION_DEG, delay_s=delay) < 1e-6
+    # Samples whose earlier time falls before the reference starts are not scored.
+    _, ok = real.reference_at(trial, delay)
+    assert not ok[: int(round(delay / 0.005))].any() and ok[int(round(delay / 0.005)) :].all()

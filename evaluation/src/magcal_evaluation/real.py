@@ -55,6 +55,7 @@ from pathlib import Path
 
 import numpy as np
 import scipy.optimize
+from scipy.spatial.transform import Rotation, Slerp
 
 from magcal.calib import frames
 from magcal.calib.calibrate import METHODS, calibrate
@@ -76,8 +77,8 @@ DEFAULT_DATA_DIR = REPO_ROOT.parent / "shared" / "realdata"
 ML_PER_CASE_MAX_RATIO_TO_PLAIN = 1.03
 #: ... and better by this factor in the median over cases.
 ML_MEDIAN_MAX_RATIO_TO_PLAIN = 0.92
-#: On the recordings of this source (no magnetometer lag, reference on the recording itself),
-#: the median ML/floor ...
+#: On the recordings of this source (reference on the recording itself), the median
+#: ML/floor ...
 FLOOR_SOURCE = "BROAD"
 ML_MEDIAN_MAX_RATIO_TO_FLOOR = 1.25
 #: A recording whose field changes with position, and the clean part of the same recording:
@@ -254,19 +255,43 @@ def heading_errors_rad(
     return frames.wrap_angle(np.arctan2(m_w[:, 0], m_w[:, 1]) - math.radians(declination_deg))
 
 
-def trial_heading_deg(D: np.ndarray, o: np.ndarray, trial: Trial, declination_deg: float) -> float:
-    """RMS heading error (degrees) over the trial's scored samples."""
-    v = trial.valid
-    return quality.rms_deg(heading_errors_rad(D, o, trial.mag[v], trial.q_wb[v], declination_deg))
+def reference_at(trial: Trial, delay_s: float) -> tuple[np.ndarray, np.ndarray]:
+    """The reference attitude at the times the magnetometer measured, t − delay_s (s; the
+    magnetometer lags by delay_s), by spherical interpolation: (N, 4) and the (N,) mask of
+    the samples it exists for (within the reference's span, a reference there)."""
+    if delay_s == 0.0:
+        return trial.q_wb, np.all(np.isfinite(trial.q_wb), axis=1)
+    have = np.all(np.isfinite(trial.q_wb), axis=1)
+    t = trial.t[have]
+    slerp = Slerp(t, Rotation.from_quat(trial.q_wb[have][:, [1, 2, 3, 0]]))
+    at = trial.t - delay_s
+    ok = have & (at >= t[0]) & (at <= t[-1])
+    q = np.full_like(trial.q_wb, np.nan)
+    q[ok] = slerp(at[ok]).as_quat()[:, [3, 0, 1, 2]]
+    return q, ok
+
+
+def trial_heading_deg(
+    D: np.ndarray, o: np.ndarray, trial: Trial, declination_deg: float, delay_s: float = 0.0
+) -> float:
+    """RMS heading error (degrees) over the trial's scored samples; with ``delay_s`` against
+    the reference at the time the magnetometer measured (:func:`reference_at`)."""
+    q, ok = reference_at(trial, delay_s)
+    v = trial.valid & ok
+    return quality.rms_deg(heading_errors_rad(D, o, trial.mag[v], q[v], declination_deg))
 
 
 def case_heading_deg(
-    D: np.ndarray, o: np.ndarray, case: Case, declination_deg: float | None = None
+    D: np.ndarray,
+    o: np.ndarray,
+    case: Case,
+    declination_deg: float | None = None,
+    delay_s: float = 0.0,
 ) -> float:
     """Median over the case's trials of :func:`trial_heading_deg` (declination: the case's
     unless given)."""
     decl = case.declination_deg if declination_deg is None else declination_deg
-    return float(np.median([trial_heading_deg(D, o, tr, decl) for tr in case.trials]))
+    return float(np.median([trial_heading_deg(D, o, tr, decl, delay_s) for tr in case.trials]))
 
 
 # ----------------------------------------------------------------------------- references
@@ -361,14 +386,15 @@ def known_attitude_floor(mag: np.ndarray, q_wb: np.ndarray) -> FloorFit:
     )
 
 
-def case_floor(case: Case) -> FloorFit | None:
+def case_floor(case: Case, delay_s: float = 0.0) -> FloorFit | None:
     """The floor of a case scored on its own recording (fitted on the samples that have a
-    reference attitude), else None."""
+    reference attitude; with ``delay_s``, the reference at the magnetometer's times), else
+    None."""
     if not scored_on_own_recording(case):
         return None
     trial = case.trials[0]
-    have = np.all(np.isfinite(trial.q_wb), axis=1)
-    return known_attitude_floor(trial.mag[have], trial.q_wb[have])
+    q, have = reference_at(trial, delay_s)
+    return known_attitude_floor(trial.mag[have], q[have])
 
 
 # ----------------------------------------------------------------------------- methods
@@ -386,6 +412,8 @@ class MethodRun:
     misalignment_deg: float | None = None
     misalignment_vec_deg: list[float] | None = None
     time_offset_s: float | None = None
+    D: list[list[float]] | None = None
+    o: list[float] | None = None
     seconds: float = 0.0
     warnings: list[str] = field(default_factory=list)
 
@@ -410,6 +438,8 @@ def run_method(case: Case, method: str, *, force: bool = False) -> MethodRun:
         misalignment_deg=float(np.linalg.norm(mis)),
         misalignment_vec_deg=[float(x) for x in mis],
         time_offset_s=None if offset is None else float(offset),
+        D=res.D.tolist(),
+        o=res.o.tolist(),
         seconds=seconds,
         warnings=list(res.warnings),
     )
@@ -446,8 +476,28 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
         if run.refused is not None:
             entry["forced"] = dict(run_method(case, method, force=True).__dict__)
         out["methods"][method] = entry
+    ml = out["methods"].get("ml", {})
+    out["at_magnetometer_time"] = _at_magnetometer_time(case, plain, ml.get("forced", ml))
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def _at_magnetometer_time(case: Case, plain, ml_run: dict) -> dict | None:
+    """The plain fit, the floor and ML (forced, if it refused) scored against the reference
+    at the times the magnetometer measured, by the ML's time offset: what a fusion filter
+    that knows the delay gets from each calibration (None without an ML time offset)."""
+    if not ml_run.get("time_offset_s") or ml_run.get("D") is None:
+        return None
+    delay = float(ml_run["time_offset_s"])
+    floor = case_floor(case, delay)
+    return {
+        "delay_s": delay,
+        "plain": None if plain is None else case_heading_deg(*plain, case, delay_s=delay),
+        "floor": None
+        if floor is None
+        else case_heading_deg(floor.D, floor.o, case, floor.heading_deg, delay),
+        "ml": case_heading_deg(np.array(ml_run["D"]), np.array(ml_run["o"]), case, delay_s=delay),
+    }
 
 
 # ----------------------------------------------------------------------------- criteria

@@ -155,6 +155,31 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         lines.append(f"| {c.text} | {c.measured} | {res} |")
     lines += [
         "",
+        "## Scored at the magnetometer's own time",
+        "",
+        "The same calibrations scored against the reference attitude at the time the "
+        "magnetometer measured, `t − τ` with the ML's time offset τ (the reference "
+        "interpolated spherically; the floor refitted there): the heading error a fusion "
+        "filter that knows the delay gets. Where the magnetometer lags, the table above "
+        "charges every calibration for the lag, and the least-squares fits (plain, floor) "
+        "partly absorb it into D; the one with τ does not. Cases where ML kept no time offset "
+        "are left out.",
+        "",
+        "| case | τ ms | plain | floor | ml |",
+        "|---|---:|---:|---:|---:|",
+    ]
+    for r in good:
+        a = r.get("at_magnetometer_time")
+        if not a:
+            continue
+        ratios = [f"{a['ml'] / a[ref]:.2f}×{ref[0]}" for ref in ("plain", "floor") if a.get(ref)]
+        ml = _f(a["ml"]) + (f" ({', '.join(ratios)})" if ratios else "")
+        lines.append(
+            f"| {r['case']} | {1e3 * a['delay_s']:.1f} | {_f(a['plain'])} | {_f(a['floor'])} "
+            f"| {ml} |"
+        )
+    lines += [
+        "",
         "## Estimates per method",
         "",
         "Gyroscope bias: the result's, norm (vector), °/s (init and the norm-only methods "

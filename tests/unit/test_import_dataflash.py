@@ -190,7 +190,7 @@ def test_the_pre_4_0_layout_is_read(short_day, tmp_path):
     write_bin(path, short_day, legacy=True, params=dict(COMPASS_PARAMS, **_second(COMPASS_PARAMS)))
     one = dataflash.read(str(path))
     two = dataflash.read(str(path), compass=2, imu=2)
-    assert two.imu.source == "IMU[1]" and two.mag.source == "MAG[1]"
+    assert two.imu.source == "IMU2" and two.mag.source == "MAG2"  # the messages read
     assert np.array_equal(one.imu.gyr, two.imu.gyr)
     assert np.allclose(one.mag.mag, two.mag.mag)
     assert "COMPASS_OFS2_X" in two.param_names
@@ -219,7 +219,7 @@ def test_a_second_imu_is_chosen_with_imu(short_day, tmp_path):
 def test_a_file_that_is_no_log(tmp_path):
     junk = tmp_path / "junk.bin"
     junk.write_bytes(b"not a log at all " * 64)
-    with pytest.raises(LogImportError, match="no DataFlash messages found"):
+    with pytest.raises(LogImportError, match="not a log magcal can read .named like a DataFlash"):
         import_log(str(junk))
     empty = tmp_path / "empty.bin"
     empty.write_bytes(b"")

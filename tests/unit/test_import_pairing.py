@@ -57,7 +57,7 @@ def test_the_accelerometer_is_interpolated_and_the_magnetometer_kept():
     assert np.array_equal(rows.mag, field[:-1])
 
 
-def test_imu_gaps_mark_rows_and_refuse_ranges_over_them():
+def test_imu_gaps_are_named_and_a_range_over_them_keeps_its_longest_stretch():
     t_imu = np.concatenate([np.arange(0, 3, 0.01), np.arange(4, 8, 0.01)])  # 1 s lost
     imu = ImuStream(t_imu, np.zeros((t_imu.size, 3)), np.tile([0, 0, 9.8], (t_imu.size, 1)), 1, "")
     t_mag = np.arange(0, 7.9, 0.1)
@@ -65,9 +65,19 @@ def test_imu_gaps_mark_rows_and_refuse_ranges_over_them():
     rows = pair(imu, mag)
     assert np.all(rows.gap == ((rows.t > 2.9) & (rows.t < 4.0)))
     streams = LogStreams("x.tlog", "tlog", "PX4", imu, mag, ParamTimeline({}))
-    assert cut(rows, 4.5, 7.0, streams).sum() == 26
-    with pytest.raises(LogImportError, match=r"IMU data are missing between 2.9\d and 3.9\d s"):
-        cut(rows, 1.0, 6.0, streams)
+    assert len(rows.gaps) == 1 and rows.gaps[0] == pytest.approx((2.99, 4.0))
+    sel, notes = cut(rows, 4.5, 7.0, streams)
+    assert sel.sum() == 26 and notes == ()
+    # the gap itself, not the neighbouring magnetometer times; the longer side is kept
+    sel, notes = cut(rows, 1.0, 6.0, streams)
+    assert rows.t[sel][0] == pytest.approx(1.0) and rows.t[sel][-1] == pytest.approx(2.8)
+    assert "missing at 2.99–4.00 s (1.01 s without IMU data: lost messages)" in notes[0]
+    paused = LogStreams(
+        "x.bin", "DataFlash", "ardupilot", imu, mag, ParamTimeline({}), pauses=((2.99, 4.0),)
+    )
+    assert "a logging pause" in cut(rows, 1.0, 6.0, paused)[1][0]
+    with pytest.raises(LogImportError, match=r"missing at 2.99–4.00 s .* no stretch"):
+        cut(rows, 2.95, 4.05, streams)
 
 
 def test_no_overlap_in_time():

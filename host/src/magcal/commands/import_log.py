@@ -101,6 +101,8 @@ def run(args, out=None, err=None) -> int:
             "calibration (ArduPilot: LOG_BITMASK IMU_FAST)",
             file=err,
         )
+    for note in result.notes:
+        print(f"note: {note}", file=err)
     if result.stretch is None:
         print(f"range from --start/--end: {result.start_s:.2f}–{result.end_s:.2f} s", file=err)
     else:

@@ -64,6 +64,7 @@ class ImportResult:
 
     stretch : the detected hand rotation (None when --start/--end chose the range)
     others  : the other candidate stretches, best first
+    notes   : remarks on the range (e.g. gaps left out)
     """
 
     session: Session
@@ -73,6 +74,7 @@ class ImportResult:
     end_s: float
     stretch: Stretch | None
     others: tuple[Stretch, ...]
+    notes: tuple[str, ...] = ()
 
 
 def _mavlink_frames(data: bytes, start: int) -> int:
@@ -153,7 +155,7 @@ def import_log(
         end = np.inf if options.end_s is None else options.end_s
         if start >= end:
             raise LogImportError(f"--start {start:g} s is not before --end {end:g} s")
-        sel = cut(rows, start, end, streams)
+        sel, notes = cut(rows, start, end, streams)
         stretch, others = None, ()
     else:
         armed = streams.armed.at(rows.t) > 0.5 if streams.armed is not None else None
@@ -167,7 +169,7 @@ def import_log(
                 "(log time, s) to choose the range"
             )
         stretch, others = found[0], tuple(found[1:])
-        sel = cut(rows, stretch.from_s, stretch.to_s, streams)
+        sel, notes = cut(rows, stretch.from_s, stretch.to_s, streams)
     session = to_session(streams, rows, sel)
     return ImportResult(
         session=session,
@@ -177,4 +179,5 @@ def import_log(
         end_s=float(session.t[-1]),
         stretch=stretch,
         others=others,
+        notes=notes,
     )

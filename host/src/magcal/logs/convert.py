@@ -37,6 +37,10 @@ from magcal.logs.streams import ImuStream, LogImportError, LogStreams, MagStream
 
 IMU_GAP_MIN_S = 0.1
 IMU_GAP_FACTOR = 10.0
+#: Gaps named in one message at most.
+MAX_GAPS_LISTED = 3
+#: A stretch between gaps shorter than this many rows is not worth importing.
+MIN_STRETCH_ROWS = 2
 
 
 @dataclass(frozen=True)
@@ -46,6 +50,7 @@ class Rows:
     t              : (K,) s;  gyr : (K, 3) rad/s, mean over [t_k, t_k+1];  acc : (K, 3) m/s²
     mag            : (K, 3) raw magnetometer units
     gap            : (K,) bool, the row's interval holds an IMU gap
+    gaps           : (start s, end s) of each IMU gap (the last sample before, the first after)
     suspect        : (K,) bool, the field's correction could not be undone (see MagStream)
     imu_rate_hz, mag_rate_hz : median sample rates
     """
@@ -58,6 +63,7 @@ class Rows:
     suspect: np.ndarray
     imu_rate_hz: float
     mag_rate_hz: float
+    gaps: tuple[tuple[float, float], ...] = ()
 
 
 def mean_rate(t: np.ndarray, gyr: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -99,8 +105,10 @@ def pair(imu: ImuStream, mag: MagStream) -> Rows:
     imu_dt = np.diff(imu.t)
     limit = max(IMU_GAP_MIN_S, IMU_GAP_FACTOR * float(np.median(imu_dt)))
     gap = np.zeros(a.size, dtype=bool)
+    gaps = []
     for g in np.flatnonzero(imu_dt > limit):
         gap |= (a < imu.t[g + 1]) & (b > imu.t[g])
+        gaps.append((float(imu.t[g]), float(imu.t[g + 1])))
     return Rows(
         t=a,
         gyr=gyr,
@@ -110,6 +118,7 @@ def pair(imu: ImuStream, mag: MagStream) -> Rows:
         suspect=suspect[:-1],
         imu_rate_hz=1.0 / float(np.median(imu_dt)),
         mag_rate_hz=1.0 / float(np.median(np.diff(t_m))),
+        gaps=tuple(gaps),
     )
 
 
@@ -120,8 +129,19 @@ def _range_problem(rows: Rows, sel: np.ndarray, what: np.ndarray) -> tuple[float
     return float(rows.t[hit[0]]), float(rows.t[hit[-1]])
 
 
-def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.ndarray:
-    """(K,) bool: the rows in [start_s, end_s]; refuses ranges that hold unusable rows."""
+def describe_gap(gap: tuple[float, float], streams: LogStreams) -> str:
+    """ "251.42–879.34 s (627.9 s without IMU data: a logging pause)"."""
+    a, b = gap
+    pause = any(p0 <= a + 1e-6 and b <= p1 + 1e-6 for p0, p1 in streams.pauses)
+    cause = "a logging pause: nothing at all was logged" if pause else streams.gap_cause
+    return f"{a:.2f}–{b:.2f} s ({b - a:.2f} s without IMU data: {cause})"
+
+
+def cut(
+    rows: Rows, start_s: float, end_s: float, streams: LogStreams
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(K,) bool: the rows in [start_s, end_s], and notes. A range across IMU gaps keeps its
+    longest stretch between them (said in a note); ranges with unusable rows are refused."""
     name = os.path.basename(streams.path)
     sel = (rows.t >= start_s) & (rows.t <= end_s)
     if not sel.any():
@@ -129,12 +149,24 @@ def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.nda
             f"{name}: no samples between {start_s:g} and {end_s:g} s; the paired data span "
             f"{rows.t[0]:.1f}–{rows.t[-1]:.1f} s (log time)"
         )
-    gap = _range_problem(rows, sel, rows.gap)
-    if gap is not None:
-        raise LogImportError(
-            f"{name}: IMU data are missing between {gap[0]:.2f} and {gap[1]:.2f} s (lost "
-            "messages), so the rotation there is unknown; choose a range without the gap "
-            "with --start/--end"
+    notes: tuple[str, ...] = ()
+    if (sel & rows.gap).any():
+        inside = [g for g in rows.gaps if g[1] > start_s and g[0] < end_s]
+        runs = _true_runs(sel & ~rows.gap)
+        a, b = max(runs, key=lambda r: r[1] - r[0], default=(0, 0))
+        listed = "; ".join(describe_gap(g, streams) for g in inside[:MAX_GAPS_LISTED])
+        more = f" and {len(inside) - MAX_GAPS_LISTED} more" if len(inside) > MAX_GAPS_LISTED else ""
+        if b - a < MIN_STRETCH_ROWS:
+            raise LogImportError(
+                f"{name}: IMU data are missing at {listed}{more}, and no stretch between the "
+                "gaps in this range is long enough to import; choose another range with "
+                "--start/--end"
+            )
+        sel = np.zeros_like(sel)
+        sel[a:b] = True
+        notes = (
+            f"IMU data are missing at {listed}{more}; the longest stretch between the gaps, "
+            f"{rows.t[a]:.2f}–{rows.t[b - 1]:.2f} s, was imported",
         )
     bad = _range_problem(rows, sel, rows.suspect)
     if bad is not None:
@@ -142,7 +174,13 @@ def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.nda
             f"{name}: from {bad[0]:.2f} s on, {streams.mag.suspect_reason}; choose a range "
             "before it with --start/--end"
         )
-    return sel
+    return sel, notes
+
+
+def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index ranges where ``mask`` is true."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
 
 
 def _param_text(value: float) -> str:

@@ -271,16 +271,27 @@ def px4_level_adjustment(params: dict[str, float]) -> np.ndarray:
 
 
 def undo_px4(
-    source: str, t: np.ndarray, corrected: np.ndarray, params: ParamTimeline, index: int
+    source: str,
+    t: np.ndarray,
+    corrected: np.ndarray,
+    params: ParamTimeline,
+    index: int,
+    params_complete: bool = False,
 ) -> Undone:
     """PX4's ``L · Rot · S · (raw − off)`` undone with the parameters in force at each time.
 
     t : (N,) s;  corrected : (N, 3) gauss (vehicle_magnetometer);  returns raw gauss, sensor
     frame. ``Rot`` is CAL_MAG``index``_ROT, or for an internal magnetometer (ROT = −1) the
-    board rotation SENS_BOARD_ROT; ``L`` is :func:`px4_level_adjustment`.
+    board rotation SENS_BOARD_ROT; ``L`` is :func:`px4_level_adjustment`. With
+    ``params_complete`` (a ULog holds every parameter), absent off-diagonal terms
+    (CAL_MAGn_xODIAG, PX4 before 1.12) are zero: that firmware has none.
     """
     required = px4_required(index)
     missing = [n for n in required if n not in params.names()]
+    names = px4_param_names(index)
+    odiag = {names[f"{a}ODIAG"] for a in "XYZ"}
+    defaults = {n: 0.0 for n in missing if n in odiag} if params_complete else {}
+    missing = [n for n in missing if n not in defaults]
     if missing:
         raise LogImportError(
             f"{source} has no value for {', '.join(missing)}: without the calibration in force "
@@ -292,7 +303,7 @@ def undo_px4(
     mixed = _mixed(t, changes)
     mag = np.empty_like(np.asarray(corrected, dtype=float))
     for i0, i1 in _segments(t, changes):
-        p = params.at(float(t[i0]))
+        p = defaults | params.at(float(t[i0]))
         if p[rot] < 0:
             if "SENS_BOARD_ROT" not in p:
                 raise LogImportError(

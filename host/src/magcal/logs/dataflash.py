@@ -426,8 +426,12 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         if unhealthy.all():
             raise LogImportError(
                 f"{name}: all {unhealthy.size} {mag_name} samples of compass {compass} are marked "
-                "unhealthy (Health = 0: the autopilot was not reading that compass); choose "
-                f"another with --compass (found compasses {instances_text(mags)})"
+                "unhealthy (Health = 0: the autopilot was not reading that compass)"
+                + (
+                    f"; choose another with --compass (found compasses {instances_text(mags)})"
+                    if len(mags) > 1
+                    else "; the log has no other compass"
+                )
             )
         if unhealthy.any():
             notes.append(f"{int(unhealthy.sum())} MAG sample(s) marked unhealthy were dropped")

@@ -70,7 +70,7 @@ def test_imu_gaps_are_named_and_a_range_over_them_keeps_its_longest_stretch():
     assert sel.sum() == 26 and notes == ()
     # the gap itself, not the neighbouring magnetometer times; the longer side is kept
     sel, notes = cut(rows, 1.0, 6.0, streams)
-    assert rows.t[sel][0] == pytest.approx(1.0) and rows.t[sel][-1] == pytest.approx(2.8)
+    assert rows.t[sel][0] == pytest.approx(4.0) and rows.t[sel][-1] == pytest.approx(6.0)
     assert "missing at 2.99–4.00 s (1.01 s without IMU data: lost messages)" in notes[0]
     paused = LogStreams(
         "x.bin", "DataFlash", "ardupilot", imu, mag, ParamTimeline({}), pauses=((2.99, 4.0),)

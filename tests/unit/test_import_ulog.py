@@ -111,7 +111,8 @@ def test_missing_topics_are_listed(logs):
     with pytest.raises(
         LogImportError,
         match=r"nosc.ulg has no sensor_combined for IMU 1 \(found IMUs none\); needs "
-        "sensor_combined, and sensor_mag or vehicle_magnetometer",
+        "sensor_combined, and sensor_mag, vehicle_magnetometer or a magnetometer in "
+        "sensor_combined",
     ):
         import_log(logs["nosc"])
     with pytest.raises(

@@ -117,7 +117,8 @@ def test_missing_topics_are_listed(logs):
         import_log(logs["nosc"])
     with pytest.raises(
         LogImportError,
-        match=r"no sensor_mag, vehicle_magnetometer or sensor_combined magnetometer for compass 2 \(found compasses 1\)",
+        match=r"no sensor_mag, vehicle_magnetometer or sensor_combined magnetometer for "
+        r"compass 2 \(found compasses 1\)",
     ):
         ulog.read(logs["short"], compass=2)
     with pytest.raises(LogImportError, match=r"no vehicle_imu instance 1 for IMU 2"):

@@ -237,6 +237,7 @@ def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, 
             f"over each row's interval, accelerometer interpolated (IMU {rows.imu_rate_hz:.1f} Hz)"
         ),
     }
+    meta |= streams.meta
     external = compass_external(streams, in_force)
     if external is not None:
         meta["compass_external"] = external

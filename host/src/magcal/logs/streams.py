@@ -254,6 +254,9 @@ def quiet_native_output() -> Iterator[NativeOutput]:
                 os.dup2(tmp.fileno(), fd)
             yield held
         finally:
+            for s in (sys.stdout, sys.stderr):  # Python's own prints, buffered meanwhile
+                with contextlib.suppress(Exception):
+                    s.flush()
             for fd, copy in saved.items():
                 os.dup2(copy, fd)
                 os.close(copy)

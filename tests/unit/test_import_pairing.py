@@ -73,7 +73,13 @@ def test_imu_gaps_are_named_and_a_range_over_them_keeps_its_longest_stretch():
     assert rows.t[sel][0] == pytest.approx(4.0) and rows.t[sel][-1] == pytest.approx(6.0)
     assert "missing at 2.99–4.00 s (1.01 s without IMU data: lost messages)" in notes[0]
     paused = LogStreams(
-        "x.bin", "DataFlash", "ardupilot", imu, mag, ParamTimeline({}), pauses=((2.99, 4.0),)
+        "x.bin",
+        "DataFlash",
+        "ardupilot",
+        imu,
+        mag,
+        ParamTimeline({}),
+        known_gaps=((2.99, 4.0, "a logging pause"),),
     )
     assert "a logging pause" in cut(rows, 1.0, 6.0, paused)[1][0]
     with pytest.raises(LogImportError, match=r"missing at 2.99–4.00 s .* no stretch"):

@@ -59,14 +59,14 @@ def add_parser(sub) -> None:
 def faster_imu_hint(streams) -> str:
     """How to log the IMU faster, for the log's autopilot and format."""
     if streams.log_format == "DataFlash":
-        return "ArduPilot: set LOG_BITMASK's IMU_FAST bit"
+        return "set the IMU_FAST bit of LOG_BITMASK"
     if streams.log_format == "tlog":
-        rate = "SRn_RAW_SENS, " if streams.autopilot == vehicle.ARDUPILOT else ""
+        rate = " (ArduPilot: SRn_RAW_SENS)" if streams.autopilot == vehicle.ARDUPILOT else ""
         return (
-            f"telemetry carries the IMU at the stream rate requested ({rate}the ground "
-            "station's stream rates); the autopilot's own log holds it faster"
+            f"telemetry carries it at the stream rate requested{rate}, and the autopilot's "
+            "own log holds it faster"
         )
-    return "PX4: SDLOG_PROFILE with high-rate sensors, or the logger's topic list"
+    return "choose SDLOG_PROFILE's high-rate sensor topics, or list them for the logger"
 
 
 def progress_printer(label: str, stream=None):
@@ -118,7 +118,7 @@ def run(args, out=None, err=None) -> int:
         print(
             f"note: the IMU is logged at only {rows.imu_rate_hz:.0f} Hz, so the rotation between "
             "magnetometer samples rests on few gyroscope samples; log the IMU faster for a better "
-            f"calibration ({faster_imu_hint(streams)})",
+            f"calibration: {faster_imu_hint(streams)}",
             file=err,
         )
     for note in result.notes:

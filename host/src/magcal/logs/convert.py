@@ -132,8 +132,8 @@ def _range_problem(rows: Rows, sel: np.ndarray, what: np.ndarray) -> tuple[float
 def describe_gap(gap: tuple[float, float], streams: LogStreams) -> str:
     """ "251.42–879.34 s (627.9 s without IMU data: a logging pause)"."""
     a, b = gap
-    pause = any(p0 <= a + 1e-6 and b <= p1 + 1e-6 for p0, p1 in streams.pauses)
-    cause = "a logging pause: nothing at all was logged" if pause else streams.gap_cause
+    known = [c for g0, g1, c in streams.known_gaps if g0 <= b + 1e-6 and a <= g1 + 1e-6]
+    cause = known[0] if known else streams.gap_cause
     return f"{a:.2f}–{b:.2f} s ({b - a:.2f} s without IMU data: {cause})"
 
 

@@ -93,6 +93,7 @@ PAUSE_MIN_S = 1.0
 #: Bytes after the last message that are no damage (a log written in 256-byte pages, and
 #: DFReader's own allowance).
 TRAILER_BYTES = 528
+PAUSE_CAUSE = "a logging pause: nothing at all was logged"
 #: Above this fraction of skipped bytes the file is not a DataFlash log.
 BAD_FRACTION = 0.5
 #: EV ids (AP_Logger LogEvent): ARMED = 10, DISARMED = 11.
@@ -303,7 +304,7 @@ def _mag_sample_times(cols: dict[str, np.ndarray], t_log: np.ndarray) -> np.ndar
     return np.where(ok, time_us - lag, time_us) * 1e-6
 
 
-def _pauses(df: _Index, clock: _Clock, t_imu: np.ndarray) -> tuple[tuple[float, float], ...]:
+def _pauses(df: _Index, clock: _Clock, t_imu: np.ndarray) -> tuple[tuple[float, float, str], ...]:
     """Where the IMU is missing for long and no other timed message was logged either:
     logging stopped (ArduPilot pauses its log while disarmed unless LOG_DISARMED is set)."""
     dt = np.diff(t_imu)
@@ -325,7 +326,7 @@ def _pauses(df: _Index, clock: _Clock, t_imu: np.ndarray) -> tuple[tuple[float, 
         a, b = float(t_imu[g]), float(t_imu[g + 1])
         inside = np.searchsorted(seen, b, "left") - np.searchsorted(seen, a, "right")
         if inside == 0:
-            out.append((a, b))
+            out.append((a, b, PAUSE_CAUSE))
     return tuple(out)
 
 
@@ -476,6 +477,6 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         naming=undone.naming,
         armed=armed,
         notes=tuple(notes) + undone.notes,
-        pauses=pauses,
+        known_gaps=pauses,
         meta=undone.meta,
     )

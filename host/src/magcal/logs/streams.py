@@ -155,7 +155,8 @@ class LogStreams:
     armed      : 1.0 while armed (motors may spin), else 0.0; None when the log does not say
     throttle   : 0..1; None when the log does not say
     notes      : remarks for the user (e.g. samples dropped and why)
-    pauses     : (start s, end s) where the log holds nothing at all (logging stopped)
+    known_gaps : (start s, end s, cause) of stretches whose cause the log tells (a logging
+                 pause, a logger dropout); an IMU gap overlapping one has that cause
     gap_cause  : what other IMU gaps are, as far as the format tells ("lost messages")
     meta       : more session metadata the reader knows (e.g. a correction assumed)
     """
@@ -172,7 +173,7 @@ class LogStreams:
     armed: StepSignal | None = None
     throttle: StepSignal | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
-    pauses: tuple[tuple[float, float], ...] = ()
+    known_gaps: tuple[tuple[float, float, str], ...] = ()
     gap_cause: str = "lost messages"
     meta: dict[str, str] = field(default_factory=dict)
 

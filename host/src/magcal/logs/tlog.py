@@ -347,7 +347,14 @@ def _ardupilot(path, name, seen, params, params_note, compass, imu, armed, throt
         naming=undone.naming,
         armed=armed,
         throttle=throttle,
-        notes=imu_notes + _order_note(late, mag_type) + _stale_note(stale, mag_type) + undone.notes,
+        notes=tuple(
+            dict.fromkeys(
+                imu_notes
+                + _order_note(late, mag_type)
+                + _stale_note(stale, mag_type)
+                + undone.notes
+            )
+        ),
         meta=undone.meta,
     )
 
@@ -398,5 +405,7 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
         param_compass=compass - 1,
         armed=armed,
         throttle=throttle,
-        notes=imu_notes + _order_note(late, mag_type) + _stale_note(stale, mag_type),
+        notes=tuple(
+            dict.fromkeys(imu_notes + _order_note(late, mag_type) + _stale_note(stale, mag_type))
+        ),
     )

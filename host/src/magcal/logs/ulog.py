@@ -225,7 +225,8 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         param_compass=index,
         armed=_armed(ulog),
         notes=notes,
-        gap_cause=_gap_cause(ulog),
+        known_gaps=_dropouts(ulog),
+        gap_cause="nothing was logged",
     )
 
 
@@ -450,12 +451,11 @@ def _slot_of_device(params: ParamTimeline, data, compass: int) -> int:
     return compass - 1
 
 
-def _gap_cause(ulog) -> str:
-    """What a gap in a ULog is: the logger's dropouts when it recorded some."""
-    if getattr(ulog, "dropouts", None):
-        total = sum(d.duration for d in ulog.dropouts) * 1e-3
-        return (
-            f"the logger dropped data ({len(ulog.dropouts)} dropout(s), {total:.1f} s in all: "
-            "a full log buffer or a slow SD card)"
-        )
-    return "no data logged"
+def _dropouts(ulog) -> tuple[tuple[float, float, str], ...]:
+    """The logger's dropouts (ULog 'O' messages: data lost because its buffer was full), as
+    known gaps: from the last data before each, for its duration."""
+    out = []
+    for d in getattr(ulog, "dropouts", []) or []:
+        t0 = d.timestamp * 1e-6
+        out.append((t0, t0 + d.duration * 1e-3, f"the logger dropped {d.duration} ms of data"))
+    return tuple(out)

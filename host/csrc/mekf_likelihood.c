@@ -38,6 +38,10 @@
  *   samples. Memory is O(n · state) and independent of the number of parameters (600,000
  *   samples: 192 MB). A sample's record is written only as far as the reverse pass reads
  *   it (the magnetometer terms with the magnetometer, the update's with any measurement).
+ * - The magnetometer's delay τ (see mc_mekf_model_t) enters only the magnetometer's terms,
+ *   through the rotation Rm = R Exp(−τ ω) it sees in place of R; at τ = 0 that is R itself
+ *   and the forward pass skips the rotation. Its adjoint, and the gyroscope bias's share
+ *   through ω, come from the torque on Rm (step_reverse), so ∂V/∂τ is as exact as the rest.
  * - log det S: the constant parts (log det Σa, log det Σm) are logged once per pass and
  *   added per sample that has the measurement (in the gradient: times the count of those
  *   samples); the per-step determinants are multiplied and logged about once per hundred
@@ -388,6 +392,32 @@ static ALWAYS_INLINE void predict_attitude(const pass_t *p, size_t k, const doub
     quat_mul(q, Delta, q1);
 }
 
+/* The magnetometer's delay τ at sample k: the body turns by v = τ ω_k (rotation vector,
+ * body frame, ω_k = gyr[k−1] − bias, gyr[0] at k = 0) between the field's time and the
+ * sample's, so the magnetometer sees m^b(t_k − τ) = Exp(v) Rᵀ m = Rmᵀ m with
+ * Rm = R Exp(−v). Within the update the magnetometer's terms are those of the plain model
+ * with Rm in place of R. */
+static ALWAYS_INLINE void delay_rotation(const pass_t *p, size_t k, double *restrict v)
+{
+    const double *w = p->d->gyr + 3 * (k > 0 ? k - 1 : 0);
+    for (int i = 0; i < 3; ++i) v[i] = p->m->delay * (w[i] - p->m->bias[i]);
+}
+
+static ALWAYS_INLINE void delayed_attitude(const pass_t *p, size_t k, const double *restrict R,
+                                           double *restrict Rm)
+{
+    if (p->m->delay == 0.0) {
+        memcpy(Rm, R, 9 * sizeof(double));
+        return;
+    }
+    double v[3], half[3], qe[4], Et[9];
+    delay_rotation(p, k, v);
+    for (int i = 0; i < 3; ++i) half[i] = -0.5 * v[i];
+    quat_exp(half, qe); /* Exp(−v) */
+    quat_to_mat(qe, Et);
+    mat_mul(R, Et, Rm);
+}
+
 /* The fraction of εᵀR⁻¹ε that the quadratic term may lose to cancellation before it is
  * recomputed in a stable form: the rounding error is then below 2^-52 · 8 / QUAD_CANCEL
  * relative. */
@@ -396,6 +426,7 @@ static ALWAYS_INLINE void predict_attitude(const pass_t *p, size_t k, const doub
 /* The intermediates of one step that the callers use. */
 typedef struct {
     double q1[4], R[9], Pp[9]; /* predicted attitude, its rotation, predicted covariance */
+    double Rm[9];              /* the rotation the magnetometer sees: R Exp(τ ω)ᵀ       */
     double ea[3], em[3];       /* innovations                                           */
     double zm[3], xm[3], vm[3];/* Σm⁻¹ εm, Dᵀ zm, R xm                                 */
     double Kn[9];              /* R K Rᵀ                                                */
@@ -504,17 +535,18 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, int ha, int hm,
         const double *ym = d->mag + 3 * k;
         double mb[3], ym_pred[3], um[3], RK[9], Jm[9];
         double *zm = s->zm, *xm = s->xm, *vm = s->vm, *Kn = s->Kn;
-        mat_tvec(s->R, m->m, mb);
+        delayed_attitude(p, k, s->R, s->Rm);
+        mat_tvec(s->Rm, m->m, mb);
         mat_vec(m->D, mb, ym_pred);
         for (int i = 0; i < 3; ++i) s->em[i] = ym[i] - ym_pred[i] - m->o[i];
         mat_vec(p->Mi, s->em, zm);
         e2 += dot3(s->em, zm);
         mat_tvec(m->D, zm, xm);
-        mat_vec(s->R, xm, vm);
+        mat_vec(s->Rm, xm, vm);
         cross3(vm, m->m, um);
         for (int i = 0; i < 3; ++i) s->u[i] += um[i];
-        mat_mul(s->R, p->K, RK);
-        sym_mul_nt(RK, s->R, Kn);
+        mat_mul(s->Rm, p->K, RK);
+        sym_mul_nt(RK, s->Rm, Kn);
         skew_sandwich(m->m, Kn, Jm);
         J[0] += Jm[0];
         J[1] += Jm[1];
@@ -556,8 +588,8 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, int ha, int hm,
         }
         if (hm) {
             double w[3], Rtw[3], Hmeta[3], rm[3];
-            cross3(m->m, eta, w); /* Hm η = D Rᵀ (m × η) */
-            mat_tvec(s->R, w, Rtw);
+            cross3(m->m, eta, w); /* Hm η = D Rmᵀ (m × η) */
+            mat_tvec(s->Rm, w, Rtw);
             mat_vec(m->D, Rtw, Hmeta);
             for (int i = 0; i < 3; ++i) rm[i] = s->em[i] - Hmeta[i];
             mat_vec(p->Mi, rm, t);
@@ -782,7 +814,23 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, int ha, int hm
             Ai = acc_information(p, cx, Ai_buf, &det_Sa); /* succeeded forwards */
             acc_reverse(p, k, Ai, R, u_bar, Lam_bar, tq, Ai_bar);
         }
-        if (hm) mag_reverse(p, rec, R, u_bar, Lam_bar, tq, acc);
+        if (hm) {
+            /* The magnetometer's terms saw Rm = R Exp(−v), v = τ ω: its torque tm on Rm is
+             * Exp(v) δ for a torque δ on R, so δ̄ += Exp(−v) tm; and Rm moves by
+             * −Jr(−v) dv for dv, so v̄ = −Jr(−v)ᵀ tm, τ̄ = v̄·ω, δ̄ω = −τ v̄. */
+            double v[3], minus_v[3], Rm[9], tm[3] = {0.0, 0.0, 0.0}, rv[3], jv[3];
+            delay_rotation(p, k, v);
+            delayed_attitude(p, k, R, Rm);
+            mag_reverse(p, rec, Rm, u_bar, Lam_bar, tm, acc);
+            for (int i = 0; i < 3; ++i) minus_v[i] = -v[i];
+            rotvec_apply(minus_v, tm, rv, jv);
+            const double *w = d->gyr + 3 * (k > 0 ? k - 1 : 0);
+            for (int i = 0; i < 3; ++i) {
+                tq[i] += rv[i];
+                gm->delay -= jv[i] * (w[i] - m->bias[i]);
+                gm->bias[i] += m->delay * jv[i];
+            }
+        }
         if (ha) acc_information_reverse(cx, Ai, Ai_bar, acc);
     } else {
         /* No update: q_out = q1, Pu = Pp. */
@@ -818,7 +866,7 @@ static ALWAYS_INLINE void step_reverse(const pass_t *p, size_t k, int ha, int hm
 /* Cholesky-whitened innovation L⁻¹ε with S = H Pp Hᵀ + blockdiag(Σa + c I, Σm) = L Lᵀ
  * over the measurements present (ha, hm: 6×6, 3×3 or none), the noise from the pass's
  * symmetrised covariances; an absent measurement's entries are NaN (0 for the magnetometer
- * without use_mag). Diagnostics only: H is rebuilt here, Ha = −Rᵀ[g_n×], Hm = D Rᵀ[m×].
+ * without use_mag). Diagnostics only: H is rebuilt here, Ha = −Rᵀ[g_n×], Hm = D Rmᵀ[m×].
  * All NaN when a pivot of S is not positive (S is positive definite whenever the step
  * succeeded, so only rounding can get here). */
 static void whiten(const pass_t *p, const step_t *s, size_t k, int ha, int hm, double *out)
@@ -833,13 +881,14 @@ static void whiten(const pass_t *p, const step_t *s, size_t k, int ha, int hm, d
         H[3 * i + 1] = -g * R[i];
         H[3 * i + 2] = 0.0;
     }
-    {
+    if (hm) {
         const double *mm = m->m;
         const double Mx[9] = {0.0, -mm[2], mm[1], mm[2], 0.0, -mm[0], -mm[1], mm[0], 0.0};
+        const double *Rm = s->Rm;
         double RtMx[9];
         for (int i = 0; i < 3; ++i)
             for (int j = 0; j < 3; ++j)
-                RtMx[3 * i + j] = R[i] * Mx[j] + R[3 + i] * Mx[3 + j] + R[6 + i] * Mx[6 + j];
+                RtMx[3 * i + j] = Rm[i] * Mx[j] + Rm[3 + i] * Mx[3 + j] + Rm[6 + i] * Mx[6 + j];
         mat_mul(m->D, RtMx, H + 9);
     }
     /* rows[i]: the row of the full 6-vector (acc 0–2, mag 3–5) that entry i stands for */

@@ -21,11 +21,15 @@ typedef struct {
     double Sw[9];     /* gyroscope noise covariance, (rad/s)²       */
     double Sa[9];     /* accelerometer noise covariance, (m/s²)²    */
     double Sm[9];     /* magnetometer noise covariance              */
+    double delay;     /* magnetometer delay τ, s: the magnetometer at sample k measures
+                       * the field at t_k − τ, m^b(t_k − τ) = Exp(τ ω_k) m^b(t_k) with
+                       * ω_k = gyr[k−1] − bias (gyr[0] at k = 0), the rate held over the
+                       * delay. τ = 0 is the plain model, and costs nothing.        */
 } mc_mekf_model_t;
 
 /* Doubles in mc_mekf_model_t. The struct is exactly this many doubles without padding
  * (checked below at compile time), so it can be copied from and to a flat array. */
-#define MC_MEKF_MODEL_DOUBLES 45
+#define MC_MEKF_MODEL_DOUBLES 46
 typedef char
     mc_mekf_model_is_flat[sizeof(mc_mekf_model_t) == MC_MEKF_MODEL_DOUBLES * sizeof(double) ? 1 : -1];
 

@@ -437,8 +437,14 @@ int main(void)
         {"Sw00", IDX(Sw, 0), 4e-9},      {"Sw01", IDX(Sw, 1), 4e-9},
         {"Sa11", IDX(Sa, 4), 2e-7},      {"Sa02", IDX(Sa, 2), 2e-7},
         {"Sm22", IDX(Sm, 8), 1.5e-8},    {"Sm12", IDX(Sm, 5), 1.5e-8},
+        {"delay", IDX(delay, 0), 1e-5},
     };
     check_gradient(&model, &data, with_mag, (int)(sizeof with_mag / sizeof with_mag[0]));
+    /* The same with a magnetometer delay in the model: every component, the delay's own and
+     * the gyroscope bias's share through the delayed rotation included. */
+    mc_mekf_model_t delayed = model;
+    delayed.delay = 0.03;
+    check_gradient(&delayed, &data, with_mag, (int)(sizeof with_mag / sizeof with_mag[0]));
     mc_mekf_data_t inertial = data;
     inertial.use_mag = 0;
     inertial.mag = NULL;
@@ -456,6 +462,7 @@ int main(void)
     make_masks(&data, &masked);
     test_masks(&model, &data, &masked);
     check_gradient(&model, &masked, with_mag, (int)(sizeof with_mag / sizeof with_mag[0]));
+    check_gradient(&delayed, &masked, with_mag, (int)(sizeof with_mag / sizeof with_mag[0]));
     masked.use_mag = 0;
     check_gradient(&model, &masked, without_mag,
                    (int)(sizeof without_mag / sizeof without_mag[0]));

@@ -139,3 +139,28 @@ def test_missing_data_folder_is_named(tmp_path):
     missing = tmp_path / "realdata"
     with pytest.raises(real.RealDataError, match=str(missing)):
         real.case_names(missing)
+
+
+def test_multi_rate_session_from_raw_streams(tmp_path):
+    from magcal_evaluation.real import multi_rate_session
+
+    gyr_t = np.array([0.10, 0.20, 0.30, 0.40])
+    acc_t = np.array([0.05, 0.15, 0.25, 0.35])
+    mag_t = np.array([0.12, 0.30, 0.38])
+    gyr = np.arange(12, dtype=float).reshape(4, 3)
+    acc = 10.0 + np.arange(12, dtype=float).reshape(4, 3)
+    mag = 100.0 + np.arange(9, dtype=float).reshape(3, 3)
+    path = tmp_path / "c.npz"
+    np.savez(path, gyr_t=gyr_t, gyr=gyr, acc_t=acc_t, acc=acc, mag_t=mag_t, mag=mag)
+    s = multi_rate_session(path, {"source": "x"})
+    # Rows at every stream's times from the first gyroscope sample on (0.30 is shared).
+    np.testing.assert_array_equal(s.t, [0.10, 0.12, 0.15, 0.20, 0.25, 0.30, 0.35, 0.38, 0.40])
+    # The gyroscope held from its latest sample; the others only at their own rows.
+    np.testing.assert_array_equal(
+        s.gyr[[0, 1, 2, 3, 4, 5, 6, 7, 8]], gyr[[0, 0, 0, 1, 1, 2, 2, 2, 3]]
+    )
+    np.testing.assert_array_equal(s.has_acc, [0, 0, 1, 0, 1, 0, 1, 0, 0])
+    np.testing.assert_array_equal(s.acc[s.has_acc], acc[1:])
+    np.testing.assert_array_equal(s.has_mag, [0, 1, 0, 0, 0, 1, 0, 1, 0])
+    np.testing.assert_array_equal(s.mag[s.has_mag], mag)
+    assert "multi-rate" in s.meta["source"]

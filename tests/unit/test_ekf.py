@@ -1,5 +1,7 @@
 """The C kernel against the textbook numpy MEKF, and the filter against the truth."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -7,9 +9,11 @@ from magcal.calib import frames
 from magcal.calib.likelihood import mekf
 
 
+@pytest.mark.parametrize("time_offset_s", [0.0, 0.03])
 @pytest.mark.parametrize("use_mag", [True, False])
-def test_native_filter_matches_reference(filter_problem, use_mag):
+def test_native_filter_matches_reference(filter_problem, use_mag, time_offset_s):
     p, data, _ = filter_problem
+    p = dataclasses.replace(p, time_offset_s=time_offset_s)
     ref = mekf.run_filter_reference(p, data, use_mag)
     nat = mekf.run_filter(p, data, use_mag)
     assert nat.cost == pytest.approx(ref.cost, rel=1e-12)

@@ -36,7 +36,7 @@ def test_exact_gradient_matches_central_differences_at_random_points(seed, infla
     theta = (
         theta
         + rng.normal(size=theta.size)
-        * np.r_[np.full(12, 0.02), 0.02, np.full(3, 0.005), np.full(18, 0.2)]
+        * np.r_[np.full(12, 0.02), 0.02, np.full(3, 0.005), np.full(18, 0.2), 0.02]
     )
     _, g = negative_log_likelihood_and_gradient(theta, data)
     fd = central_difference(

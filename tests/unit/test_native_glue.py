@@ -44,7 +44,7 @@ def test_valid_arguments_give_the_cost(problem):
     c = cost(args)
     assert np.isfinite(c)
     assert cost_grad(args) == pytest.approx(c, rel=1e-14)
-    assert mekf.MODEL_DOUBLES == 45
+    assert mekf.MODEL_DOUBLES == 46
 
 
 @pytest.mark.parametrize(
@@ -84,7 +84,7 @@ def test_input_of_wrong_length_reports_values_on_both_sides(problem):
     short = np.ascontiguousarray(args[ACC].ravel()[:-3])
     with pytest.raises(ValueError, match=rf"acc: expected {3 * N} float64 values, got {3 * N - 3}"):
         cost(with_arg(args, ACC, short))
-    with pytest.raises(ValueError, match=r"model: expected 45 float64 values, got 44"):
+    with pytest.raises(ValueError, match=r"model: expected 46 float64 values, got 45"):
         cost_grad(with_arg(args, MODEL, args[MODEL][:-1].copy()))
     with pytest.raises(ValueError, match=rf"acc_extra_var: expected {N} float64 values"):
         cost(with_arg(args, EXTRA, np.zeros(N + 1)))
@@ -163,7 +163,7 @@ def test_tape_and_gradient_buffers_are_checked(problem):
         cost_grad(args, tape=read_only)
     with pytest.raises(TypeError, match="grad: expected float64 values, got buffer format 'f'"):
         cost_grad(args, grad=np.empty(mekf.MODEL_DOUBLES, dtype=np.float32))
-    with pytest.raises(ValueError, match=r"grad: expected 45 float64 values, got 46"):
+    with pytest.raises(ValueError, match=r"grad: expected 46 float64 values, got 47"):
         cost_grad(args, grad=np.empty(mekf.MODEL_DOUBLES + 1))
 
 

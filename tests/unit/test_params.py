@@ -14,6 +14,7 @@ def random_params(rng):
         Sigma_gyr=1e-5 * (A @ A.T + np.eye(3)),
         Sigma_acc=1e-3 * np.diag([1.0, 2.0, 3.0]),
         Sigma_mag=1e-4 * (np.eye(3) + 0.3),
+        time_offset_s=0.03,
     )
 
 
@@ -23,12 +24,13 @@ def test_pack_unpack_round_trip():
     for name in ("D", "o", "gyro_bias", "Sigma_gyr", "Sigma_acc", "Sigma_mag"):
         np.testing.assert_allclose(getattr(q, name), getattr(p, name), rtol=1e-12, atol=1e-18)
     assert q.dip_rad == p.dip_rad
-    assert len(params.PARAM_NAMES) == params.N_PARAMS == 34
+    assert len(params.PARAM_NAMES) == params.N_PARAMS == 35
+    assert q.time_offset_s == p.time_offset_s
 
 
 def test_unpack_rejects_wrong_length():
     with pytest.raises(ValueError, match="shape"):
-        params.unpack(np.zeros(33))
+        params.unpack(np.zeros(34))
 
 
 def test_cholesky_chain_rule_matches_finite_differences():

@@ -100,6 +100,7 @@ def test_a_tight_bias_prior_pulls_the_estimate_to_zero(short_session):
     assert tight.extra["priors"] == {
         "gyro_bias_deg_s": pytest.approx(0.01),
         "misalignment_deg": None,
+        "time_offset_s": pytest.approx(0.1),
     }
     assert Priors.from_dict(tight.extra["priors"]) == Priors(
         gyro_bias_rad_s=pytest.approx(np.deg2rad(0.01)), misalignment_rad=None

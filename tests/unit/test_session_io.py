@@ -240,8 +240,8 @@ def test_missing_first_line(tmp_path):
 
 
 def test_wrong_version(tmp_path):
-    text = session_text(good_rows()).replace("magcal-session: 1", "magcal-session: 2")
-    with pytest.raises(SessionFormatError, match=r"line 1: unsupported session version '2'"):
+    text = session_text(good_rows()).replace("magcal-session: 1", "magcal-session: 3")
+    with pytest.raises(SessionFormatError, match=r"line 1: unsupported session version '3'"):
         read_session(write_text(tmp_path, text))
 
 
@@ -486,3 +486,123 @@ def test_rescan_names_the_right_previous_line_across_a_blank(tmp_path, small_chu
     rows = good_rows(3) + ["", "0.0,0,0,0,0,0,9.81,20,0,-40"] + good_rows(8)[5:]
     with pytest.raises(SessionFormatError, match=r"line 8: time t = 0\.0 s .* on line 6"):
         read_session(write_text(tmp_path, session_text(rows)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Version 2: multi-rate sessions (rows without the accelerometer or the magnetometer)
+
+
+def make_multi_rate_session(n: int = 300, every: int = 4, seed: int = 3) -> Session:
+    """An IMU at every row, the magnetometer at every ``every``-th, one row without acc."""
+    rng = np.random.default_rng(seed)
+    t = 0.005 * np.arange(n) + 1e-5 * rng.random(n)
+    acc = rng.normal(scale=9.81, size=(n, 3))
+    mag = rng.normal(scale=40.0, size=(n, 3))
+    mag[np.arange(n) % every != 0] = np.nan
+    acc[every] = np.nan  # a magnetometer row between IMU samples
+    return session_from_arrays(t, rng.normal(scale=0.3, size=(n, 3)), acc, mag, {"source": "x"})
+
+
+def test_multi_rate_round_trip_is_bit_exact(tmp_path):
+    s = make_multi_rate_session()
+    s.mag[0] = [1e-300, -0.0, 0.1 + 0.2]
+    path = tmp_path / "s.csv"
+    write_session(path, s)
+    text = path.read_text(encoding="utf-8")
+    assert text.startswith("# magcal-session: 2\n")
+    assert ",,," in text  # empty mag cells
+    back = read_session(path)
+    for name in ("t", "gyr", "acc", "mag"):
+        a, b = getattr(s, name), getattr(back, name)
+        np.testing.assert_array_equal(np.isnan(a), np.isnan(b))
+        assert a[~np.isnan(a)].tobytes() == b[~np.isnan(b)].tobytes()
+    np.testing.assert_array_equal(back.has_mag, np.arange(len(s)) % 4 == 0)
+    assert not back.has_acc[4] and back.has_acc.sum() == len(s) - 1
+    assert back.multi_rate
+
+
+def test_single_rate_session_is_written_as_version_1(tmp_path):
+    s = make_session(20)
+    path = tmp_path / "s.csv"
+    write_session(path, s)
+    assert path.read_text(encoding="utf-8").startswith("# magcal-session: 1\n")
+    back = read_session(path)
+    assert back.has_acc.all() and back.has_mag.all() and not back.multi_rate
+
+
+def test_version_1_refuses_empty_cells(tmp_path):
+    rows = good_rows(3)
+    rows[1] = "0.01,0,0,0,,,,20,0,-40"
+    with pytest.raises(SessionFormatError, match=r"line 5: column acc_x: '' is not a number"):
+        read_session(write_text(tmp_path, session_text(rows)))
+
+
+def v2_text(rows: list[str]) -> str:
+    return "# magcal-session: 2\n# source: x\n" + HEADER + "\n" + "\n".join(rows) + "\n"
+
+
+@pytest.mark.parametrize("pad", ["", " "])
+def test_version_2_reads_empty_vectors_slow_and_fast(tmp_path, pad):
+    rows = good_rows(6)
+    rows[1] = f"0.01,0,0,0,{pad},{pad},{pad},20,0,-40"
+    rows[2] = f"0.02,0,0,0,0,0,9.81,{pad},{pad},{pad}"
+    rows[3] = "0.03 ,0,0,0,0,0,9.81,,,"  # blank after a number
+    s = read_session(write_text(tmp_path, v2_text(rows)))
+    np.testing.assert_array_equal(s.has_acc, [True, False, True, True, True, True])
+    np.testing.assert_array_equal(s.has_mag, [True, True, False, False, True, True])
+    assert s.acc[0, 2] == 9.81 and s.t[3] == 0.03
+
+
+@pytest.mark.parametrize(
+    "cells, message",
+    [
+        (",0,9.81,20,0,-40", r"line 5: acc_x empty but not all of acc_x, acc_y, acc_z"),
+        ("0,0,9.81,20,,-40", r"line 5: mag_y empty but not all of mag_x, mag_y, mag_z"),
+        ("0,0,9.81,,0,", r"line 5: mag_x, mag_z empty but not all"),
+        ("0,0,9.81,nan,nan,nan", r"line 5: column mag_x: value 'nan' is not finite"),
+    ],
+)
+def test_version_2_errors_name_the_line(tmp_path, cells, message):
+    rows = good_rows(5000)  # long enough for the chunked re-scan
+    rows[1] = f"0.01,0,0,0,{cells}"
+    with pytest.raises(SessionFormatError, match=message):
+        read_session(write_text(tmp_path, v2_text(rows)))
+
+
+def test_version_2_empty_gyroscope_is_an_error(tmp_path):
+    rows = good_rows(3)
+    rows[2] = "0.02,,,,0,0,9.81,20,0,-40"
+    with pytest.raises(SessionFormatError, match=r"line 6: column gyr_x: '' is not a number"):
+        read_session(write_text(tmp_path, v2_text(rows)))
+
+
+def test_version_2_without_magnetometer_is_an_error(tmp_path):
+    rows = [f"{0.01 * i!r},0,0,0,0,0,9.81,,," for i in range(4)]
+    with pytest.raises(SessionFormatError, match=r"line 3: no row .* has a magnetometer sample"):
+        read_session(write_text(tmp_path, v2_text(rows)))
+
+
+def test_session_from_arrays_checks_nan_rows():
+    n = 5
+    t, v = np.arange(n, dtype=float), np.ones((n, 3))
+    mag = v.copy()
+    mag[2] = np.nan
+    assert session_from_arrays(t, v, v, mag).has_mag.sum() == 4
+    mag[2, 0] = 1.0  # partly NaN
+    with pytest.raises(SessionFormatError, match="mag at sample 2 is not finite"):
+        session_from_arrays(t, v, v, mag)
+    with pytest.raises(SessionFormatError, match="no sample has a magnetometer"):
+        session_from_arrays(t, v, v, np.full((n, 3), np.nan))
+    gyr = v.copy()
+    gyr[1] = np.nan
+    with pytest.raises(SessionFormatError, match="gyr at sample 1 is not finite"):
+        session_from_arrays(t, gyr, v, v)
+
+
+def test_version_2_large_file_fast_path_is_exact(tmp_path):
+    s = make_multi_rate_session(n=20000, every=7)
+    path = tmp_path / "s.csv"
+    write_session(path, s)
+    back = read_session(path)
+    np.testing.assert_array_equal(np.nan_to_num(back.mag, nan=7.5), np.nan_to_num(s.mag, nan=7.5))
+    np.testing.assert_array_equal(np.nan_to_num(back.acc, nan=7.5), np.nan_to_num(s.acc, nan=7.5))

@@ -86,7 +86,7 @@ def per_sample_costs(
     thetas: np.ndarray, data: FilterData, process: AccelerationProcess
 ) -> np.ndarray:
     """ℓ_t = ½ (ε_tᵀ S_t⁻¹ ε_t + log det S_t) of the augmented MEKF for a batch of parameter
-    vectors: thetas (B, 34) as :mod:`magcal.calib.likelihood.params` → (B, N) nats (without the
+    vectors: thetas (B, 35) as :mod:`magcal.calib.likelihood.params` → (B, N) nats (without the
     constant 3 log 2π). Their sum over t is V(θ) of eq. (6) when process.rms_m_s2 = 0."""
     thetas = np.atleast_2d(np.asarray(thetas, dtype=float))
     b, n = thetas.shape[0], len(data)
@@ -107,6 +107,7 @@ def per_sample_costs(
     Sw = np.stack([p.Sigma_gyr for p in ps])
     Sa = np.stack([p.Sigma_acc for p in ps])
     Sm = np.stack([p.Sigma_mag for p in ps])
+    delay = np.array([p.time_offset_s for p in ps])
     m_cross = _skew(m)
     g_n = frames.gravity_n(data.g)
 
@@ -131,11 +132,15 @@ def per_sample_costs(
         else:
             R = frames.quat_to_matrix(q)
         Rt = np.swapaxes(R, 1, 2)
+        # The magnetometer's delay τ: it sees the body turned back by τ times the rate.
+        rate = data.gyr[max(t - 1, 0)] - bias
+        E = frames.quat_to_matrix(frames.rotvec_to_quat(delay[:, None] * rate))
+        ERt = E @ Rt
         f = x_acc[:, :3] - g_n  # specific force in n
         eps = np.concatenate(
             [
                 data.acc[t] - np.einsum("bij,bj->bi", Rt, f),
-                data.mag[t] - np.einsum("bij,bj->bi", D @ Rt, m) - o,
+                data.mag[t] - np.einsum("bij,bj->bi", D @ ERt, m) - o,
             ],
             axis=1,
         )
@@ -143,7 +148,7 @@ def per_sample_costs(
         H = np.zeros((b, 6, 9))
         H[:, :3, :3] = Rt @ _skew(f)
         H[:, :3, 3:6] = Rt
-        H[:, 3:, :3] = D @ Rt @ m_cross
+        H[:, 3:, :3] = D @ ERt @ m_cross
         noise[:, :3, :3] = Sa + data.acc_extra_var[t] * eye3
         # The measurements sample t has (FilterData.has_acc, has_mag), as the kernel does.
         rows = [r for r, present in ((0, data.has_acc[t]), (3, data.has_mag[t])) if present]
@@ -173,12 +178,12 @@ def per_sample_costs(
 def fisher_information(
     theta: np.ndarray, data: FilterData, process: AccelerationProcess
 ) -> np.ndarray:
-    """Σ_t s_t s_tᵀ (34, 34) at θ: the outer product of the per-sample scores."""
+    """Σ_t s_t s_tᵀ (35, 35) at θ: the outer product of the per-sample scores."""
     theta = np.asarray(theta, dtype=float)
     k = theta.size
     steps = SCORE_STEP * np.eye(k)
     costs = per_sample_costs(np.concatenate([theta + steps, theta - steps]), data, process)
-    scores = (costs[:k] - costs[k:]) / (2.0 * SCORE_STEP)  # (34, N)
+    scores = (costs[:k] - costs[k:]) / (2.0 * SCORE_STEP)  # (35, N)
     return scores @ scores.T
 
 
@@ -202,7 +207,7 @@ def heading_error_jacobian(
 
 
 def heading_bound_deg(information: np.ndarray, jacobian: np.ndarray) -> float:
-    """RMS heading error (degrees) an unbiased estimator with this Fisher information (34, 34)
+    """RMS heading error (degrees) an unbiased estimator with this Fisher information (35, 35)
     cannot beat on average: sqrt(tr(J Σ_DO Jᵀ)/K), Σ = I⁻¹, J the (K, 12) Jacobian above."""
     cov = np.linalg.inv(information)[:12, :12]
     return float(np.rad2deg(np.sqrt(np.trace(jacobian @ cov @ jacobian.T) / jacobian.shape[0])))

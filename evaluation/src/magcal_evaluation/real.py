@@ -66,7 +66,7 @@ from magcal.calib.initial.ellipsoid import (
     symmetric_fit,
 )
 from magcal.errors import MagcalError
-from magcal.io.session import Session, read_session
+from magcal.io.session import Session, read_session, session_from_arrays
 from magcal_evaluation import REPO_ROOT
 
 #: The data folder in a checkout: ``shared/realdata`` beside the repository.
@@ -132,6 +132,8 @@ class Case:
     session: Session
     trials: tuple[Trial, ...]
     declination_deg: float
+    #: which session was calibrated: :data:`FORM_SESSION` or :data:`FORM_RAW`
+    form: str = "session"
 
     @property
     def source(self) -> str:
@@ -173,15 +175,55 @@ def load_truth(path: str | Path) -> tuple[tuple[Trial, ...], float]:
     return trials, declination
 
 
+#: The forms a case's session comes in: the single-rate ``sessions/CASE.csv``, or the
+#: multi-rate session built from the streams at their own rates in ``raw/CASE.npz``.
+FORM_SESSION = "session"
+FORM_RAW = "multi-rate"
+
+
+def multi_rate_session(raw_path: str | Path, meta: dict[str, str]) -> Session:
+    """The multi-rate session (``magcal-session: 2``) of a ``raw/CASE.npz``: the streams
+    ``acc_t, acc``, ``gyr_t, gyr``, ``mag_t, mag`` at their own times.
+
+    Rows at the union of the three streams' times from the first gyroscope sample on; each
+    row's gyroscope is the latest gyroscope sample (held, as the filter propagates with it
+    until the next row), the accelerometer only at its own rows, the magnetometer only at
+    its own. Nothing is interpolated.
+    """
+    with np.load(raw_path) as z:
+        streams = {k: np.asarray(z[k], dtype=float) for k in z.files}
+    t_g = streams["gyr_t"]
+    t = np.unique(np.concatenate([t_g, streams["acc_t"], streams["mag_t"]]))
+    t = t[t >= t_g[0]]
+    gyr = streams["gyr"][np.searchsorted(t_g, t, side="right") - 1]
+
+    def at_own_rows(name: str) -> np.ndarray:
+        out = np.full((t.size, 3), np.nan)
+        own_t, values = streams[f"{name}_t"], streams[name]
+        keep = own_t >= t[0]
+        out[np.searchsorted(t, own_t[keep])] = values[keep]
+        return out
+
+    source = meta.get("source", "")
+    meta = {**meta, "source": f"{source}; multi-rate, from the streams at their own rates"}
+    return session_from_arrays(t, gyr, at_own_rows("acc"), at_own_rows("mag"), meta)
+
+
 def load_case(data_dir: str | Path, name: str) -> Case:
+    """The case; its session is the multi-rate one of ``raw/CASE.npz`` when there is one
+    (:func:`multi_rate_session`), else ``sessions/CASE.csv``."""
     data_dir = Path(data_dir)
     info = json.loads((data_dir / "cases.json").read_text(encoding="utf-8"))[name]
     for sub, ext in (("sessions", "csv"), ("truth", "npz")):
         if not (data_dir / sub / f"{name}.{ext}").is_file():
             raise RealDataError(f"real recordings: {data_dir / sub / f'{name}.{ext}'} missing")
     session = read_session(data_dir / "sessions" / f"{name}.csv")
+    form = FORM_SESSION
+    raw = data_dir / "raw" / f"{name}.npz"
+    if raw.is_file():
+        session, form = multi_rate_session(raw, session.meta), FORM_RAW
     trials, declination = load_truth(data_dir / "truth" / f"{name}.npz")
-    return Case(name, info, session, trials, declination)
+    return Case(name, info, session, trials, declination, form)
 
 
 def scored_on_own_recording(case: Case) -> bool:
@@ -232,9 +274,10 @@ def case_heading_deg(
 
 def plain_fit(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The plain fit: (D (3, 3) symmetric, o (3,)) in raw units, or None when the algebraic
-    ellipsoid fit of ``mag`` (N, 3) is no ellipsoid. See the module's docstring."""
+    ellipsoid fit of ``mag`` (N, 3) is no ellipsoid. See the module's docstring. NaN rows
+    (no magnetometer sample in a multi-rate session) are left out."""
     try:
-        fit = fit_ellipsoid_algebraic(mag)
+        fit = fit_ellipsoid_algebraic(mag[~np.isnan(mag[:, 0])])
     except MagcalError:
         return None
     if fit is None:
@@ -246,7 +289,7 @@ def plain_fit_sdp(mag: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
     """The same with magcal's SDP ellipsoid (positive definite by construction), or None
     when it raises."""
     try:
-        fit = fit_ellipsoid_sdp(mag)
+        fit = fit_ellipsoid_sdp(mag[~np.isnan(mag[:, 0])])
     except MagcalError:
         return None
     return symmetric_fit(fit), fit.o
@@ -377,13 +420,16 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
     ``floor`` (degrees or None), the floor's field heading and dip, and per method its
     :class:`MethodRun` as a dict, plus ``forced`` (the run with force=True) when refused."""
     t0 = time.perf_counter()
-    plain = plain_fit(case.session.mag)
-    sdp = plain_fit_sdp(case.session.mag)
+    mag = case.session.mag[case.session.has_mag]
+    plain = plain_fit(mag)
+    sdp = plain_fit_sdp(mag)
     floor = case_floor(case)
     out: dict = {
         "case": case.name,
         "source": case.source,
         "samples": len(case.session),
+        "form": case.form,
+        "mag_samples": int(case.session.has_mag.sum()),
         "trials": len(case.trials),
         "plain": None if plain is None else case_heading_deg(*plain, case),
         "plain_sdp": None if sdp is None else case_heading_deg(*sdp, case),

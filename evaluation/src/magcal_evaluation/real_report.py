@@ -70,6 +70,12 @@ def _cell(r: dict, method: str) -> str:
     return f"{_f(m['heading_deg'])} ({', '.join(ratios)})" if ratios else _f(m["heading_deg"])
 
 
+def _form(r: dict) -> str:
+    if r.get("form") == real.FORM_RAW:
+        return "multi-rate, from raw/"
+    return "sessions/ (single-rate)"
+
+
 def _detail_row(r: dict, method: str, m: dict, forced: bool) -> str:
     bias = m.get("gyro_bias_deg_s")
     bias_txt = (
@@ -116,7 +122,10 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "solving D, o and the field (its heading is the floor's north), where the case is "
         "scored on its own recording. Cells: heading (ratio to plain ×p, to floor ×f); "
         '"refused": the method refused the session, with the forced result (force=True) in '
-        "brackets.",
+        "brackets. A case with the streams at their own rates (`raw/CASE.npz`) is calibrated "
+        "as a multi-rate session built from them (rows at every stream's times, the gyroscope "
+        "held, nothing interpolated: `magcal_evaluation.real.multi_rate_session`), the others "
+        "from `sessions/CASE.csv`; the References table says which (*session*).",
         "",
         "## Heading error (median RMS, degrees)",
         "",
@@ -169,13 +178,14 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "",
         "## References",
         "",
-        "| case | source | samples | trials | plain (algebraic) | plain (SDP ellipsoid) | "
-        "floor | floor's field heading ° | floor's dip ° |",
-        "|---|---|---:|---:|---:|---:|---:|---:|---:|",
+        "| case | source | session | rows (magnetometer) | trials | plain (algebraic) | "
+        "plain (SDP ellipsoid) | floor | floor's field heading ° | floor's dip ° |",
+        "|---|---|---|---:|---:|---:|---:|---:|---:|---:|",
     ]
     for r in good:
         lines.append(
-            f"| {r['case']} | {r['source']} | {r['samples']} | {r['trials']} | "
+            f"| {r['case']} | {r['source']} | {_form(r)} | {r['samples']} "
+            f"({r.get('mag_samples', r['samples'])}) | {r['trials']} | "
             f"{'fit fails' if r['plain'] is None else _f(r['plain'])} | {_f(r['plain_sdp'])} | "
             f"{_f(r['floor'])} | {_f(r['floor_field_heading_deg'])} | {_f(r['floor_dip_deg'])} |"
         )

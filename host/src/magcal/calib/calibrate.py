@@ -1,6 +1,13 @@
 """From a session to a calibration result: Algorithm 1 with its checks and diagnostics.
 
 This is the one entry point the command line and the report scripts call.
+
+A multi-rate session (the magnetometer slower than the IMU, ``magcal-session: 2``) is
+calibrated as it is: magnetometer glitches are dropped first (``samples.py``), everything
+that works per magnetometer sample (checks, ellipsoid fits, the norm-only methods, the
+initial estimate, the consistency checks) sees the session at the magnetometer's rows
+(``samples.at_magnetometer_rows``), and the ML step and the result's filter use every row
+with each stream's noise measured at its own rate.
 """
 
 from __future__ import annotations
@@ -12,9 +19,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magcal.calib import samples
 from magcal.calib.diagnostics import consistency, observability, quality
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
 from magcal.calib.initial.estimate import InitialEstimate, initial_estimate
+from magcal.calib.initial.sensor_levels import measure_sensor_levels
 from magcal.calib.likelihood import mekf
 from magcal.calib.likelihood.ml import MLEstimate, maximum_likelihood
 from magcal.calib.likelihood.optimize import OptimizeOptions
@@ -59,14 +68,29 @@ class Calibration:
     result: CalibrationResult
     init: InitialEstimate
     ml: MLEstimate | None
-    filter_output: mekf.FilterOutput
-    calibrated: np.ndarray  # (N, 3) D⁻¹(y − o), unit norm when good
+    filter_output: mekf.FilterOutput  # on every row of the session
+    calibrated: np.ndarray  # (N, 3) D⁻¹(y − o), unit norm when good; NaN rows without a sample
 
 
 def _filter_at(session: Session, init: InitialEstimate, p: ModelParams) -> mekf.FilterOutput:
     """The ML step's filter (normalised as from ``init``) at ``p``, starting from the
     attitude ``p`` gives."""
     return LikelihoodProblem.for_ml_step(session, init, at=p).run_filter_raw(p)
+
+
+def _on_every_row(session: Session, init: InitialEstimate) -> InitialEstimate:
+    """The initial estimate (made at the magnetometer's rows) for the filter on every row
+    of a multi-rate session: the sensor levels and noise covariances measured per stream at
+    its own rate; calibration and dip unchanged."""
+    levels = measure_sensor_levels(session)
+    params = dataclasses.replace(
+        init.params,
+        gyro_bias=levels.noise.gyro_bias,
+        Sigma_gyr=levels.noise.Sigma_gyr,
+        Sigma_acc=levels.Sigma_acc,
+        Sigma_mag=levels.noise.Sigma_mag,
+    )
+    return dataclasses.replace(init, params=params, levels=levels)
 
 
 def _alignment_warnings(session: Session, g: float) -> list[str]:
@@ -99,9 +123,15 @@ def calibrate(
     :data:`NORM_ONLY`)."""
     if method not in METHODS:
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
+    if not session.has_acc.any():
+        raise MagcalError("the session has no accelerometer sample: record the accelerometer")
     seconds = {}
+    session, mag_samples = samples.drop_magnetometer_glitches(session)
+    # Everything that works per magnetometer sample sees this view (the session itself
+    # when every row has every sensor).
+    view = samples.at_magnetometer_rows(session)
     t0 = time.perf_counter()
-    report = observability.check_observability(session.gyr, session.acc, session.mag, session.t)
+    report = observability.check_observability(view.gyr, view.acc, view.mag, view.t)
     warnings = observability.raise_if_unobservable(report, force)
     seconds["checks"] = time.perf_counter() - t0
 
@@ -112,18 +142,22 @@ def calibrate(
     method_record = None
     if method in NORM_ONLY:
         # These report degenerate data themselves; --force has already passed the checks.
-        fit, method_record = NORM_ONLY[method](session.mag, force=force)
+        fit, method_record = NORM_ONLY[method](view.mag, force=force)
         seconds[method] = time.perf_counter() - t0
     else:
-        fit = fit_ellipsoid_sdp(session.mag, force=True)
+        fit = fit_ellipsoid_sdp(view.mag, force=True)
         seconds["ellipsoid"] = time.perf_counter() - t0
         if report.ok and fit.warnings:
             fit = dataclasses.replace(fit, warnings=(NOISY_ELLIPSOID_WARNING,))
 
-    init = initial_estimate(session, fit)
+    init = initial_estimate(view, fit)
     seconds.update(init.seconds)
     warnings += list(init.warnings)
-    warnings += _alignment_warnings(session, init.levels.g)
+    warnings += _alignment_warnings(view, init.levels.g)
+    if view is not session:
+        init = _on_every_row(session, init)
+    if mag_samples.warning():
+        warnings.append(mag_samples.warning())
 
     extra: dict = {
         "initial": {
@@ -137,6 +171,7 @@ def calibrate(
             "mag_eig_ratio": report.mag_eig_ratio,
             "total_rotation_rad": report.total_rotation_rad,
         },
+        "magnetometer_samples": mag_samples.as_dict(),
     }
     if method_record is not None:
         extra[NORM_ONLY_KEYS[method]] = method_record
@@ -148,6 +183,9 @@ def calibrate(
         p = est.params
         r = est.report
         extra["priors"] = priors.as_dict()
+        extra["time_offset_s"] = p.time_offset_s
+        if est.time_offset_test is not None:
+            extra["time_offset_test"] = est.time_offset_test.as_dict()
         extra["optimizer"] = {
             "gradient": gradient,
             "iterations": r.iterations,
@@ -169,6 +207,7 @@ def calibrate(
     t0 = time.perf_counter()
     out = _filter_at(session, init, p)
     calibrated = np.linalg.solve(p.D, (session.mag - p.o).T).T
+    view_rows = session.has_mag
     seconds["diagnostics"] = time.perf_counter() - t0
     extra["Sigma_gyr"] = p.Sigma_gyr
     extra["Sigma_acc"] = p.Sigma_acc
@@ -177,8 +216,8 @@ def calibrate(
     extra["negative_log_likelihood"] = out.cost
     extra["innovations"] = quality.innovation_stats(out.present_normalised()).as_dict()
     extra["field_norm"] = {
-        "before": quality.norm_stats(session.mag),
-        "after": quality.norm_stats(calibrated),
+        "before": quality.norm_stats(view.mag),
+        "after": quality.norm_stats(calibrated[view_rows]),
     }
     extra["seconds"] = seconds
     # D and o are in the session's magnetometer unit; saying which lets `magcal flash` turn
@@ -193,9 +232,9 @@ def calibrate(
     # The same checks of the result against its own session for every method.
     t0 = time.perf_counter()
     checks = consistency.check(
-        session.t,
-        session.acc,
-        session.mag,
+        view.t,
+        view.acc,
+        view.mag,
         p.D,
         p.o,
         p.gyro_bias,

@@ -121,6 +121,10 @@ def summary_rows(cal) -> list[tuple[str, str]]:
         ]
         if r.gyro_bias is not None:
             rows.append(("gyro bias", f"{np.rad2deg(r.gyro_bias)} °/s"))
+        if "time_offset_s" in r.extra:
+            rows.append(
+                ("time offset", f"{1e3 * r.extra['time_offset_s']:.1f} ms (magnetometer delay)")
+            )
     if "optimizer" in x:
         o = x["optimizer"]
         rows.append(

@@ -24,6 +24,18 @@ def add_parser(sub) -> None:
     p.add_argument("--mag-sigma", type=float, dest="mag_sigma", help="magnetometer units")
     p.add_argument("--field-scale", type=float, dest="field_scale", help="field, mag units")
     p.add_argument("--offset-scale", type=float, dest="offset_scale", help="mag units")
+    p.add_argument(
+        "--mag-rate",
+        type=float,
+        dest="mag_rate_hz",
+        help="magnetometer rate below --rate, Hz: a multi-rate session (magcal-session: 2)",
+    )
+    p.add_argument(
+        "--mag-lag-s",
+        type=float,
+        dest="mag_lag_s",
+        help="the magnetometer shows the field this long ago, s (truth: time_offset_s)",
+    )
     p.add_argument("-o", "--output", required=True, help="session CSV to write")
     p.add_argument("--truth", help="truth JSON to write (default: OUTPUT with .truth.json)")
     p.set_defaults(run=run)
@@ -46,6 +58,8 @@ def run(args) -> int:
         "mag_sigma",
         "field_scale",
         "offset_scale",
+        "mag_rate_hz",
+        "mag_lag_s",
     )
     overrides = {k: getattr(args, k) for k in keys if getattr(args, k) is not None}
     out = Path(args.output)

@@ -1,4 +1,4 @@
-"""Session files (``magcal-session: 1`` CSV): the in-memory form, reading and writing.
+"""Session files (``magcal-session`` CSV): the in-memory form, reading and writing.
 
 See ``docs/contracts.md`` for the format::
 
@@ -6,6 +6,11 @@ See ``docs/contracts.md`` for the format::
     # source: ...
     t,gyr_x,gyr_y,gyr_z,acc_x,acc_y,acc_z,mag_x,mag_y,mag_z
     0,0.0012,-0.0031,0.0007,0.02,-0.11,9.80,21.3,-4.2,-38.9
+
+Version 2 (multi-rate) has the same columns; a row's three ``acc_*`` cells may be empty
+together (no accelerometer sample at that time), and so may its three ``mag_*`` cells (no
+magnetometer sample). In memory such a vector is a row of NaN (``Session.has_acc``,
+``Session.has_mag``). ``write_session`` writes version 1 whenever every row has both.
 
 Reading is two-pass: a vectorised parse (``np.loadtxt``) handles valid files quickly; if it or
 any check fails, a line-by-line re-scan finds the first bad line and names it. The re-scan is
@@ -20,6 +25,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import tempfile
 from dataclasses import dataclass, field
 
@@ -29,6 +35,10 @@ from magcal.errors import MagcalError, SessionFormatError
 
 SESSION_VERSION = "1"
 FIRST_LINE = "# magcal-session: 1"
+#: The multi-rate form: rows may lack the accelerometer or the magnetometer.
+MULTI_RATE_VERSION = "2"
+FIRST_LINE_MULTI_RATE = "# magcal-session: 2"
+SESSION_VERSIONS = (SESSION_VERSION, MULTI_RATE_VERSION)
 TIME_COLUMN = "t"
 VECTOR_COLUMNS = (
     ("gyr", ("gyr_x", "gyr_y", "gyr_z")),
@@ -103,9 +113,11 @@ class Session:
     """One recording.
 
     t   : (N,) float, seconds, strictly increasing
-    gyr : (N, 3) float, rad/s, body frame
-    acc : (N, 3) float, m/s², specific force, body frame
-    mag : (N, 3) float, raw magnetometer units (any unit)
+    gyr : (N, 3) float, rad/s, body frame (every row)
+    acc : (N, 3) float, m/s², specific force, body frame; a NaN row where the row has no
+          accelerometer sample (:attr:`has_acc`)
+    mag : (N, 3) float, raw magnetometer units (any unit); a NaN row where the row has no
+          magnetometer sample (:attr:`has_mag`)
     meta: the ``# key: value`` metadata lines, without ``magcal-session``
     """
 
@@ -117,6 +129,21 @@ class Session:
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
+
+    @property
+    def has_acc(self) -> np.ndarray:
+        """(N,) bool: the row has an accelerometer sample."""
+        return ~np.isnan(self.acc[:, 0])
+
+    @property
+    def has_mag(self) -> np.ndarray:
+        """(N,) bool: the row has a magnetometer sample."""
+        return ~np.isnan(self.mag[:, 0])
+
+    @property
+    def multi_rate(self) -> bool:
+        """Some row lacks the accelerometer or the magnetometer (a version 2 session)."""
+        return bool(np.isnan(self.acc[:, 0]).any() or np.isnan(self.mag[:, 0]).any())
 
 
 # --------------------------------------------------------------------------------------------
@@ -136,7 +163,10 @@ def session_from_arrays(
     gyr : (N, 3) rad/s;  acc : (N, 3) m/s²;  mag : (N, 3) raw magnetometer units
     meta: ``key -> value`` strings (keys without ``:``, no newlines anywhere)
 
-    Raises :class:`SessionFormatError` naming the array and the (0-based) sample index.
+    ``acc`` and ``mag`` may have all-NaN rows (no such sample at that row: a multi-rate
+    session); every other value must be finite, and at least one row must have the
+    magnetometer. Raises :class:`SessionFormatError` naming the array and the (0-based)
+    sample index.
     """
     t = np.array(t, dtype=np.float64)
     if t.ndim != 1:
@@ -154,12 +184,19 @@ def session_from_arrays(
         arrays[name] = a
     for name, a in arrays.items():
         bad = ~np.isfinite(a)
+        if name in ("acc", "mag"):
+            absent = np.isnan(a).all(axis=1)
+            bad[absent] = False
         if bad.any():
             index = int(np.argwhere(bad)[0][0])
             raise SessionFormatError(
                 f"building a session: {name} at sample {index} is not finite ({a[index]}); "
-                "remove or repair that sample"
+                "remove or repair that sample (a sample without this sensor is all NaN)"
             )
+    if np.isnan(arrays["mag"][:, 0]).all():
+        raise SessionFormatError(
+            "building a session: no sample has a magnetometer reading; record the magnetometer"
+        )
     steps = np.diff(t)
     if (steps <= 0).any():
         index = int(np.flatnonzero(steps <= 0)[0]) + 1
@@ -208,8 +245,19 @@ def _check_meta(meta: dict[str, str], operation: str) -> None:
 # Writing
 
 
+def _multi_rate_rows(data: np.ndarray) -> list[str]:
+    """Version 2 rows of ``data`` (N, 10): a vector without a sample is three empty cells."""
+    rows = []
+    for values in data.tolist():
+        cells = ["" if math.isnan(v) else repr(v) for v in values]
+        rows.append(",".join(cells) + "\n")
+    return rows
+
+
 def write_session(path: str | os.PathLike, session: Session) -> None:
-    """Write ``session`` as a ``magcal-session: 1`` CSV file.
+    """Write ``session`` as a ``magcal-session`` CSV file: version 1 when every row has the
+    accelerometer and the magnetometer (so readers of version 1 read it), version 2 (empty
+    cells where a row lacks one) otherwise.
 
     Values are written with ``repr`` (shortest text that round-trips float64 exactly), so
     ``read_session(path)`` gives back bit-identical arrays.
@@ -217,16 +265,20 @@ def write_session(path: str | os.PathLike, session: Session) -> None:
     # Validate first so that we never write a file our own reader rejects.
     s = session_from_arrays(session.t, session.gyr, session.acc, session.mag, session.meta)
     data = np.column_stack([s.t, s.gyr, s.acc, s.mag])
+    multi_rate = s.multi_rate
     row_format = ",".join(["%r"] * len(COLUMNS))  # %r of a Python float is its repr
     try:
         with open(path, "w", encoding="utf-8", newline="\n") as f:
-            f.write(FIRST_LINE + "\n")
+            f.write((FIRST_LINE_MULTI_RATE if multi_rate else FIRST_LINE) + "\n")
             for key, value in s.meta.items():
                 f.write(f"# {key.strip()}: {value}\n")
             f.write(",".join(COLUMNS) + "\n")
             # .tolist() gives Python floats, whose repr is plain (numpy 2 scalars print
             # np.float64).
-            f.writelines(row_format % tuple(row) + "\n" for row in data.tolist())
+            if multi_rate:
+                f.writelines(_multi_rate_rows(data))
+            else:
+                f.writelines(row_format % tuple(row) + "\n" for row in data.tolist())
     except OSError as exc:
         raise SessionFileError(
             f"writing session {os.fspath(path)}: {os_error_advice(exc, path, writing=True)}"
@@ -238,7 +290,7 @@ def write_session(path: str | os.PathLike, session: Session) -> None:
 
 
 def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
-    """Read a ``magcal-session: 1`` CSV file.
+    """Read a ``magcal-session`` CSV file, version 1 or 2 (multi-rate).
 
     path        : the file
     min_samples : reject sessions with fewer samples (the calling method's minimum)
@@ -246,7 +298,8 @@ def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
     Columns may come in any order; extra columns are ignored (not even parsed). Raises
     :class:`SessionFormatError` whose message names the file, the 1-based line number and the
     problem (bad first line, missing columns, wrong field count, non-numeric or non-finite
-    value, non-increasing time, too few samples).
+    value, a partly empty vector, non-increasing time, no magnetometer sample, too few
+    samples). Version 2 rows without an accelerometer or magnetometer sample have NaN there.
     """
     name = os.fspath(path)
     try:
@@ -260,7 +313,7 @@ def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
             f"reading session {name}: {os_error_advice(exc, path, writing=False)}"
         ) from exc
 
-    meta, header_index = _read_preamble(name, lines)
+    meta, header_index, version = _read_preamble(name, lines)
     columns = [c.strip() for c in lines[header_index].split(",")]
     usecols = _required_indices(name, header_index + 1, columns)
     first = header_index + 1  # index into `lines` of the first data row
@@ -268,11 +321,18 @@ def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
     while last > first and not lines[last - 1].strip():
         last -= 1  # trailing blank lines are harmless; keep them off the fast path
 
-    data = _parse(name, lines, first, last, columns, usecols)
+    data = _parse(name, lines, first, last, columns, usecols, version == MULTI_RATE_VERSION)
 
     n = data.shape[0]
     if n == 0:
         raise SessionFormatError(f"reading session {name}: it has no samples; record some data")
+    if np.isnan(data[:, 7]).all():
+        raise _error(
+            name,
+            header_index,
+            "no row after this header has a magnetometer sample (all mag_* cells are empty); "
+            "a session needs the magnetometer",
+        )
     if n < min_samples:
         raise SessionFormatError(
             f"reading session {name}: session has {n} samples; calibration needs at least "
@@ -292,8 +352,9 @@ def _error(name: str, line_index: int, problem: str) -> SessionFormatError:
     return SessionFormatError(f"reading session {name}: line {line_index + 1}: {problem}")
 
 
-def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int]:
-    """Check the first line, collect ``# key: value`` metadata; return (meta, header index)."""
+def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int, str]:
+    """Check the first line, collect ``# key: value`` metadata; return (meta, header index,
+    version)."""
     if not lines:
         raise SessionFormatError(
             f"reading session {name}: the file is empty; expected first line {FIRST_LINE!r}"
@@ -304,12 +365,13 @@ def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int]:
         raise _error(
             name, 0, f"expected {FIRST_LINE!r}, found {lines[0][:60]!r}: not a magcal session"
         )
-    if version.strip() != SESSION_VERSION:
+    version = version.strip()
+    if version not in SESSION_VERSIONS:
         raise _error(
             name,
             0,
-            f"unsupported session version {version.strip()!r}; this reader knows version "
-            f"{SESSION_VERSION}: upgrade magcal",
+            f"unsupported session version {version!r}; this reader knows versions "
+            f"{' and '.join(SESSION_VERSIONS)}: upgrade magcal",
         )
     meta: dict[str, str] = {}
     for i in range(1, len(lines)):
@@ -317,7 +379,7 @@ def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int]:
         if not text:
             continue
         if not text.startswith("#"):
-            return meta, i
+            return meta, i, version
         key, sep, value = text[1:].partition(":")
         if key.strip() == "magcal-session":
             raise _error(
@@ -353,10 +415,17 @@ def _required_indices(name: str, header_line: int, columns: list[str]) -> list[i
 
 
 def _parse(
-    name: str, lines: list[str], first: int, last: int, columns: list[str], usecols: list[int]
+    name: str,
+    lines: list[str],
+    first: int,
+    last: int,
+    columns: list[str],
+    usecols: list[int],
+    multi_rate: bool = False,
 ) -> np.ndarray:
-    """Parse the data rows ``lines[first:last]`` into an (N, 10) array in ``COLUMNS`` order."""
-    data = _parse_fast(lines[first:last], len(columns), usecols, -math.inf)
+    """Parse the data rows ``lines[first:last]`` into an (N, 10) array in ``COLUMNS`` order;
+    ``multi_rate`` (version 2): empty acc/mag vectors are NaN rows."""
+    data = _parse_fast(lines[first:last], len(columns), usecols, -math.inf, multi_rate)
     if data is not None:
         return data
     # Something is wrong, or merely unusual (a blank line). Re-parse in chunks so that only the
@@ -366,10 +435,10 @@ def _parse(
     previous_t, previous_line = -math.inf, first
     for start in range(first, last, RESCAN_CHUNK_ROWS):
         stop = min(start + RESCAN_CHUNK_ROWS, last)
-        part = _parse_fast(lines[start:stop], len(columns), usecols, previous_t)
+        part = _parse_fast(lines[start:stop], len(columns), usecols, previous_t, multi_rate)
         if part is None:
             part, previous_line = _parse_slow(
-                name, lines, start, stop, columns, usecols, previous_t, previous_line
+                name, lines, start, stop, columns, usecols, previous_t, previous_line, multi_rate
             )
         elif len(part):
             previous_line = stop - 1  # a chunk that passed has no blank lines
@@ -379,12 +448,17 @@ def _parse(
     return np.concatenate(parts)
 
 
+#: An empty cell (nothing or blanks between separators), for the version 2 fast path.
+_EMPTY_CELL = re.compile(r"(^|,)[ \t]*(?=,|$)", re.MULTILINE)
+
+
 def _parse_fast(
-    rows: list[str], n_fields: int, usecols: list[int], previous_t: float
+    rows: list[str], n_fields: int, usecols: list[int], previous_t: float, multi_rate: bool = False
 ) -> np.ndarray | None:
     """Vectorised parse of data rows; ``None`` if anything at all is off.
 
     previous_t : the time of the sample before ``rows[0]`` (``-inf`` if none), s
+    multi_rate : version 2: an all-empty acc or mag vector becomes a NaN row
     """
     if not rows:
         return np.empty((0, len(COLUMNS)))
@@ -393,11 +467,27 @@ def _parse_fast(
     commas = n_fields - 1
     if any(row.count(",") != commas for row in rows):
         return None
+    if multi_rate:
+        text = "\n".join(rows)
+        # Spelled-out values (nan, inf) must not pass as empty cells: the slow path judges.
+        if "n" in text or "N" in text:
+            return None
+        rows = _EMPTY_CELL.sub(r"\1nan", text).split("\n")
     try:
         data = np.loadtxt(rows, delimiter=",", comments=None, usecols=usecols, ndmin=2)
     except ValueError:
         return None
-    if data.shape != (len(rows), len(COLUMNS)) or not np.isfinite(data).all():
+    if data.shape != (len(rows), len(COLUMNS)):
+        return None
+    finite = np.isfinite(data)
+    if multi_rate:
+        for sl in (slice(4, 7), slice(7, 10)):
+            absent = np.isnan(data[:, sl])
+            whole = absent.all(axis=1)
+            if (absent.any(axis=1) != whole).any():
+                return None  # a partly empty vector: the slow path names the line
+            finite[whole, sl] = True
+    if not finite.all():
         return None
     if data[0, 0] <= previous_t or (np.diff(data[:, 0]) <= 0).any():
         return None
@@ -413,10 +503,12 @@ def _parse_slow(
     usecols: list[int],
     previous_t: float,
     previous_line: int,
+    multi_rate: bool = False,
 ) -> tuple[np.ndarray, int]:
     """Line-by-line parse that raises on the first bad line (the reference semantics).
 
     previous_t, previous_line : time and line index of the sample before ``lines[first]``
+    multi_rate : version 2: the three cells of acc or mag may be empty together (NaN)
     Returns the (n, 10) data and the line index of its last sample.
     """
     out: list[list[float]] = []
@@ -433,7 +525,25 @@ def _parse_slow(
                 "the row is truncated or has extra separators",
             )
         values = []
-        for k in usecols:
+        empty = [False] * len(COLUMNS)
+        if multi_rate:
+            for start in (4, 7):
+                cells = [fields[usecols[j]].strip() == "" for j in range(start, start + 3)]
+                if all(cells):
+                    empty[start : start + 3] = [True] * 3
+                elif any(cells):
+                    names = COLUMNS[start : start + 3]
+                    blank = ", ".join(c for c, e in zip(names, cells, strict=True) if e)
+                    raise _error(
+                        name,
+                        i,
+                        f"{blank} empty but not all of {', '.join(names)}: a vector is "
+                        "either complete or empty (no sample at that time)",
+                    )
+        for j, k in enumerate(usecols):
+            if empty[j]:
+                values.append(math.nan)
+                continue
             text = fields[k]
             # Python's float() accepts "1_000"; numpy's parser (the fast path) does not.
             try:

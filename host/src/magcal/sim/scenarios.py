@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from magcal.calib import frames
 from magcal.errors import MagcalError
 from magcal.io.session import Session, session_from_arrays
 from magcal.sim.model import (
@@ -59,6 +60,11 @@ class ScenarioConfig:
     gyro_sigma            : if set, Σ_ω = gyro_sigma² I, rad/s (0 = noise-free)
     acc_sigma             : if set, Σ_a = acc_sigma² I, m/s²
     mag_sigma             : if set, Σ_m = mag_sigma² I, magnetometer units
+    mag_rate_hz           : if set below ``rate_hz``, the magnetometer's own rate, Hz: it
+                            samples at the IMU row nearest each multiple of 1/mag_rate_hz
+                            and the other rows have none (a multi-rate session)
+    mag_lag_s             : the magnetometer at time t shows the field at t − mag_lag_s, s
+                            (the truth records it as ``time_offset_s``)
     """
 
     kind: str = "mems"
@@ -76,6 +82,8 @@ class ScenarioConfig:
     gyro_sigma: float | None = None
     acc_sigma: float | None = None
     mag_sigma: float | None = None
+    mag_rate_hz: float | None = None
+    mag_lag_s: float = 0.0
 
 
 PRESETS: dict[str, ScenarioConfig] = {
@@ -187,6 +195,36 @@ def sample_sensor(scenario: ScenarioConfig, rng: np.random.Generator) -> SensorT
     return sensor
 
 
+def field_at(sensor: SensorTruth, q_nb: np.ndarray) -> np.ndarray:
+    """(N, 3) noise-free magnetometer readings at attitudes ``q_nb`` (N, 4)."""
+    R_nb = frames.quat_to_matrix(q_nb)
+    return np.einsum("kji,j->ki", R_nb, sensor.m_n) @ sensor.D.T + sensor.o
+
+
+def attitude_at(t: np.ndarray, q_nb: np.ndarray, when: np.ndarray) -> np.ndarray:
+    """(K, 4) the attitude at times ``when`` (K,), spherically interpolated between the
+    samples (t, q_nb); held at the ends."""
+    when = np.clip(when, t[0], t[-1])
+    i = np.clip(np.searchsorted(t, when, side="right") - 1, 0, t.size - 2)
+    u = ((when - t[i]) / (t[i + 1] - t[i]))[:, None]
+    step = frames.quat_log(frames.quat_multiply(frames.quat_conjugate(q_nb[i]), q_nb[i + 1]))
+    return frames.quat_multiply(q_nb[i], frames.quat_exp(u * step))
+
+
+def magnetometer_rows(t: np.ndarray, rate_hz: float, mag_rate_hz: float) -> np.ndarray:
+    """(N,) bool: the rows at which a magnetometer at ``mag_rate_hz`` samples (the row
+    nearest each multiple of its period; every row when it is not slower than the IMU)."""
+    if not np.isfinite(mag_rate_hz) or mag_rate_hz <= 0.0:
+        raise MagcalError(f"simulate: mag_rate_hz must be positive, got {mag_rate_hz!r}")
+    rows = np.ones(t.size, dtype=bool)
+    if mag_rate_hz >= rate_hz:
+        return rows
+    times = np.arange(t[0], t[-1], 1.0 / mag_rate_hz)
+    rows[:] = False
+    rows[np.unique(np.clip(np.searchsorted(t, times - 0.5 / rate_hz), 0, t.size - 1))] = True
+    return rows
+
+
 def simulate(scenario: ScenarioConfig, seed: int) -> tuple[Session, SimTruth]:
     """Simulate one session.
 
@@ -216,6 +254,20 @@ def simulate(scenario: ScenarioConfig, seed: int) -> tuple[Session, SimTruth]:
         n_bumps=int(scenario.n_bumps),
     )
     gyr, acc, mag = measure(sensor, traj.q_nb, traj.omega_b, traj.acc_n, rng_noise)
+    lag = float(scenario.mag_lag_s)
+    if not np.isfinite(lag) or abs(lag) >= traj.t[-1] - traj.t[0]:
+        raise MagcalError(
+            f"simulate: mag_lag_s must be finite and shorter than the session, got {lag!r}"
+        )
+    if lag != 0.0:
+        # The same noise, on the field seen at t − lag.
+        mag = (
+            mag
+            - field_at(sensor, traj.q_nb)
+            + field_at(sensor, attitude_at(traj.t, traj.q_nb, traj.t - lag))
+        )
+    if scenario.mag_rate_hz is not None:
+        mag[~magnetometer_rows(traj.t, scenario.rate_hz, float(scenario.mag_rate_hz))] = np.nan
     meta = {
         "source": f"magcal simulate: kind {scenario.kind}, motion {scenario.motion}, seed {seed}",
         "mag_unit": f"simulated (field magnitude {scenario.field_scale:g})",
@@ -236,7 +288,8 @@ def truth_to_dict(truth: SimTruth) -> dict:
     """The ``magcal-truth/1`` JSON object of a truth (all arrays as nested lists).
 
     Keys: format, D, D_inv, o, m_n, dip_deg, gyro_bias (rad/s), Sigma_gyr, Sigma_acc,
-    Sigma_mag, t, q_nb ([w, x, y, z] rows), scenario (settings or null), seed (or null), and,
+    Sigma_mag, t, q_nb ([w, x, y, z] rows), scenario (settings or null), seed (or null),
+    time_offset_s (the magnetometer's lag behind the IMU, s: it shows the field at t − lag), and,
     when the full trajectory is known, n_stationary and bumps ([first sample, length] rows).
     """
     s = truth.sensor
@@ -255,6 +308,7 @@ def truth_to_dict(truth: SimTruth) -> dict:
         "q_nb": np.asarray(truth.q_nb).tolist(),
         "scenario": None if truth.scenario is None else dataclasses.asdict(truth.scenario),
         "seed": truth.seed,
+        "time_offset_s": 0.0 if truth.scenario is None else float(truth.scenario.mag_lag_s),
     }
     if truth.trajectory is not None:
         d["n_stationary"] = int(truth.trajectory.n_stationary)

@@ -78,6 +78,7 @@ def model_params_from_result(result: CalibrationResult) -> ModelParams:
         dip_rad=float(np.deg2rad(result.dip_deg)),
         gyro_bias=np.array(result.gyro_bias),
         **covariances,
+        time_offset_s=float(result.extra.get("time_offset_s", 0.0)),
     )
 
 

@@ -77,6 +77,7 @@ QUANTITIES: tuple[tuple[str, tuple[int, ...]], ...] = (
     ("noise_std_gyr", (3,)),
     ("noise_std_acc", (3,)),
     ("noise_std_mag", (3,)),
+    ("time_offset_s", ()),
 )
 
 
@@ -195,12 +196,12 @@ def misalignment_deg(D: np.ndarray) -> np.ndarray:
 
 
 def derived_quantities(theta: np.ndarray, norm: Normalisation) -> dict[str, np.ndarray]:
-    """Everything :data:`QUANTITIES` lists, from normalised θ (34,).
+    """Everything :data:`QUANTITIES` lists, from normalised θ (35,).
 
     D, o, noise_std_mag : the session's magnetometer unit (D per unit field); D_inv its
         inverse; dip_deg and the misalignment in degrees; m_n unitless; gyro_bias and
         noise_std_gyr rad/s; noise_std_acc m/s² (the standard deviations per axis: the
-        square roots of the noise covariances' diagonals).
+        square roots of the noise covariances' diagonals); time_offset_s s.
 
     misalignment_deg : :func:`misalignment_deg` of D; misalignment_angle_deg : its length.
     """
@@ -220,6 +221,7 @@ def derived_quantities(theta: np.ndarray, norm: Normalisation) -> dict[str, np.n
         "noise_std_gyr": np.sqrt(np.diag(p.Sigma_gyr)),
         "noise_std_acc": np.sqrt(np.diag(p.Sigma_acc)),
         "noise_std_mag": np.sqrt(np.diag(p.Sigma_mag)),
+        "time_offset_s": np.array(p.time_offset_s),
     }
 
 
@@ -269,7 +271,7 @@ class CalibrationUncertainty:
 
     values, sigma    : name → array for each of :data:`QUANTITIES` (σ = inf where the data do
                        not determine it, NaN where undefined)
-    theta_sigma      : (34,) σ of θ in the normalised units of ``params.py``
+    theta_sigma      : (35,) σ of θ in the normalised units of ``params.py``
     null_directions  : text of each direction of θ the cost does not determine (empty: all
                        identifiable), e.g. "0.71·o2 − 0.70·D22"
     newton_step_sigma: size of the Newton step to the cost's minimum in standard deviations,
@@ -307,7 +309,7 @@ class CalibrationUncertainty:
 
 
 def penalised_gradient(problem: LikelihoodProblem) -> Callable[[np.ndarray], np.ndarray]:
-    """θ ↦ ∇(V + gyroscope noise prior) (34,), exact; all NaN where V is not finite."""
+    """θ ↦ ∇(V + gyroscope noise prior) (35,), exact; all NaN where V is not finite."""
 
     def gradient(theta: np.ndarray) -> np.ndarray:
         value, g = problem.cost_and_gradient(theta)
@@ -324,7 +326,9 @@ def calibration_uncertainty(
     progress: Callable[[int, int], None] | None = None,
 ) -> CalibrationUncertainty:
     """σ of a result's quantities from the Hessian of the ML cost at its parameters on the
-    session it was fitted on (2·34 exact gradient passes; ``progress(done, total)``).
+    session it was fitted on (2 exact gradient passes per parameter; ``progress(done, total)``).
+    The time offset counts only where the result kept one (``time_offset_test``): held at
+    0, its σ is 0.
 
     Raises ``replay.ModelUnavailableError`` when the result lacks the noise covariances
     or the gyroscope bias the cost needs, and :class:`CalibrationError` when the cost is not
@@ -336,24 +340,39 @@ def calibration_uncertainty(
     # results and methods without the ML step).
     priors = Priors.from_dict(result.extra.get("priors"))
     problem = LikelihoodProblem.at_parameters(session, p, priors)
-    gradient = penalised_gradient(problem)
-    g0 = gradient(problem.theta0)
+    # The time offset is a parameter only where the estimate kept one; otherwise it was held
+    # at 0, and the curvature is that of the other parameters.
+    free = np.ones(params.N_PARAMS, dtype=bool)
+    free[params.INDEX_TIME_OFFSET] = bool(result.extra.get("time_offset_test", {}).get("kept"))
+    full_gradient = penalised_gradient(problem)
+
+    def embed(theta_free: np.ndarray) -> np.ndarray:
+        theta = problem.theta0.copy()
+        theta[free] = theta_free
+        return theta
+
+    def gradient(theta_free: np.ndarray) -> np.ndarray:
+        return full_gradient(embed(theta_free))[free]
+
+    theta0, scales = problem.theta0[free], problem.scales[free]
+    g0 = gradient(theta0)
     if not np.isfinite(g0).all():
         raise CalibrationError(
             "uncertainty: the ML cost is not finite at the result's parameters on this "
             "session: the result does not describe this session"
         )
-    H = central_difference_hessian(
-        gradient, problem.theta0, HESSIAN_STEP_FRACTION * problem.scales, progress
-    )
-    hc = covariance_from_hessian(H, problem.scales)
+    H = central_difference_hessian(gradient, theta0, HESSIAN_STEP_FRACTION * scales, progress)
+    hc = covariance_from_hessian(H, scales)
     values, sigma = propagate(
-        lambda th: _flatten(derived_quantities(th, problem.norm)), problem.theta0, hc
+        lambda th: _flatten(derived_quantities(embed(th), problem.norm)), theta0, hc
     )
-    theta_sigma = np.sqrt(np.maximum(np.diag(hc.cov), 0.0))
+    theta_sigma = np.zeros(params.N_PARAMS)
+    theta_sigma[free] = np.sqrt(np.maximum(np.diag(hc.cov), 0.0))
     if not hc.identifiable:
-        null_loading = np.abs(hc.null_directions).max(axis=0) > NULL_LOADING_RTOL
+        null_loading = np.zeros(params.N_PARAMS, dtype=bool)
+        null_loading[free] = np.abs(hc.null_directions).max(axis=0) > NULL_LOADING_RTOL
         theta_sigma = np.where(null_loading, np.inf, theta_sigma)
+    names = [name for name, keep in zip(params.PARAM_NAMES, free, strict=True) if keep]
     notes = []
     if result.method != "ml":
         notes.append(
@@ -365,11 +384,11 @@ def calibration_uncertainty(
         values=_unflatten(values),
         sigma=_unflatten(sigma),
         theta_sigma=theta_sigma,
-        null_directions=[direction_text(v, params.PARAM_NAMES) for v in hc.null_directions],
+        null_directions=[direction_text(v, names) for v in hc.null_directions],
         newton_step_sigma=float(np.sqrt(max(float(g0 @ hc.cov @ g0), 0.0))),
         min_scaled_eigenvalue=float(hc.eigenvalues[0]),
         negative_curvature=bool(hc.eigenvalues[0] < -IDENTIFIABILITY_RTOL * hc.eigenvalues[-1]),
-        gradient_evaluations=2 * params.N_PARAMS + 1,
+        gradient_evaluations=2 * int(free.sum()) + 1,
         seconds=time.perf_counter() - t0,
         n_samples=problem.n_samples,
         notes=notes,

@@ -18,6 +18,7 @@ None of them depends on the calibration θ, so the likelihood stays smooth in θ
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -127,7 +128,7 @@ class SensorLevels:
     noise         : gyroscope bias and noise covariances, from the stationary stretch
                     (``noise.stationary``) or from priors (``rest.NoiseInit``)
     g             : gravity magnitude, m/s² (median accelerometer norm)
-    rate_hz       : mean sample rate, Hz
+    rate_hz       : mean sample rate, Hz (the IMU's rows in a multi-rate session)
     acc_extra_var : (N,) (m/s²)², the bump inflation c_t of Σ_a
     acc_correlation_s : s, the accelerometer errors' integral time scale
                     (:func:`acceleration_correlation_time_s`)
@@ -155,28 +156,69 @@ class SensorLevels:
 def measure_sensor_levels(session: Session) -> SensorLevels:
     """The data-only levels of ``session`` (see :class:`SensorLevels`).
 
+    On a multi-rate session each stream is measured at its own rate: the stationary stretch,
+    the gyroscope's and the accelerometer's levels on the rows with the accelerometer (the
+    IMU's rows), the magnetometer's noise on its own samples within that stretch's time
+    span; the per-row arrays have the session's length (no update where no accelerometer).
     Raises ``InsufficientDataError`` as ``rest.initial_noise_and_bias`` does.
     """
-    still = rest.find_stationary(session.t, session.gyr, session.acc, session.mag)
-    noise = rest.initial_noise_and_bias(session.t, session.gyr, session.acc, session.mag, still)
-    g = float(np.median(np.linalg.norm(session.acc, axis=1)))
-    rate_hz = (len(session) - 1) / float(session.t[-1] - session.t[0])
+    if not session.multi_rate:
+        return _measure(session.t, session.gyr, session.acc, session.mag)
+    imu = session.has_acc
+    has_mag = session.has_mag
+    t = session.t[imu]
+    # The magnetometer at the IMU's rows, for the stationary test's drift check only.
+    mag_at = np.column_stack(
+        [np.interp(t, session.t[has_mag], session.mag[has_mag, j]) for j in range(3)]
+    )
+    levels = _measure(t, session.gyr[imu], session.acc[imu], mag_at)
+    noise = levels.noise
+    mag = session.mag[has_mag]
+    prior_std = rest.MAG_NOISE_PRIOR_FRACTION * rest._mag_scale(mag)
+    Sigma_mag = prior_std**2 * np.eye(3)
+    if noise.stationary is not None:
+        t0, t1 = t[noise.stationary.start], t[noise.stationary.stop - 1]
+        still = (session.t[has_mag] >= t0) & (session.t[has_mag] <= t1)
+        if still.sum() >= rest.MIN_COVARIANCE_SAMPLES:
+            floor = np.maximum(rest.NOISE_FLOOR_FRACTION * prior_std, rest._lsb(mag) / np.sqrt(12))
+            Sigma_mag = rest._floored_cov(mag[still], floor)
+    noise = dataclasses.replace(noise, Sigma_mag=Sigma_mag)
+
+    def spread(x: np.ndarray, fill) -> np.ndarray:
+        out = np.full(len(session), fill, dtype=x.dtype)
+        out[imu] = x
+        return out
+
+    return dataclasses.replace(
+        levels,
+        noise=noise,
+        acc_extra_var=spread(levels.acc_extra_var, 0.0),
+        acc_used=spread(levels.acc_used, False),
+    )
+
+
+def _measure(t: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -> SensorLevels:
+    """The levels of single-rate data (every row has every sensor)."""
+    still = rest.find_stationary(t, gyr, acc, mag)
+    noise = rest.initial_noise_and_bias(t, gyr, acc, mag, still)
+    g = float(np.median(np.linalg.norm(acc, axis=1)))
+    rate_hz = (len(t) - 1) / float(t[-1] - t[0])
     sigma_acc = float(np.sqrt(np.trace(noise.Sigma_acc) / 3.0))
-    acc_extra_var = accelerometer_extra_variance(session.acc, g, sigma_acc, rate_hz)
+    acc_extra_var = accelerometer_extra_variance(acc, g, sigma_acc, rate_hz)
     # The ML step starts with e_a as sensor noise plus the acceleration of the motion (its
     # share on top of the noise measured at rest, isotropic). The inertial attitude of the
     # initial estimate keeps the noise alone: it down-weights accelerated samples itself,
     # and with the larger Σ_a its misalignment was worse on accelerated MEMS sessions
     # (`make accuracy`, init 0.11° → 0.16°) though better on hand-held ones (1.19° → 0.89°).
-    shake = rest.motion_acceleration_variance(session.acc, g, noise.stationary)
+    shake = rest.motion_acceleration_variance(acc, g, noise.stationary)
     Sigma_acc = noise.Sigma_acc + max(0.0, shake - sigma_acc**2) * np.eye(3)
-    acc_correlation_s = acceleration_correlation_time_s(session.t, session.acc, g)
+    acc_correlation_s = acceleration_correlation_time_s(t, acc, g)
     return SensorLevels(
         noise=noise,
         g=g,
         rate_hz=rate_hz,
         acc_extra_var=acc_extra_var,
         acc_correlation_s=acc_correlation_s,
-        acc_used=accelerometer_updates(session.t, acc_correlation_s),
+        acc_used=accelerometer_updates(t, acc_correlation_s),
         Sigma_acc=Sigma_acc,
     )

@@ -5,8 +5,11 @@ State: ``q̃_nb`` plus a navigation-frame orientation error ``η`` with covarian
 
 * Time update with the gyroscope as input, sample ``t−1`` → ``t``:
   ``q̃ ← q̃ ⊙ exp_q(½ T (y_ω − δ_ω))``, ``P ← P + T² R Σ_ω Rᵀ`` with ``R = R(q̃)``.
-* Measurement ``y = (y_a, y_m)``: ``ŷ = (−R_bn g_n, D R_bn m_n + o)``,
-  ``H = (−R_bn [g_n×], D R_bn [m_n×])``, ``S = H P Hᵀ + blockdiag(Σ_a,t, Σ_m)``.
+* Measurement ``y = (y_a, y_m)``: ``ŷ = (−R_bn g_n, D E R_bn m_n + o)``,
+  ``H = (−R_bn [g_n×], D E R_bn [m_n×])``, ``S = H P Hᵀ + blockdiag(Σ_a,t, Σ_m)``.
+  ``E = Exp(τ (y_ω,t−1 − δ_ω))`` carries the magnetometer's delay τ (``time_offset_s``): its
+  sample at t measured the field at t − τ, when the body was turned back by the rate over
+  τ (``E = I`` at τ = 0, the paper's model).
   ``Σ_a,t = Σ_a + c_t I`` where ``c_t`` (m/s²)² is a data-only inflation that makes the
   accelerometer count less at outliers (knocks; see
   ``initial/sensor_levels.accelerometer_extra_variance``).
@@ -182,6 +185,7 @@ _MODEL_FIELDS: tuple[tuple[str, tuple[int, ...]], ...] = (
     ("Sigma_gyr", (3, 3)),
     ("Sigma_acc", (3, 3)),
     ("Sigma_mag", (3, 3)),
+    ("time_offset_s", ()),
 )
 _MODEL_SLICES: dict[str, slice] = {}
 _offset = 0
@@ -212,6 +216,7 @@ class ModelGradient:
     Sigma_gyr: np.ndarray
     Sigma_acc: np.ndarray
     Sigma_mag: np.ndarray
+    time_offset_s: np.ndarray  # 0-d
 
 
 def _model_buffer(p: ModelParams) -> np.ndarray:
@@ -223,6 +228,7 @@ def _model_buffer(p: ModelParams) -> np.ndarray:
         "Sigma_gyr": p.Sigma_gyr,
         "Sigma_acc": p.Sigma_acc,
         "Sigma_mag": p.Sigma_mag,
+        "time_offset_s": p.time_offset_s,
     }
     buf = np.empty(MODEL_DOUBLES)
     for name, shape in _MODEL_FIELDS:
@@ -320,6 +326,8 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
     innov = np.zeros((n, 6))
     normed = np.zeros((n, 6))
     for t in range(n):
+        rate = data.gyr[max(t - 1, 0)] - p.gyro_bias
+        E = frames.quat_to_matrix(frames.rotvec_to_quat(p.time_offset_s * rate))  # its delay
         if t > 0:
             dt = data.dt[t]
             q = frames.quat_multiply(q, frames.quat_exp(0.5 * dt * (data.gyr[t - 1] - p.gyro_bias)))
@@ -335,8 +343,8 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
             q_filt[t] = q
             continue
         Rt = R.T
-        y_pred = np.concatenate([-Rt @ g_n, p.D @ Rt @ m_n + p.o])[rows]
-        H = np.vstack([-Rt @ G, p.D @ Rt @ Mx])[rows]
+        y_pred = np.concatenate([-Rt @ g_n, p.D @ E @ Rt @ m_n + p.o])[rows]
+        H = np.vstack([-Rt @ G, p.D @ E @ Rt @ Mx])[rows]
         Rm = np.zeros((6, 6))
         Rm[:3, :3] = p.Sigma_acc + data.acc_extra_var[t] * np.eye(3)
         Rm[3:, 3:] = p.Sigma_mag

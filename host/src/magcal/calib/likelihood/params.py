@@ -1,4 +1,4 @@
-"""The ML parameter vector θ (34 numbers) and its map to model quantities.
+"""The ML parameter vector θ (35 numbers) and its map to model quantities.
 
 Layout of θ (paper Section 5.3, eq. 17):
 
@@ -12,6 +12,7 @@ slice  count  meaning
 16:22  6      Cholesky parameters of Σ_ω ((rad/s)²)
 22:28  6      Cholesky parameters of Σ_a ((m/s²)²)
 28:34  6      Cholesky parameters of Σ_m (normalised units²)
+34     1      time offset τ (s): the magnetometer's delay against the inertial sensors
 ====== ===== =====================================================================
 
 Each covariance is ``Σ = L Lᵀ`` with the lower-triangular factor written as
@@ -29,7 +30,7 @@ import numpy as np
 
 from magcal.calib.frames import field_direction
 
-N_PARAMS = 34
+N_PARAMS = 35
 SLICE_D = slice(0, 9)
 SLICE_O = slice(9, 12)
 INDEX_DIP = 12
@@ -37,6 +38,7 @@ SLICE_BIAS = slice(13, 16)
 SLICE_CHOL_GYR = slice(16, 22)
 SLICE_CHOL_ACC = slice(22, 28)
 SLICE_CHOL_MAG = slice(28, 34)
+INDEX_TIME_OFFSET = 34
 
 PARAM_NAMES = (
     [f"D{i}{j}" for i in range(3) for j in range(3)]
@@ -47,6 +49,7 @@ PARAM_NAMES = (
         for s in ("chol_gyr", "chol_acc", "chol_mag")
         for n in ("l0", "l1", "l2", "u10", "u20", "u21")
     ]
+    + ["time_offset"]
 )
 
 _TRIL_OFF = ((1, 0), (2, 0), (2, 1))
@@ -63,6 +66,8 @@ class ModelParams:
     Sigma_gyr : (3, 3) (rad/s)²
     Sigma_acc : (3, 3) (m/s²)²
     Sigma_mag : (3, 3) magnetometer units²
+    time_offset_s : float, s, the magnetometer's delay against the inertial sensors: its
+                sample at time t measured the field at t − τ (positive: it lags)
     """
 
     D: np.ndarray
@@ -72,6 +77,7 @@ class ModelParams:
     Sigma_gyr: np.ndarray
     Sigma_acc: np.ndarray
     Sigma_mag: np.ndarray
+    time_offset_s: float = 0.0
 
     @property
     def m_n(self) -> np.ndarray:
@@ -87,6 +93,7 @@ class ModelParams:
             Sigma_gyr=self.Sigma_gyr,
             Sigma_acc=self.Sigma_acc,
             Sigma_mag=self.Sigma_mag / scale**2,
+            time_offset_s=self.time_offset_s,
         )
 
     def unscaled_magnetometer(self, centre: np.ndarray, scale: float) -> ModelParams:
@@ -99,6 +106,7 @@ class ModelParams:
             Sigma_gyr=self.Sigma_gyr,
             Sigma_acc=self.Sigma_acc,
             Sigma_mag=self.Sigma_mag * scale**2,
+            time_offset_s=self.time_offset_s,
         )
 
 
@@ -143,7 +151,7 @@ def chol_params_grad(c: np.ndarray, Sigma_bar: np.ndarray) -> np.ndarray:
 
 
 def pack(p: ModelParams) -> np.ndarray:
-    """ModelParams → θ (34,)."""
+    """ModelParams → θ (35,)."""
     theta = np.empty(N_PARAMS)
     theta[SLICE_D] = np.asarray(p.D, dtype=float).ravel()
     theta[SLICE_O] = p.o
@@ -152,11 +160,12 @@ def pack(p: ModelParams) -> np.ndarray:
     theta[SLICE_CHOL_GYR] = cov_to_chol_params(p.Sigma_gyr)
     theta[SLICE_CHOL_ACC] = cov_to_chol_params(p.Sigma_acc)
     theta[SLICE_CHOL_MAG] = cov_to_chol_params(p.Sigma_mag)
+    theta[INDEX_TIME_OFFSET] = p.time_offset_s
     return theta
 
 
 def unpack(theta: np.ndarray) -> ModelParams:
-    """θ (34,) → ModelParams."""
+    """θ (35,) → ModelParams."""
     theta = np.asarray(theta, dtype=float)
     if theta.shape != (N_PARAMS,):
         raise ValueError(f"θ must have shape ({N_PARAMS},), got {theta.shape}")
@@ -168,6 +177,7 @@ def unpack(theta: np.ndarray) -> ModelParams:
         Sigma_gyr=chol_params_to_cov(theta[SLICE_CHOL_GYR]),
         Sigma_acc=chol_params_to_cov(theta[SLICE_CHOL_ACC]),
         Sigma_mag=chol_params_to_cov(theta[SLICE_CHOL_MAG]),
+        time_offset_s=float(theta[INDEX_TIME_OFFSET]),
     )
 
 
@@ -180,6 +190,7 @@ def model_grad_to_theta(
     Sigma_gyr_bar: np.ndarray,
     Sigma_acc_bar: np.ndarray,
     Sigma_mag_bar: np.ndarray,
+    time_offset_bar: float,
 ) -> np.ndarray:
     """Gradient w.r.t. θ from gradients w.r.t. the model quantities (m_bar w.r.t. m_n)."""
     g = np.empty(N_PARAMS)
@@ -192,4 +203,5 @@ def model_grad_to_theta(
     g[SLICE_CHOL_GYR] = chol_params_grad(theta[SLICE_CHOL_GYR], Sigma_gyr_bar)
     g[SLICE_CHOL_ACC] = chol_params_grad(theta[SLICE_CHOL_ACC], Sigma_acc_bar)
     g[SLICE_CHOL_MAG] = chol_params_grad(theta[SLICE_CHOL_MAG], Sigma_mag_bar)
+    g[INDEX_TIME_OFFSET] = time_offset_bar
     return g

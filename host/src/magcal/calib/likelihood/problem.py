@@ -12,7 +12,7 @@ inflation), the normalisation, θ's layout scales and the gyroscope-noise prior.
   (n_θ + 1 forward or 2 n_θ central filter passes);
 * θ mapped back to raw magnetometer units (:meth:`~LikelihoodProblem.model_params`).
 
-θ is the 34-vector of ``params.py``. Two constructors share one path: :meth:`for_ml_step`
+θ is the 35-vector of ``params.py``. Two constructors share one path: :meth:`for_ml_step`
 (from the initial estimate, as the ML step sets it up) and :meth:`at_parameters` (at given
 parameters, e.g. a result's). The data-only levels come from
 ``initial.sensor_levels.measure_sensor_levels``, the same function step 1 uses.
@@ -79,12 +79,20 @@ def negative_log_likelihood(theta: np.ndarray, data: FilterData) -> float:
 def negative_log_likelihood_and_gradient(
     theta: np.ndarray, data: FilterData, tape: np.ndarray | None = None
 ) -> tuple[float, np.ndarray]:
-    """V(θ) and ∂V/∂θ (34,), exact (reverse mode through the filter); ``tape`` is the
+    """V(θ) and ∂V/∂θ (35,), exact (reverse mode through the filter); ``tape`` is the
     workspace of ``mekf.new_tape`` (allocated here when None)."""
     theta = np.asarray(theta, dtype=float)
     value, mg = mekf.cost_and_model_gradient(params.unpack(theta), data, tape=tape)
     grad = params.model_grad_to_theta(
-        theta, mg.D, mg.o, mg.m, mg.gyro_bias, mg.Sigma_gyr, mg.Sigma_acc, mg.Sigma_mag
+        theta,
+        mg.D,
+        mg.o,
+        mg.m,
+        mg.gyro_bias,
+        mg.Sigma_gyr,
+        mg.Sigma_acc,
+        mg.Sigma_mag,
+        float(mg.time_offset_s),
     )
     return value, grad
 
@@ -96,7 +104,7 @@ def numeric_gradient(
     typical: np.ndarray | None = None,
     value: float | None = None,
 ) -> np.ndarray:
-    """∂V/∂θ by finite differences (34,). ``typical`` (34,) sets each step's scale
+    """∂V/∂θ by finite differences (35,). ``typical`` (35,) sets each step's scale
     (h_i = rel · max(|θ_i|, typical_i)); ``value`` is V(θ) if already known (forward)."""
     theta = np.asarray(theta, dtype=float)
     scale = np.maximum(np.abs(theta), 1.0 if typical is None else typical)
@@ -148,23 +156,27 @@ class Normalisation:
 def starting_attitude(acc: np.ndarray, mag: np.ndarray, p: ModelParams) -> np.ndarray:
     """q_nb (4,) at sample 0 by TRIAD from the first few samples and calibration ``p``.
 
-    acc : (N, 3) m/s²; mag : (N, 3) in ``p``'s magnetometer units.
+    acc : (N, 3) m/s²; mag : (N, 3) in ``p``'s magnetometer units; NaN rows (no sample
+    there, a multi-rate session) are skipped: the first few samples of each are used.
     """
-    k = min(mekf.INITIAL_ATTITUDE_SAMPLES, acc.shape[0])
-    up_b = acc[:k].mean(axis=0)
-    field_b = np.linalg.solve(p.D, mag[:k].mean(axis=0) - p.o)
+    acc = acc[~np.isnan(acc[:, 0])]
+    mag = mag[~np.isnan(mag[:, 0])]
+    up_b = acc[: mekf.INITIAL_ATTITUDE_SAMPLES].mean(axis=0)
+    field_b = np.linalg.solve(p.D, mag[: mekf.INITIAL_ATTITUDE_SAMPLES].mean(axis=0) - p.o)
     return frames.triad(up_b, field_b, p.m_n)
 
 
-def parameter_scales(p_norm: ModelParams, n: int) -> np.ndarray:
-    """Rough 1-σ uncertainty of each θ component for n samples (34,).
+def parameter_scales(p_norm: ModelParams, n: int, rate_rms_rad_s: float) -> np.ndarray:
+    """Rough 1-σ uncertainty of each θ component for n samples (35,).
 
     D, o and the dip are measured against the magnetometer noise; the bias through the
     attitude it makes drift, about half as well; the noise parameters as log-scales, the
     gyroscope's a few times more weakly than the others (its noise is small next to the
     measurement updates). Only ratios matter much, as BFGS rescales after one step; these
     were tuned on simulated MEMS, hand-held, accelerated and Table 2 sessions (≈35 % fewer
-    iterations than the first guess of bias σ_m and gyroscope 10).
+    iterations than the first guess of bias σ_m and gyroscope 10). The time offset τ moves the
+    predicted field by about ω τ, so it is measured to σ_m / ω at the session's RMS rate ω
+    (at least 0.1 rad/s).
     """
     sigma_m = float(np.sqrt(np.trace(p_norm.Sigma_mag) / 3.0))
     s = np.empty(params.N_PARAMS)
@@ -175,13 +187,14 @@ def parameter_scales(p_norm: ModelParams, n: int) -> np.ndarray:
     s[params.SLICE_CHOL_GYR] = 3.0
     s[params.SLICE_CHOL_ACC] = 1.5
     s[params.SLICE_CHOL_MAG] = 0.7
+    s[params.INDEX_TIME_OFFSET] = sigma_m / max(rate_rms_rad_s, 0.1)
     return s / np.sqrt(n)
 
 
 def gyro_noise_prior(
     Sigma_gyr: np.ndarray, stationary_samples: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Mean and diagonal precision (34,) of the prior on the gyroscope noise parameters.
+    """Mean and diagonal precision (35,) of the prior on the gyroscope noise parameters.
 
     Centred on the measured Σ_ω (3, 3), (rad/s)². With ``stationary_samples`` = n > 0 it
     was measured there: a log-σ estimated from n samples has standard error 1/√(2n), a
@@ -217,6 +230,11 @@ GYRO_BIAS_PRIOR_DEG_S = 5.0
 #: 20 seeds), while on a real hand-held recording (fiumarg_rec11_undist, `make real`) it
 #: lowered it from 5.7° to 3.5°.
 MISALIGNMENT_PRIOR_DEG = 5.0
+#: 1-σ width of the prior on the time offset τ, s, centred on 0. A magnetometer's delay
+#: against its IMU is up to tens of milliseconds (phones, autopilots' compass buses); the
+#: prior only matters where the rotation is too slow to show the delay, and keeps τ to
+#: where the model's constant rate over τ holds.
+TIME_OFFSET_PRIOR_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -227,10 +245,13 @@ class Priors:
     misalignment_rad : rad, the rotation part of D against the axis permutation nearest to the
                        starting estimate's (:func:`misalignment_vector`); none by default
                        (:data:`MISALIGNMENT_PRIOR_DEG` says why)
+    time_offset_s    : s, the magnetometer's delay, centred on 0 (default
+                       :data:`TIME_OFFSET_PRIOR_S`)
     """
 
     gyro_bias_rad_s: float | None = float(np.deg2rad(GYRO_BIAS_PRIOR_DEG_S))
     misalignment_rad: float | None = None
+    time_offset_s: float | None = TIME_OFFSET_PRIOR_S
 
     @classmethod
     def from_dict(cls, widths: dict | None) -> Priors:
@@ -242,7 +263,12 @@ class Priors:
             value = widths.get(key)
             return None if value is None else float(np.deg2rad(float(value)))
 
-        return cls(gyro_bias_rad_s=rad("gyro_bias_deg_s"), misalignment_rad=rad("misalignment_deg"))
+        offset = widths.get("time_offset_s")
+        return cls(
+            gyro_bias_rad_s=rad("gyro_bias_deg_s"),
+            misalignment_rad=rad("misalignment_deg"),
+            time_offset_s=None if offset is None else float(offset),
+        )
 
     def as_dict(self) -> dict:
         """The widths in degrees and °/s, for a result file (None where there is no prior)."""
@@ -253,11 +279,12 @@ class Priors:
         return {
             "gyro_bias_deg_s": deg(self.gyro_bias_rad_s),
             "misalignment_deg": deg(self.misalignment_rad),
+            "time_offset_s": self.time_offset_s,
         }
 
 
 #: No priors: the plain maximum-likelihood estimate of the paper.
-NO_PRIORS = Priors(gyro_bias_rad_s=None, misalignment_rad=None)
+NO_PRIORS = Priors(gyro_bias_rad_s=None, misalignment_rad=None, time_offset_s=None)
 
 
 def misalignment_vector(D: np.ndarray, reference: np.ndarray) -> np.ndarray:
@@ -331,11 +358,11 @@ class LikelihoodProblem:
 
     data            : the filter's input, magnetometer normalised by ``norm``
     norm            : y' = (y − centre) / scale
-    theta0          : (34,) where the problem was set up, in the normalised units (params.py)
-    scales          : (34,) rough 1-σ uncertainty of each θ component (:func:`parameter_scales`)
-    prior_mean      : (34,) mean of the diagonal Gaussian priors: the gyroscope noise's, and
-                      the gyroscope bias's (:class:`Priors`)
-    prior_precision : (34,) their diagonal precision (zero where there is no prior)
+    theta0          : (35,) where the problem was set up, in the normalised units (params.py)
+    scales          : (35,) rough 1-σ uncertainty of each θ component (:func:`parameter_scales`)
+    prior_mean      : (35,) mean of the diagonal Gaussian priors: the gyroscope noise's, the
+                      gyroscope bias's and the time offset's (:class:`Priors`)
+    prior_precision : (35,) their diagonal precision (zero where there is no prior)
     misalignment_reference : (3, 3) the axis permutation the misalignment prior is centred on
     misalignment_sigma_rad : its width, or None for no misalignment prior
     """
@@ -399,7 +426,10 @@ class LikelihoodProblem:
             starting_attitude(session.acc, mag_n, p_norm),
             acc_extra_var=levels.acc_extra_var,
             g=levels.g,
+            # A multi-rate session: every row propagates, each sensor updates where it
+            # measured (levels.acc_used is False where the row has no accelerometer).
             has_acc=levels.acc_used,
+            has_mag=session.has_mag,
         )
         prior_mean, prior_precision = gyro_noise_prior(
             levels.noise.Sigma_gyr, levels.stationary_samples
@@ -407,11 +437,18 @@ class LikelihoodProblem:
         if priors.gyro_bias_rad_s is not None:
             prior_mean[params.SLICE_BIAS] = 0.0
             prior_precision[params.SLICE_BIAS] = 1.0 / priors.gyro_bias_rad_s**2
+        if priors.time_offset_s is not None:
+            prior_mean[params.INDEX_TIME_OFFSET] = 0.0
+            prior_precision[params.INDEX_TIME_OFFSET] = 1.0 / priors.time_offset_s**2
         return cls(
             data=data,
             norm=norm,
             theta0=params.pack(p_norm),
-            scales=parameter_scales(p_norm, len(data)),
+            scales=parameter_scales(
+                p_norm,
+                int(data.has_mag.sum()),
+                float(np.sqrt(np.mean(np.sum(session.gyr**2, axis=1)))),
+            ),
             prior_mean=prior_mean,
             prior_precision=prior_precision,
             misalignment_reference=frames.nearest_axis_permutation(frames.nearest_rotation(p.D)),
@@ -437,11 +474,11 @@ class LikelihoodProblem:
         return negative_log_likelihood(theta, self.data)
 
     def negative_log_likelihood_and_gradient(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
-        """V(θ) alone and its exact gradient (34,)."""
+        """V(θ) alone and its exact gradient (35,)."""
         return negative_log_likelihood_and_gradient(theta, self.data, self._tape)
 
     def prior(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
-        """The priors' negative log density (up to a constant) and its gradient (34,)."""
+        """The priors' negative log density (up to a constant) and its gradient (35,)."""
         r = theta - self.prior_mean
         value = 0.5 * float(np.sum(self.prior_precision * r * r))
         grad = self.prior_precision * r
@@ -458,7 +495,7 @@ class LikelihoodProblem:
         return negative_log_likelihood(theta, self.data) + self.prior(theta)[0]
 
     def cost_and_gradient(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
-        """V(θ) + prior and its exact gradient (34,)."""
+        """V(θ) + prior and its exact gradient (35,)."""
         v, g = negative_log_likelihood_and_gradient(theta, self.data, self._tape)
         pv, pg = self.prior(theta)
         return v + pv, g + pg
@@ -476,11 +513,11 @@ class LikelihoodProblem:
         return numeric_gradient(theta, self.data, scheme, typical=self._typical)
 
     def model_params(self, theta: np.ndarray) -> ModelParams:
-        """θ (34,) normalised → the model in raw magnetometer units."""
+        """θ (35,) normalised → the model in raw magnetometer units."""
         return params.unpack(theta).unscaled_magnetometer(self.norm.centre, self.norm.scale)
 
     def run_filter(self, theta: np.ndarray) -> mekf.FilterOutput:
-        """The filter at θ (34,) normalised, with all diagnostics (attitude, innovations)."""
+        """The filter at θ (35,) normalised, with all diagnostics (attitude, innovations)."""
         return mekf.run_filter(params.unpack(theta), self.data)
 
     def run_filter_raw(self, p: ModelParams) -> mekf.FilterOutput:

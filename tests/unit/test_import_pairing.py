@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.logs.convert import cut, mean_rate, pair
+from magcal.logs.convert import cut, mean_rate, multirate_arrays, pair
 from magcal.logs.streams import (
     ImuStream,
     LogImportError,
@@ -115,3 +115,23 @@ def test_untruncate_is_unbiased_for_uniform_fractions():
     logged = np.trunc(x)
     assert abs(np.mean(untruncate(logged) - x)) < 0.005
     assert abs(np.mean(logged[x > 1] - x[x > 1])) == pytest.approx(0.5, abs=0.005)
+
+
+def test_the_multi_rate_session_keeps_every_sample_at_its_own_time():
+    t_imu = np.arange(0, 2, 0.01)
+    w = np.column_stack([np.sin(t_imu), t_imu, np.ones_like(t_imu)])
+    acc = np.column_stack([t_imu, -t_imu, np.full_like(t_imu, 9.8)])
+    imu = ImuStream(t_imu, w, acc, 1, "")
+    t_mag = np.array([0.105, 0.5, 0.803, 1.5])  # 0.5 and 1.5 coincide with IMU samples
+    mag = MagStream(t_mag, np.arange(12.0).reshape(4, 3), 1, "mG", "", "")
+    t, gyr, acc_rows, field = multirate_arrays(imu, mag, 0.1, 1.6)
+    imu_in = t_imu[(t_imu >= 0.1) & (t_imu <= 1.6)]
+    assert np.array_equal(t, np.union1d(imu_in, t_mag)) and t.size == imu_in.size + 2
+    has_acc = ~np.isnan(acc_rows).any(axis=1)
+    has_mag = ~np.isnan(field).any(axis=1)
+    assert np.array_equal(t[has_acc], imu_in) and np.array_equal(t[has_mag], t_mag)
+    assert np.array_equal(field[has_mag], mag.mag)
+    assert np.array_equal(acc_rows[has_acc], acc[(t_imu >= 0.1) & (t_imu <= 1.6)])
+    # the gyroscope of a row turns the attitude through the IMU's angle to the next row
+    assert np.allclose(gyr[:-1], mean_rate(t_imu, w, t[:-1], t[1:]))
+    assert np.allclose(gyr[:-1, 1], 0.5 * (t[:-1] + t[1:]))  # linear rate: the midpoint

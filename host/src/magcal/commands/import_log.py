@@ -135,16 +135,17 @@ def run(args, out=None, err=None) -> int:
             file=err,
         )
     session = result.session
-    if len(session) < observability.MIN_SAMPLES:
+    n_mag = int(session.has_mag.sum())
+    if n_mag < observability.MIN_SAMPLES:
         print(
-            f"warning: {len(session)} samples; calibration needs at least "
+            f"warning: {n_mag} magnetometer samples; calibration needs at least "
             f"{observability.MIN_SAMPLES}: choose a longer range",
             file=err,
         )
     write_session(args.output, session)
     print(
-        f"wrote {args.output} ({len(session)} samples, {result.start_s:.2f}–{result.end_s:.2f} s "
-        "log time)",
+        f"wrote {args.output} ({len(session)} rows: {int(session.has_acc.sum())} IMU and "
+        f"{n_mag} magnetometer samples, {result.start_s:.2f}–{result.end_s:.2f} s log time)",
         file=out,
     )
     return 0

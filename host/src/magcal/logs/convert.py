@@ -21,7 +21,14 @@ The last magnetometer sample only closes the previous interval and is not a row;
 outside the IMU's time span are dropped. IMU data missing for longer than
 ``max(IMU_GAP_MIN_S, IMU_GAP_FACTOR × its median interval)`` (telemetry loss) makes the rows
 across the gap unusable: they are marked, the detector avoids them, and an explicit range
-over them is refused.
+over them keeps its longest stretch between the gaps.
+
+**The session.** Those rows choose the range (the hand-rotation detector works on them);
+the session written keeps every sample of the range at its own rate, a multi-rate session
+(``magcal-session: 2``, :func:`multirate_arrays`): a row at each IMU sample (gyroscope and
+accelerometer) and one at each magnetometer sample (its field; the accelerometer empty), the
+gyroscope of every row the mean rate over the interval to the next row, as above. Nothing
+the IMU measured between two magnetometer samples is averaged away.
 """
 
 from __future__ import annotations
@@ -233,8 +240,9 @@ def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, 
         "mag_unit": streams.mag.unit,
         "mag_frame": streams.mag.frame,
         "resampling": (
-            f"rows at the magnetometer's samples ({rows.mag_rate_hz:.1f} Hz); gyroscope averaged "
-            f"over each row's interval, accelerometer interpolated (IMU {rows.imu_rate_hz:.1f} Hz)"
+            f"every sample at its own rate: a row at each IMU sample ({rows.imu_rate_hz:.1f} Hz) "
+            f"and at each magnetometer sample ({rows.mag_rate_hz:.1f} Hz); the gyroscope of "
+            "each row is the IMU's mean rate over the interval to the next row"
         ),
     }
     meta |= streams.meta
@@ -252,8 +260,31 @@ def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, 
     return meta
 
 
+def multirate_arrays(
+    imu: ImuStream, mag: MagStream, t0: float, t1: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t, gyr, acc, mag) of the multi-rate session over [t0, t1] (inside the IMU's span):
+    a row at every IMU and every magnetometer sample time (one row where both coincide);
+    ``acc`` NaN on rows without an IMU sample, ``mag`` NaN on rows without a magnetometer
+    sample; ``gyr`` of row k the mean rate of the IMU's piecewise-linear rate over
+    [t_k, t_k+1] (:func:`mean_rate`), of the last row its rate at that time."""
+    in_imu = (imu.t >= t0) & (imu.t <= t1)
+    in_mag = (mag.t >= t0) & (mag.t <= t1)
+    t = np.union1d(imu.t[in_imu], mag.t[in_mag])
+    gyr = np.empty((t.size, 3))
+    if t.size > 1:
+        gyr[:-1] = mean_rate(imu.t, imu.gyr, t[:-1], t[1:])
+    gyr[-1] = [np.interp(t[-1], imu.t, imu.gyr[:, j]) for j in range(3)]
+    acc = np.full((t.size, 3), np.nan)
+    acc[np.searchsorted(t, imu.t[in_imu])] = imu.acc[in_imu]
+    field = np.full((t.size, 3), np.nan)
+    field[np.searchsorted(t, mag.t[in_mag])] = mag.mag[in_mag]
+    return t, gyr, acc, field
+
+
 def to_session(streams: LogStreams, rows: Rows, sel: np.ndarray) -> Session:
-    """The selected rows as a :class:`~magcal.io.session.Session` with metadata."""
-    return session_from_arrays(
-        rows.t[sel], rows.gyr[sel], rows.acc[sel], rows.mag[sel], session_meta(streams, rows, sel)
-    )
+    """The selected range as a multi-rate :class:`~magcal.io.session.Session` (see the
+    module docstring) with metadata."""
+    t0, t1 = float(rows.t[sel][0]), float(rows.t[sel][-1])
+    t, gyr, acc, mag = multirate_arrays(streams.imu, streams.mag, t0, t1)
+    return session_from_arrays(t, gyr, acc, mag, session_meta(streams, rows, sel))

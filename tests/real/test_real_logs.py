@@ -194,3 +194,20 @@ def test_old_dataflash_layouts_are_read_with_their_units():
         if "COMPASS_DIA_X" not in params:
             meta = import_log(str(path), ImportOptions(start_s=0, end_s=1e12)).session.meta
             assert "onboard_soft_iron" in meta, path.name
+
+
+def test_import_calibrate_report_on_a_real_log_that_cannot_determine_a_calibration(capfd, tmp_path):
+    """A log without a hand rotation, forced through: every step says what is wrong in lines
+    a terminal shows, the forced result says the field got less constant than raw."""
+    session, result = str(tmp_path / "s.csv"), str(tmp_path / "r.json")
+    log = str(COMMITTED / "ardusub_small.BIN")
+    assert main(["import", log, "-o", session, "--start", "0", "--end", "1e12"]) == EXIT_OK
+    capfd.readouterr()
+    assert main(["calibrate", session, "--force", "-o", result]) == EXIT_OK
+    text = "".join(capfd.readouterr())
+    assert "Warning:" not in text and "RuntimeWarning" not in text
+    assert "far less constant than none" in text
+    assert main(["report", result, session, "-o", str(tmp_path / "r.html")]) == EXIT_OK
+    text = "".join(capfd.readouterr())
+    assert "Traceback" not in text
+    assert max(len(line) for line in text.splitlines()) <= 300, text

@@ -9,7 +9,8 @@
 - :mod:`~magcal.logs.convert`: pairing magnetometer and IMU samples, the session and its
   metadata.
 
-:func:`import_log` runs them in that order.
+:func:`import_log` runs them in that order, after :func:`sniff_format` has recognised the
+format from the file's content (never from its name alone).
 """
 
 from __future__ import annotations

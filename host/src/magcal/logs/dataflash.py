@@ -19,11 +19,25 @@ Message definitions, as in ArduPilot's sources (read with the code search tool):
   change as it happens.
 - ``ARM`` (``ArmState``) or ``EV`` (Id 10 armed, 11 disarmed): the armed state.
 
+**Layouts.** Every log defines its messages (FMT: name, format, column names), and since
+about 2017 their units and multipliers (FMTU, with UNIT and MULT): fields are found by
+name, and where FMTU gives a unit the value is scaled by its multiplier (the IMU must then
+be in rad/s and m/s², the compass in gauss: anything else is refused as an unknown kind of
+log). Older logs say no units; theirs are the ones ArduPilot has always logged (rad/s, m/s²,
+mG). Time is the column FMTU marks as seconds, else ``TimeUS`` (µs), else ``TimeMS`` (ms,
+logs before 2015). Messages without a time column (PARM, EV before 2015) are placed at the
+time of the IMU message before them in the file. Firmware without COMPASS_DIA/ODI (older
+ArduPilot, as in logs of 2014) corrected the compass with its offsets alone: the log holds
+every parameter, so their absence means that, and the session says so
+(``onboard_soft_iron``).
+
 The file is indexed by pymavlink's ``DFReader_binary`` (which finds every message of a type
 without parsing the others, with its C indexer when built); the few types needed are then
 decoded with numpy from that index, not one Python object per message, so a 100 MB log
 takes seconds. DFReader's clock pass is skipped: it reads the whole log message by message,
-without progress, when no GPS has a fix (a calibration indoors), and magcal uses TimeUS.
+without progress, when no GPS has a fix (a calibration indoors), and magcal uses the
+messages' own times. What the C indexer prints about bytes that are no message is held back
+and counted: a file that is mostly such bytes is not a DataFlash log.
 """
 
 from __future__ import annotations

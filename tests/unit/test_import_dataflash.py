@@ -196,6 +196,37 @@ def test_the_pre_4_0_layout_is_read(short_day, tmp_path):
     assert "COMPASS_OFS2_X" in two.param_names
 
 
+def test_the_2014_layout_is_read_and_its_offsets_only_correction_undone(short_day, tmp_path):
+    """TimeMS, PARM and EV without a time, MAG without Health and S, no FMTU; a firmware
+    without COMPASS_DIA/ODI/SCALE (its correction was the offsets alone)."""
+    params = {
+        k: v
+        for k, v in COMPASS_PARAMS.items()
+        if not k.startswith(("COMPASS_DIA", "COMPASS_ODI", "COMPASS_SCALE"))
+    }
+    changes = [(short_day.t[0] + 4.0, "COMPASS_OFS_X", -30.0)]
+    path = tmp_path / "2014.bin"
+    written = write_bin(path, short_day, params=params, changes=changes, ancient=True)
+    streams = dataflash.read(str(path))
+    assert streams.imu.source == "IMU" and streams.mag.source == "MAG"
+    ms = np.round(short_day.t * 1e6).astype(np.int64) // 1000
+    assert np.allclose(streams.imu.t, ms * 1e-3, atol=1e-9)  # whole ms
+    # the untimed change is placed where it was written: within one IMU period
+    ((when, name, value),) = streams.params.changes
+    assert name == "COMPASS_OFS_X" and value == -30.0
+    assert abs(when - changes[0][0]) <= np.median(np.diff(short_day.t)) + 1e-3
+    # the raw field, with the identity as the soft iron the firmware did not have
+    k = np.searchsorted(short_day.t, streams.mag.t - 2e-3)
+    assert np.array_equal(k, written["mag_index"][np.isin(written["mag_index"], k)])
+    identity = dict(params, COMPASS_DIA_X=1.0, COMPASS_DIA_Y=1.0, COMPASS_DIA_Z=1.0)
+    identity |= dict(COMPASS_ODI_X=0.0, COMPASS_ODI_Y=0.0, COMPASS_ODI_Z=0.0, COMPASS_SCALE=1.0)
+    assert np.all(np.abs(streams.mag.mag - short_day.mag[k]) <= _bound(identity) + 1e-9)
+    assert streams.armed is not None  # from EV
+    session = import_log(str(path), ImportOptions(start_s=0.0, end_s=1e9)).session
+    assert "COMPASS_DIA_X" in session.meta["onboard_soft_iron"]
+    assert "param.COMPASS_DIA_X" not in session.meta  # nothing invented
+
+
 def _second(params: dict[str, float]) -> dict[str, float]:
     """The same calibration for compass 2 (COMPASS_OFS2_X, …)."""
     out = {}

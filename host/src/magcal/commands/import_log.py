@@ -81,7 +81,7 @@ def progress_printer(label: str, stream=None):
         log_line=lambda done, total: f"{label}: {done} %",
     )
 
-    shown = [0]
+    shown = [-1]
 
     def show(fraction: float) -> None:
         # never backwards: a reader may seek back (a ULog's appended data, its index)

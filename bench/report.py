@@ -179,6 +179,14 @@ def format_table(res: dict) -> str:
             f"({ckf['run_ckf_order']} order); TWO-STEP {ckf['two_step_s']:.2f} s",
             f"   {'filter state':<34}{ckf['filter_state_bytes']:8d} bytes, whatever the samples",
         ]
+    logs = res.get("log_import")  # results of builds without it have none
+    if logs is not None and logs.get("logs"):
+        out += ["", "6. magcal import of the largest real flight log of each format, median"]
+        for kind, r in logs["logs"].items():
+            out.append(
+                f"   {kind:<10}{r['file']:<32}{r['size_mb']:6.1f} MB {r['seconds']:7.2f} s "
+                f"{r['mb_per_s']:7.1f} MB/s"
+            )
     out += ["", f"benchmark took {res['bench_wall_s']:.0f} s"]
     return "\n".join(out)
 
@@ -202,6 +210,7 @@ HEADLINE = (
     ("final cost rel. diff", ("exact_vs_numeric", "final_cost_rel_diff_max"), "{:.1e}"),
     ("cost+grad slope", ("scaling", "loglog_slope_cost_grad"), "{:.3f}"),
     ("CKF step (µs/sample)", ("ckf", "step_us_per_sample"), "{:.1f}"),
+    ("log import (MB/s)", ("log_import", "largest", "mb_per_s"), "{:.1f}"),
 )
 
 

@@ -4,7 +4,7 @@
     python bench/run_bench.py --out bench/results.json     # what `make bench` runs (~35 s)
     python bench/run_bench.py --show old.json new.json     # headline figures side by side
 
-Four measurements, each in a fresh subprocess of this script (``--worker NAME``) with
+Six measurements, each in a fresh subprocess of this script (``--worker NAME``) with
 OMP/OPENBLAS/MKL_NUM_THREADS=1 set before numpy is imported and the process pinned to one
 CPU with ``os.sched_setaffinity``:
 
@@ -21,6 +21,10 @@ CPU with ``os.sched_setaffinity``:
    sample: the filter step alone, ``update`` returning the estimate and covariance, the live
    estimate as ``magcal collect`` runs it, and a whole session through ``--method ckf``'s filter and
    through TWO-STEP for comparison.
+6. ``log_import``: ``magcal import``'s reading of a flight log (format detection, the
+   reader, undoing the on-board correction, pairing, the session of the whole log, not
+   written), in MB of log per second: the largest log of each format in the real logs beside
+   the checkout (``../shared/reallogs``), else in the committed ones (tests/data/reallogs).
 
 Progress goes to stderr, the table (formatted by bench/report.py) to stdout, the
 machine-readable summary to ``--out``.
@@ -91,6 +95,7 @@ class BenchConfig:
     scaling_reps: tuple[int, ...] = (9, 5, 3)
     ckf_duration_s: float = 120.0
     ckf_reps: int = 3
+    log_import_reps: int = 3
 
 
 #: A few seconds in total; only checks that the code runs (tests/unit/test_bench_smoke.py).
@@ -104,6 +109,13 @@ SMOKE_CONFIG = BenchConfig(
     scaling_reps=(2, 1),
     ckf_duration_s=15.0,
     ckf_reps=1,
+    log_import_reps=1,
+)
+#: Real flight logs for the import throughput: the full set beside the checkout, else the
+#: committed ones.
+REAL_LOG_DIRS = (
+    Path(__file__).resolve().parents[1].parent / "shared" / "reallogs",
+    Path(__file__).resolve().parents[1] / "tests" / "data" / "reallogs",
 )
 
 
@@ -443,6 +455,59 @@ def work_ckf(duration_s: float, seed: int, reps: int) -> dict:
     return out
 
 
+def _largest_logs() -> dict[str, str]:
+    """format → path of the largest log of that format in the first folder of
+    :data:`REAL_LOG_DIRS` that has any."""
+    from magcal.logs import LogImportError, sniff_format
+
+    for folder in REAL_LOG_DIRS:
+        if not folder.is_dir():
+            continue
+        best: dict[str, Path] = {}
+        for p in folder.rglob("*"):
+            if p.suffix.lower() not in (".bin", ".tlog", ".ulg"):
+                continue
+            try:
+                kind = sniff_format(str(p))
+            except LogImportError:
+                continue
+            if kind not in best or p.stat().st_size > best[kind].stat().st_size:
+                best[kind] = p
+        if best:
+            return {k: str(v) for k, v in sorted(best.items())}
+    return {}
+
+
+def work_log_import(reps: int) -> dict:
+    """MB/s of importing the largest real log of each format (median of ``reps``), the whole
+    log as the session (``--start/--end`` over all of it: no stretch detection)."""
+    from magcal.logs import ImportOptions, LogImportError, import_log
+
+    everything = ImportOptions(start_s=-1e12, end_s=1e12)
+    out: dict = {"logs": {}}
+    for kind, path in _largest_logs().items():
+        size_mb = os.path.getsize(path) / 1e6
+        _log(f"  {kind}: {os.path.basename(path)} ({size_mb:.1f} MB), {reps} pass(es)")
+
+        def once(path=path):
+            try:
+                import_log(path, everything)
+            except LogImportError:
+                pass  # refused after reading (a gap, no compass): still read in full
+
+        seconds = _median_seconds(once, reps)
+        out["logs"][kind] = {
+            "file": os.path.basename(path),
+            "size_mb": size_mb,
+            "seconds": seconds,
+            "mb_per_s": size_mb / seconds,
+        }
+    if out["logs"]:
+        largest = max(out["logs"].values(), key=lambda r: r["size_mb"])
+        out["largest"] = largest
+    return out
+
+
 def _worker_main(name: str, params: dict, result_file: str) -> None:
     # Normally inherited from the parent; set again in case a worker is run by hand. Still
     # before any numpy import: the workers import it lazily.
@@ -456,6 +521,7 @@ def _worker_main(name: str, params: dict, result_file: str) -> None:
         "compare": work_compare,
         "scaling": work_scaling,
         "ckf": work_ckf,
+        "log_import": work_log_import,
     }
     out = workers[name](**params)
     out["versions"] = {
@@ -580,7 +646,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
 
     runs = []
     for i in range(config.calib_runs):
-        _log(f"1/5 full calibration, cold process, run {i + 1}/{config.calib_runs}")
+        _log(f"1/6 full calibration, cold process, run {i + 1}/{config.calib_runs}")
         r = run_worker(
             "calibrate",
             {"duration_s": config.calib_duration_s, "seed": SEED, "warm": False},
@@ -589,7 +655,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         _log(f"  total {r['wall_s']:.2f} s, peak RSS {r['peak_rss_mb']:.0f} MB")
         runs.append(r)
     # In a process of its own, so that the cold runs' process times and memory stay clean.
-    _log("1/5 full calibration twice in one process (for the warm figure)")
+    _log("1/6 full calibration twice in one process (for the warm figure)")
     warm = run_worker(
         "calibrate", {"duration_s": config.calib_duration_s, "seed": SEED, "warm": True}, cpu
     )
@@ -616,14 +682,14 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         "peak_rss_before_calibrate_mb": max(r["peak_rss_before_calibrate_mb"] for r in runs),
     }
 
-    _log("2/5 import times (fresh process)")
+    _log("2/6 import times (fresh process)")
     results["imports"] = run_worker("imports", {}, cpu)
     results["imports"].pop("versions", None)
 
     per_seed = []
     for seed in config.compare_seeds:
         _log(
-            f"3/5 exact vs numeric gradient, {config.compare_duration_s:g} s session, "
+            f"3/6 exact vs numeric gradient, {config.compare_duration_s:g} s session, "
             f"seed {seed} ({len(per_seed) + 1}/{len(config.compare_seeds)})"
         )
         r = run_worker(
@@ -640,7 +706,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         per_seed.append({"seed": seed, **r})
     results["exact_vs_numeric"] = compare_summary(per_seed, config.compare_duration_s)
 
-    _log("4/5 scaling of one cost(+gradient) evaluation")
+    _log("4/6 scaling of one cost(+gradient) evaluation")
     scal = run_worker(
         "scaling",
         {
@@ -653,7 +719,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
     scal.pop("versions", None)
     results["scaling"] = scal
 
-    _log("5/5 CKF time per sample")
+    _log("5/6 CKF time per sample")
     ckf = run_worker(
         "ckf",
         {"duration_s": config.ckf_duration_s, "seed": SEED, "reps": config.ckf_reps},
@@ -661,6 +727,11 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
     )
     ckf.pop("versions", None)
     results["ckf"] = ckf
+
+    _log("6/6 flight-log import throughput")
+    logs = run_worker("log_import", {"reps": config.log_import_reps}, cpu)
+    logs.pop("versions", None)
+    results["log_import"] = logs
 
     results["targets"] = targets(results)
     results["bench_wall_s"] = time.perf_counter() - started

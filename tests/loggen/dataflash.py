@@ -39,6 +39,14 @@ LEGACY_FORMATS = {
     "IMU2": (135, "QffffffIIfBBHH", f"TimeUS,{_IMU_COLS}"),
     "MAG2": (136, "QhhhhhhhhhBI", f"TimeUS,{_MAG_COLS}"),
 }
+#: ArduPilot 3.2 (2014): TimeMS (ms, uint32), PARM and EV without a time column, MAG
+#: without Health and S, no FMTU.
+ANCIENT_FORMATS = {
+    "IMU": (131, "IffffffIIf", "TimeMS,GyrX,GyrY,GyrZ,AccX,AccY,AccZ,ErrG,ErrA,Temp"),
+    "MAG": (132, "Ihhhhhhhhh", "TimeMS,MagX,MagY,MagZ,OfsX,OfsY,OfsZ,MOfsX,MOfsY,MOfsZ"),
+    "PARM": (133, "Nf", "Name,Value"),
+    "EV": (134, "B", "Id"),
+}
 #: DataFlash format characters → struct codes (the subset used here).
 STRUCT = {"Q": "Q", "B": "B", "f": "f", "I": "I", "H": "H", "h": "h", "N": "16s", "n": "4s"}
 #: Time from a compass sample's publication (S) to its log record (TimeUS), µs.
@@ -98,8 +106,9 @@ def ardupilot_corrected(
     """
     f32 = np.float32
     ofs = np.array([params[f"COMPASS_OFS{compass}_{a}"] for a in "XYZ"], dtype=f32)
-    dia = np.array([params[f"COMPASS_DIA{compass}_{a}"] for a in "XYZ"], dtype=f32)
-    odi = np.array([params[f"COMPASS_ODI{compass}_{a}"] for a in "XYZ"], dtype=f32)
+    # a firmware without COMPASS_DIA/ODI (before their introduction) applies no matrix
+    dia = np.array([params.get(f"COMPASS_DIA{compass}_{a}", 0.0) for a in "XYZ"], dtype=f32)
+    odi = np.array([params.get(f"COMPASS_ODI{compass}_{a}", 0.0) for a in "XYZ"], dtype=f32)
     if np.all(dia == 0):
         dia = np.ones(3, dtype=f32)
     mag = np.asarray(y, dtype=f32) + ofs
@@ -132,6 +141,7 @@ def write_bin(
     legacy: bool = False,
     second_imu: bool = False,
     unlogged: list[tuple[float, str, float]] = (),
+    ancient: bool = False,
 ) -> dict:
     """Write ``day`` as a DataFlash log; return what was logged, for the tests.
 
@@ -143,18 +153,25 @@ def write_bin(
     second_imu: also log a second IMU (instance 1) with the gyro signs flipped
     unlogged  : parameter changes applied without a PARM record (as in-flight offset learning
                 does): the MAG offsets logged show them
+    ancient   : the ArduPilot 3.2 layout (ANCIENT_FORMATS): times in ms, untimed PARM and EV
+                (placed in the file where they happened), the armed state as EV
 
     Returns {"mag_index": indices of day samples with a MAG record, "logged": (K, 3) int16
     field logged, "motor": (K, 3) motor offsets applied (float32), "params_at": the
     parameters in force at each MAG sample}.
     """
-    formats = LEGACY_FORMATS if legacy else FORMATS
+    formats = ANCIENT_FORMATS if ancient else LEGACY_FORMATS if legacy else FORMATS
     records: list[tuple[int, int, bytes]] = []  # (time µs, order, bytes)
     seq = iter(range(1 << 40))
 
     def add(time_us: int, name: str, *values) -> None:
         type_id, fmt, _ = formats[name]
-        payload = _struct(fmt).pack(time_us, *values)
+        if not ancient:
+            payload = _struct(fmt).pack(time_us, *values)
+        elif fmt.startswith("I"):  # TimeMS
+            payload = _struct(fmt).pack(time_us // 1000, *values)
+        else:  # untimed, but written where it happened
+            payload = _struct(fmt).pack(*values)
         records.append((time_us, next(seq), HEAD + bytes([type_id]) + payload))
 
     t_us = np.round(day.t * 1e6).astype(np.int64)
@@ -172,10 +189,20 @@ def write_bin(
 
     if "PARM" not in omit:
         for name, value in params.items():
-            add(start_us, "PARM", name.encode(), value, value)
+            add(start_us, "PARM", name.encode(), value, *(() if ancient else (value,)))
         for time, name, value in changes:
-            add(int(round(time * 1e6)), "PARM", name.encode(), value, float("nan"))
-    if "ARM" not in omit:
+            add(
+                int(round(time * 1e6)),
+                "PARM",
+                name.encode(),
+                value,
+                *(() if ancient else (float("nan"),)),
+            )
+    if ancient and "ARM" not in omit:
+        edges = np.flatnonzero(np.diff(day.armed.astype(np.int8))) + 1
+        for i in edges:
+            add(int(t_us[i]), "EV", 10 if day.armed[i] else 11)
+    elif "ARM" not in omit:
         edges = np.flatnonzero(np.diff(day.armed.astype(np.int8))) + 1
         for i in edges:
             add(int(t_us[i]), "ARM", int(day.armed[i]), 0, 0, 0)
@@ -183,7 +210,9 @@ def write_bin(
         for k in range(day.t.size):
             g, a = day.gyr_point[k], day.acc[k]
             imu = (g[0], g[1], g[2], a[0], a[1], a[2], 0, 0, 25.0, 1, 1, 1000, 1000)
-            if legacy:
+            if ancient:
+                add(int(t_us[k]), "IMU", *imu[:9])
+            elif legacy:
                 add(int(t_us[k]), "IMU", *imu)
                 add(int(t_us[k]), "IMU2", *imu)
             else:
@@ -205,7 +234,9 @@ def write_bin(
         sample_us = int(t_us[k]) & 0xFFFFFFFF
         if "MAG" in omit:
             continue
-        if legacy:
+        if ancient:
+            add(time_log, "MAG", *f, *ofs, *m)
+        elif legacy:
             add(time_log, "MAG", *f, *ofs, *m, 1, sample_us)
             add(time_log, "MAG2", *f, *ofs, *m, 1, sample_us)
         else:

@@ -91,14 +91,14 @@ def test_the_stretch_found_is_the_hand_rotation(day, log):
     session = result.session
     assert session.t[0] >= s.from_s and session.t[-1] <= s.to_s
     # 50 Hz magnetometer rows
-    assert len(session) == pytest.approx((s.to_s - s.from_s) * 50, abs=2)
+    assert session.has_mag.sum() == pytest.approx((s.to_s - s.from_s) * 50, abs=2)
 
 
 def test_start_and_end_override_the_detector(log):
     result = import_log(log[0], ImportOptions(start_s=20.0, end_s=30.0))
     assert result.stretch is None
     assert result.session.t[0] >= 20.0 and result.session.t[-1] <= 30.0
-    assert len(result.session) == pytest.approx(500, abs=2)
+    assert result.session.has_mag.sum() == pytest.approx(500, abs=2)
     assert float(result.session.meta["log_start_s"]) == pytest.approx(20.0, abs=0.02)
     tail = import_log(log[0], ImportOptions(start_s=60.0))
     assert tail.session.t[-1] > 74.0
@@ -190,10 +190,41 @@ def test_the_pre_4_0_layout_is_read(short_day, tmp_path):
     write_bin(path, short_day, legacy=True, params=dict(COMPASS_PARAMS, **_second(COMPASS_PARAMS)))
     one = dataflash.read(str(path))
     two = dataflash.read(str(path), compass=2, imu=2)
-    assert two.imu.source == "IMU[1]" and two.mag.source == "MAG[1]"
+    assert two.imu.source == "IMU2" and two.mag.source == "MAG2"  # the messages read
     assert np.array_equal(one.imu.gyr, two.imu.gyr)
     assert np.allclose(one.mag.mag, two.mag.mag)
     assert "COMPASS_OFS2_X" in two.param_names
+
+
+def test_the_2014_layout_is_read_and_its_offsets_only_correction_undone(short_day, tmp_path):
+    """TimeMS, PARM and EV without a time, MAG without Health and S, no FMTU; a firmware
+    without COMPASS_DIA/ODI/SCALE (its correction was the offsets alone)."""
+    params = {
+        k: v
+        for k, v in COMPASS_PARAMS.items()
+        if not k.startswith(("COMPASS_DIA", "COMPASS_ODI", "COMPASS_SCALE"))
+    }
+    changes = [(short_day.t[0] + 4.0, "COMPASS_OFS_X", -30.0)]
+    path = tmp_path / "2014.bin"
+    written = write_bin(path, short_day, params=params, changes=changes, ancient=True)
+    streams = dataflash.read(str(path))
+    assert streams.imu.source == "IMU" and streams.mag.source == "MAG"
+    ms = np.round(short_day.t * 1e6).astype(np.int64) // 1000
+    assert np.allclose(streams.imu.t, ms * 1e-3, atol=1e-9)  # whole ms
+    # the untimed change is placed where it was written: within one IMU period
+    ((when, name, value),) = streams.params.changes
+    assert name == "COMPASS_OFS_X" and value == -30.0
+    assert abs(when - changes[0][0]) <= np.median(np.diff(short_day.t)) + 1e-3
+    # the raw field, with the identity as the soft iron the firmware did not have
+    k = np.searchsorted(short_day.t, streams.mag.t - 2e-3)
+    assert np.array_equal(k, written["mag_index"][np.isin(written["mag_index"], k)])
+    identity = dict(params, COMPASS_DIA_X=1.0, COMPASS_DIA_Y=1.0, COMPASS_DIA_Z=1.0)
+    identity |= dict(COMPASS_ODI_X=0.0, COMPASS_ODI_Y=0.0, COMPASS_ODI_Z=0.0, COMPASS_SCALE=1.0)
+    assert np.all(np.abs(streams.mag.mag - short_day.mag[k]) <= _bound(identity) + 1e-9)
+    assert streams.armed is not None  # from EV
+    session = import_log(str(path), ImportOptions(start_s=0.0, end_s=1e9)).session
+    assert "COMPASS_DIA_X" in session.meta["onboard_soft_iron"]
+    assert "param.COMPASS_DIA_X" not in session.meta  # nothing invented
 
 
 def _second(params: dict[str, float]) -> dict[str, float]:
@@ -219,7 +250,7 @@ def test_a_second_imu_is_chosen_with_imu(short_day, tmp_path):
 def test_a_file_that_is_no_log(tmp_path):
     junk = tmp_path / "junk.bin"
     junk.write_bytes(b"not a log at all " * 64)
-    with pytest.raises(LogImportError, match="no DataFlash messages found"):
+    with pytest.raises(LogImportError, match="not a log magcal can read .named like a DataFlash"):
         import_log(str(junk))
     empty = tmp_path / "empty.bin"
     empty.write_bytes(b"")

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from magcal.logs.convert import cut, mean_rate, pair
+from magcal.logs.convert import cut, mean_rate, multirate_arrays, pair
 from magcal.logs.streams import (
     ImuStream,
     LogImportError,
@@ -57,7 +57,7 @@ def test_the_accelerometer_is_interpolated_and_the_magnetometer_kept():
     assert np.array_equal(rows.mag, field[:-1])
 
 
-def test_imu_gaps_mark_rows_and_refuse_ranges_over_them():
+def test_imu_gaps_are_named_and_a_range_over_them_keeps_its_longest_stretch():
     t_imu = np.concatenate([np.arange(0, 3, 0.01), np.arange(4, 8, 0.01)])  # 1 s lost
     imu = ImuStream(t_imu, np.zeros((t_imu.size, 3)), np.tile([0, 0, 9.8], (t_imu.size, 1)), 1, "")
     t_mag = np.arange(0, 7.9, 0.1)
@@ -65,9 +65,25 @@ def test_imu_gaps_mark_rows_and_refuse_ranges_over_them():
     rows = pair(imu, mag)
     assert np.all(rows.gap == ((rows.t > 2.9) & (rows.t < 4.0)))
     streams = LogStreams("x.tlog", "tlog", "PX4", imu, mag, ParamTimeline({}))
-    assert cut(rows, 4.5, 7.0, streams).sum() == 26
-    with pytest.raises(LogImportError, match=r"IMU data are missing between 2.9\d and 3.9\d s"):
-        cut(rows, 1.0, 6.0, streams)
+    assert len(rows.gaps) == 1 and rows.gaps[0] == pytest.approx((2.99, 4.0))
+    sel, notes = cut(rows, 4.5, 7.0, streams)
+    assert sel.sum() == 26 and notes == ()
+    # the gap itself, not the neighbouring magnetometer times; the longer side is kept
+    sel, notes = cut(rows, 1.0, 6.0, streams)
+    assert rows.t[sel][0] == pytest.approx(4.0) and rows.t[sel][-1] == pytest.approx(6.0)
+    assert "missing at 2.99–4.00 s (1.01 s without IMU data: lost messages)" in notes[0]
+    paused = LogStreams(
+        "x.bin",
+        "DataFlash",
+        "ardupilot",
+        imu,
+        mag,
+        ParamTimeline({}),
+        known_gaps=((2.99, 4.0, "a logging pause"),),
+    )
+    assert "a logging pause" in cut(rows, 1.0, 6.0, paused)[1][0]
+    with pytest.raises(LogImportError, match=r"missing at 2.99–4.00 s .* no stretch"):
+        cut(rows, 2.95, 4.05, streams)
 
 
 def test_no_overlap_in_time():
@@ -99,3 +115,23 @@ def test_untruncate_is_unbiased_for_uniform_fractions():
     logged = np.trunc(x)
     assert abs(np.mean(untruncate(logged) - x)) < 0.005
     assert abs(np.mean(logged[x > 1] - x[x > 1])) == pytest.approx(0.5, abs=0.005)
+
+
+def test_the_multi_rate_session_keeps_every_sample_at_its_own_time():
+    t_imu = np.arange(0, 2, 0.01)
+    w = np.column_stack([np.sin(t_imu), t_imu, np.ones_like(t_imu)])
+    acc = np.column_stack([t_imu, -t_imu, np.full_like(t_imu, 9.8)])
+    imu = ImuStream(t_imu, w, acc, 1, "")
+    t_mag = np.array([0.105, 0.5, 0.803, 1.5])  # 0.5 and 1.5 coincide with IMU samples
+    mag = MagStream(t_mag, np.arange(12.0).reshape(4, 3), 1, "mG", "", "")
+    t, gyr, acc_rows, field = multirate_arrays(imu, mag, 0.1, 1.6)
+    imu_in = t_imu[(t_imu >= 0.1) & (t_imu <= 1.6)]
+    assert np.array_equal(t, np.union1d(imu_in, t_mag)) and t.size == imu_in.size + 2
+    has_acc = ~np.isnan(acc_rows).any(axis=1)
+    has_mag = ~np.isnan(field).any(axis=1)
+    assert np.array_equal(t[has_acc], imu_in) and np.array_equal(t[has_mag], t_mag)
+    assert np.array_equal(field[has_mag], mag.mag)
+    assert np.array_equal(acc_rows[has_acc], acc[(t_imu >= 0.1) & (t_imu <= 1.6)])
+    # the gyroscope of a row turns the attitude through the IMU's angle to the next row
+    assert np.allclose(gyr[:-1], mean_rate(t_imu, w, t[:-1], t[1:]))
+    assert np.allclose(gyr[:-1, 1], 0.5 * (t[:-1] + t[1:]))  # linear rate: the midpoint

@@ -8,7 +8,7 @@ import pytest
 from magcal.autopilot import mapping
 from magcal.calib.calibrate import calibrate
 from magcal.calib.diagnostics import quality
-from magcal.logs import LogImportError, import_log, tlog
+from magcal.logs import ImportOptions, LogImportError, import_log, tlog
 from tests.loggen.dataflash import COMPASS_PARAMS
 from tests.loggen.scenario import bench_day
 from tests.loggen.tlog import GRAVITY_MSS, PX4_PARAMS, write_ardupilot_tlog, write_px4_tlog
@@ -113,10 +113,10 @@ def test_a_stream_faster_than_the_compass_repeats_no_reading(tmp_path):
     sent = write_ardupilot_tlog(path, short, mag_hold=3)["index"]
     streams = tlog.read(str(path))
     k = _index(short, streams.mag.t)
-    # only the messages that carried a new compass reading remain; the first message read
-    # (the very first came before the vehicle's first heartbeat) is new to the reader
-    assert k[0] == sent[1] and np.array_equal(k[1:], sent[3::3])
-    assert streams.imu.t.size == sent.size - 1  # the IMU is not held
+    # only the messages that carried a new compass reading remain (the very first came
+    # before the vehicle's first heartbeat: it is the vehicle's all the same)
+    assert np.array_equal(k, sent[::3])
+    assert streams.imu.t.size == sent.size  # the IMU is not held
 
 
 def test_ardupilot_telemetry_without_parameters_or_compass(short_logs):
@@ -176,3 +176,44 @@ def test_a_tlog_without_a_vehicle(tmp_path):
     path.write_bytes(b"".join(stamp + hb for stamp in stamps))
     with pytest.raises(LogImportError, match="has no HEARTBEAT from a vehicle"):
         import_log(str(path))
+
+
+class _Msg:
+    """A stand-in for a pymavlink message: what tlog's clock and parameter checks read."""
+
+    def __init__(self, **fields):
+        self.__dict__.update(fields)
+
+
+def _timed(pairs):
+    """[(reception s, message with time_boot_ms)] from (reception s, vehicle s) pairs."""
+    return [(rx, _Msg(time_boot_ms=int(round(boot * 1e3)))) for rx, boot in pairs]
+
+
+def test_a_clock_step_is_a_reboot_only_with_evidence():
+    # one message delayed on the link: its vehicle time goes back 1 s, it is dropped
+    delayed = _timed([(0.0, 610.0), (0.25, 610.25), (0.5, 611.5), (0.8, 610.5), (1.0, 612.0)])
+    kept, dropped = tlog._in_order("x.tlog", delayed)
+    assert dropped == 1 and [m.time_boot_ms for _, m in kept] == [610000, 610250, 611500, 612000]
+    # a reboot: the clock restarts near zero, sooner than the reception time that passed
+    rebooted = _timed([(0.0, 610.0), (0.25, 610.25), (20.0, 12.0), (20.25, 12.25)])
+    with pytest.raises(LogImportError, match="rebooted during the recording"):
+        tlog._in_order("x.tlog", rebooted)
+
+
+def test_parameters_are_complete_only_when_every_index_arrived():
+    every = [(0.0, _Msg(param_index=i, param_count=3)) for i in range(3)]
+    assert tlog._params_note(every) == ""
+    assert "received 2 of the vehicle's 3" in tlog._params_note(every[:2])
+    assert "never fetched" in tlog._params_note([])
+
+
+def test_firmware_without_soft_iron_parameters_is_not_told_to_log_them(tmp_path):
+    short = bench_day(seed=4, hand_s=8.0)
+    params = {
+        k: v for k, v in COMPASS_PARAMS.items() if not k.startswith(("COMPASS_DIA", "COMPASS_ODI"))
+    }
+    path = tmp_path / "old.tlog"
+    write_ardupilot_tlog(path, short, params=params)
+    result = import_log(str(path), ImportOptions(start_s=0.0, end_s=1e9))
+    assert "COMPASS_DIA_X" in result.session.meta["onboard_soft_iron"]

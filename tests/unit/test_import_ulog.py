@@ -111,12 +111,14 @@ def test_missing_topics_are_listed(logs):
     with pytest.raises(
         LogImportError,
         match=r"nosc.ulg has no sensor_combined for IMU 1 \(found IMUs none\); needs "
-        "sensor_combined, and sensor_mag or vehicle_magnetometer",
+        "sensor_combined, and sensor_mag, vehicle_magnetometer or a magnetometer in "
+        "sensor_combined",
     ):
         import_log(logs["nosc"])
     with pytest.raises(
         LogImportError,
-        match=r"no sensor_mag or vehicle_magnetometer for compass 2 \(found compasses 1\)",
+        match=r"no sensor_mag, vehicle_magnetometer or sensor_combined magnetometer for "
+        r"compass 2 \(found compasses 1\)",
     ):
         ulog.read(logs["short"], compass=2)
     with pytest.raises(LogImportError, match=r"no vehicle_imu instance 1 for IMU 2"):

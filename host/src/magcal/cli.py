@@ -13,6 +13,7 @@ import importlib
 import pkgutil
 import re
 import sys
+import warnings
 from importlib import metadata
 
 from magcal import __version__
@@ -112,10 +113,20 @@ def _add_plugin(sub, entry_point: metadata.EntryPoint) -> None:
         )
 
 
+def quiet_libraries() -> None:
+    """Keep the libraries' warnings off the terminal: numpy's floating-point RuntimeWarnings
+    (an overflow tried by the optimiser on a forced calibration) and whatever a library says
+    in its own words; magcal's checks say what matters about a result in the product's."""
+    warnings.filterwarnings("ignore", category=RuntimeWarning)
+    warnings.filterwarnings("ignore", module=r"^(?!magcal)")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
-        return args.run(args)
+        with warnings.catch_warnings():
+            quiet_libraries()
+            return args.run(args)
     except MagcalError as exc:
         print(refusal(args.command, exc), file=sys.stderr)
         return EXIT_ERROR

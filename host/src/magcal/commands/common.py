@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import math
 from collections.abc import Iterator
 from dataclasses import dataclass
 
@@ -70,15 +71,28 @@ def check_link_options(args: argparse.Namespace, mavlink_only: tuple[str, ...] =
         )
 
 
+def finite(text: str) -> float:
+    """An argparse type: a finite float (``nan`` and ``inf`` are no time or amount)."""
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(v):
+        raise argparse.ArgumentTypeError(f"{text} is not a finite number")
+    return v
+
+
 def positive(kind):
-    """An argparse type: ``kind(text)`` (int or float) that must be > 0."""
+    """An argparse type: ``kind(text)`` (int or float) that must be finite and > 0."""
 
     def parse(text: str):
-        try:
-            v = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-        if v <= 0:
+        v = finite(text) if kind is float else None
+        if v is None:
+            try:
+                v = kind(text)
+            except ValueError:
+                raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+        if not v > 0:
             raise argparse.ArgumentTypeError(f"{text} must be positive")
         return v
 

@@ -11,9 +11,10 @@ import os
 import sys
 
 from magcal import ui
+from magcal.autopilot import vehicle
 from magcal.autopilot.vehicle import AUTOPILOT_NAMES
 from magcal.calib.diagnostics import observability
-from magcal.commands.common import positive
+from magcal.commands.common import finite, positive
 from magcal.io.session import check_writable, write_session
 from magcal.logs import ImportOptions, import_log
 from magcal.logs.stretch import describe
@@ -50,9 +51,22 @@ def add_parser(sub) -> None:
         metavar="N",
         help="IMU to pair it with, 1 = the first; default 1",
     )
-    p.add_argument("--start", type=float, metavar="S", help="import from S seconds (log time)")
-    p.add_argument("--end", type=float, metavar="S", help="import up to S seconds (log time)")
+    p.add_argument("--start", type=finite, metavar="S", help="import from S seconds (log time)")
+    p.add_argument("--end", type=finite, metavar="S", help="import up to S seconds (log time)")
     p.set_defaults(run=run)
+
+
+def faster_imu_hint(streams) -> str:
+    """How to log the IMU faster, for the log's autopilot and format."""
+    if streams.log_format == "DataFlash":
+        return "set the IMU_FAST bit of LOG_BITMASK"
+    if streams.log_format == "tlog":
+        rate = " (ArduPilot: SRn_RAW_SENS)" if streams.autopilot == vehicle.ARDUPILOT else ""
+        return (
+            f"telemetry carries it at the stream rate requested{rate}, and the autopilot's "
+            "own log holds it faster"
+        )
+    return "choose SDLOG_PROFILE's high-rate sensor topics, or list them for the logger"
 
 
 def progress_printer(label: str, stream=None):
@@ -67,8 +81,14 @@ def progress_printer(label: str, stream=None):
         log_line=lambda done, total: f"{label}: {done} %",
     )
 
+    shown = [-1]
+
     def show(fraction: float) -> None:
-        bar.update(int(100 * min(max(fraction, 0.0), 1.0)))
+        # never backwards: a reader may seek back (a ULog's appended data, its index)
+        pct = int(100 * min(max(fraction, 0.0), 1.0)) if fraction == fraction else 0
+        if pct > shown[0]:
+            shown[0] = pct
+            bar.update(pct)
 
     show.done = bar.close  # type: ignore[attr-defined]
     return show
@@ -98,9 +118,11 @@ def run(args, out=None, err=None) -> int:
         print(
             f"note: the IMU is logged at only {rows.imu_rate_hz:.0f} Hz, so the rotation between "
             "magnetometer samples rests on few gyroscope samples; log the IMU faster for a better "
-            "calibration (ArduPilot: LOG_BITMASK IMU_FAST)",
+            f"calibration: {faster_imu_hint(streams)}",
             file=err,
         )
+    for note in result.notes:
+        print(f"note: {note}", file=err)
     if result.stretch is None:
         print(f"range from --start/--end: {result.start_s:.2f}–{result.end_s:.2f} s", file=err)
     else:
@@ -113,16 +135,17 @@ def run(args, out=None, err=None) -> int:
             file=err,
         )
     session = result.session
-    if len(session) < observability.MIN_SAMPLES:
+    n_mag = int(session.has_mag.sum())
+    if n_mag < observability.MIN_SAMPLES:
         print(
-            f"warning: {len(session)} samples; calibration needs at least "
+            f"warning: {n_mag} magnetometer samples; calibration needs at least "
             f"{observability.MIN_SAMPLES}: choose a longer range",
             file=err,
         )
     write_session(args.output, session)
     print(
-        f"wrote {args.output} ({len(session)} samples, {result.start_s:.2f}–{result.end_s:.2f} s "
-        "log time)",
+        f"wrote {args.output} ({len(session)} rows: {int(session.has_acc.sum())} IMU and "
+        f"{n_mag} magnetometer samples, {result.start_s:.2f}–{result.end_s:.2f} s log time)",
         file=out,
     )
     return 0

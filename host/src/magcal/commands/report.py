@@ -136,6 +136,8 @@ def run(args) -> int:
     elif unc.identifiable:
         state = "all parameters identifiable"
     else:
-        state = "NOT identifiable along " + "; ".join(unc.null_directions)
+        # the directions can be many and long: the report lists them, the terminal counts
+        n = len(unc.null_directions)
+        state = f"NOT identifiable along {n} direction(s) of the parameters; the report lists them"
     print(f"wrote {args.output} ({state})")
     return 0

@@ -9,7 +9,8 @@
 - :mod:`~magcal.logs.convert`: pairing magnetometer and IMU samples, the session and its
   metadata.
 
-:func:`import_log` runs them in that order.
+:func:`import_log` runs them in that order, after :func:`sniff_format` has recognised the
+format from the file's content (never from its name alone).
 """
 
 from __future__ import annotations
@@ -31,6 +32,11 @@ Progress = Callable[[float], None]
 
 ULOG_MAGIC = b"ULog\x01\x12\x35"
 DATAFLASH_MAGIC = b"\xa3\x95"
+#: The message type of FMT, with which every DataFlash log begins.
+DATAFLASH_FMT = b"\x80"
+#: Bytes read to recognise a format, and tlog frames that must parse in a row.
+SNIFF_BYTES = 4096
+SNIFF_FRAMES = 5
 #: MAVLink 1 and 2 start-of-frame bytes, after a tlog's 8-byte timestamp.
 MAVLINK_STX = (0xFE, 0xFD)
 FORMATS = ("dataflash", "tlog", "ulog")
@@ -59,6 +65,7 @@ class ImportResult:
 
     stretch : the detected hand rotation (None when --start/--end chose the range)
     others  : the other candidate stretches, best first
+    notes   : remarks on the range (e.g. gaps left out)
     """
 
     session: Session
@@ -68,31 +75,59 @@ class ImportResult:
     end_s: float
     stretch: Stretch | None
     others: tuple[Stretch, ...]
+    notes: tuple[str, ...] = ()
+
+
+def _mavlink_frames(data: bytes, start: int) -> int:
+    """How many consecutive tlog records (8-byte time, then a MAVLink 1 or 2 frame) parse
+    from ``start`` on, up to :data:`SNIFF_FRAMES`."""
+    n, i = 0, start
+    while n < SNIFF_FRAMES and i + 10 <= len(data):
+        stx, length = data[i + 8], data[i + 9]
+        if stx == 0xFE:
+            size = 6 + length + 2
+        elif stx == 0xFD:
+            signed = data[i + 10] & 0x01 if i + 10 < len(data) else 0
+            size = 10 + length + 2 + (13 if signed else 0)
+        else:
+            break
+        if i + 8 + size > len(data):
+            break
+        n += 1
+        i += 8 + size
+    return n
 
 
 def sniff_format(path: str) -> str:
-    """ "dataflash", "tlog" or "ulog", from the first bytes (the extension when unclear)."""
+    """ "dataflash", "tlog" or "ulog", from the file's content (never its name alone): the
+    ULog magic; DataFlash messages, which start with an FMT message; consecutive
+    time-stamped MAVLink frames. Anything else is refused."""
     name = os.path.basename(path)
     try:
         with open(path, "rb") as f:
-            head = f.read(16)
+            head = f.read(SNIFF_BYTES)
     except OSError as exc:
         raise LogImportError(
             f"reading log {path}: {os_error_advice(exc, path, writing=False)}"
         ) from exc
     if head.startswith(ULOG_MAGIC):
         return "ulog"
-    if head.startswith(DATAFLASH_MAGIC):
+    if head.startswith(DATAFLASH_MAGIC + DATAFLASH_FMT):
         return "dataflash"
-    if len(head) > 8 and head[8] in MAVLINK_STX:
+    if _mavlink_frames(head, 0) >= min(SNIFF_FRAMES, 2) or (
+        len(head) < SNIFF_BYTES and _mavlink_frames(head, 0) >= 1
+    ):
         return "tlog"
-    ext = os.path.splitext(name)[1].lower()
-    by_ext = {".bin": "dataflash", ".tlog": "tlog", ".ulg": "ulog"}
-    if ext in by_ext and head:
-        return by_ext[ext]
+    what = "it is empty" if not head else "its content is none of these"
+    claimed = {".bin": "a DataFlash log", ".tlog": "a telemetry log", ".ulg": "a ULog"}.get(
+        os.path.splitext(name)[1].lower()
+    )
+    if head and claimed:
+        what = f"named like {claimed}, but its first bytes are not those of one"
     raise LogImportError(
-        f"{name}: not a log magcal can read ({'empty' if not head else 'unknown content'}); "
-        "give an ArduPilot DataFlash .bin, a MAVLink .tlog or a PX4 .ulg file"
+        f"{name}: not a log magcal can read ({what}); give an ArduPilot DataFlash .bin "
+        "(starts with FMT messages), a MAVLink .tlog (time-stamped MAVLink frames) or a PX4 "
+        ".ulg (starts with the ULog magic)"
     )
 
 
@@ -121,7 +156,7 @@ def import_log(
         end = np.inf if options.end_s is None else options.end_s
         if start >= end:
             raise LogImportError(f"--start {start:g} s is not before --end {end:g} s")
-        sel = cut(rows, start, end, streams)
+        sel, notes = cut(rows, start, end, streams)
         stretch, others = None, ()
     else:
         armed = streams.armed.at(rows.t) > 0.5 if streams.armed is not None else None
@@ -135,7 +170,7 @@ def import_log(
                 "(log time, s) to choose the range"
             )
         stretch, others = found[0], tuple(found[1:])
-        sel = cut(rows, stretch.from_s, stretch.to_s, streams)
+        sel, notes = cut(rows, stretch.from_s, stretch.to_s, streams)
     session = to_session(streams, rows, sel)
     return ImportResult(
         session=session,
@@ -145,4 +180,5 @@ def import_log(
         end_s=float(session.t[-1]),
         stretch=stretch,
         others=others,
+        notes=notes,
     )

@@ -21,7 +21,14 @@ The last magnetometer sample only closes the previous interval and is not a row;
 outside the IMU's time span are dropped. IMU data missing for longer than
 ``max(IMU_GAP_MIN_S, IMU_GAP_FACTOR × its median interval)`` (telemetry loss) makes the rows
 across the gap unusable: they are marked, the detector avoids them, and an explicit range
-over them is refused.
+over them keeps its longest stretch between the gaps.
+
+**The session.** Those rows choose the range (the hand-rotation detector works on them);
+the session written keeps every sample of the range at its own rate, a multi-rate session
+(``magcal-session: 2``, :func:`multirate_arrays`): a row at each IMU sample (gyroscope and
+accelerometer) and one at each magnetometer sample (its field; the accelerometer empty), the
+gyroscope of every row the mean rate over the interval to the next row, as above. Nothing
+the IMU measured between two magnetometer samples is averaged away.
 """
 
 from __future__ import annotations
@@ -37,6 +44,10 @@ from magcal.logs.streams import ImuStream, LogImportError, LogStreams, MagStream
 
 IMU_GAP_MIN_S = 0.1
 IMU_GAP_FACTOR = 10.0
+#: Gaps named in one message at most.
+MAX_GAPS_LISTED = 3
+#: A stretch between gaps shorter than this many rows is not worth importing.
+MIN_STRETCH_ROWS = 2
 
 
 @dataclass(frozen=True)
@@ -46,6 +57,7 @@ class Rows:
     t              : (K,) s;  gyr : (K, 3) rad/s, mean over [t_k, t_k+1];  acc : (K, 3) m/s²
     mag            : (K, 3) raw magnetometer units
     gap            : (K,) bool, the row's interval holds an IMU gap
+    gaps           : (start s, end s) of each IMU gap (the last sample before, the first after)
     suspect        : (K,) bool, the field's correction could not be undone (see MagStream)
     imu_rate_hz, mag_rate_hz : median sample rates
     """
@@ -58,6 +70,7 @@ class Rows:
     suspect: np.ndarray
     imu_rate_hz: float
     mag_rate_hz: float
+    gaps: tuple[tuple[float, float], ...] = ()
 
 
 def mean_rate(t: np.ndarray, gyr: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -99,8 +112,10 @@ def pair(imu: ImuStream, mag: MagStream) -> Rows:
     imu_dt = np.diff(imu.t)
     limit = max(IMU_GAP_MIN_S, IMU_GAP_FACTOR * float(np.median(imu_dt)))
     gap = np.zeros(a.size, dtype=bool)
+    gaps = []
     for g in np.flatnonzero(imu_dt > limit):
         gap |= (a < imu.t[g + 1]) & (b > imu.t[g])
+        gaps.append((float(imu.t[g]), float(imu.t[g + 1])))
     return Rows(
         t=a,
         gyr=gyr,
@@ -110,6 +125,7 @@ def pair(imu: ImuStream, mag: MagStream) -> Rows:
         suspect=suspect[:-1],
         imu_rate_hz=1.0 / float(np.median(imu_dt)),
         mag_rate_hz=1.0 / float(np.median(np.diff(t_m))),
+        gaps=tuple(gaps),
     )
 
 
@@ -120,8 +136,19 @@ def _range_problem(rows: Rows, sel: np.ndarray, what: np.ndarray) -> tuple[float
     return float(rows.t[hit[0]]), float(rows.t[hit[-1]])
 
 
-def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.ndarray:
-    """(K,) bool: the rows in [start_s, end_s]; refuses ranges that hold unusable rows."""
+def describe_gap(gap: tuple[float, float], streams: LogStreams) -> str:
+    """ "251.42–879.34 s (627.9 s without IMU data: a logging pause)"."""
+    a, b = gap
+    known = [c for g0, g1, c in streams.known_gaps if g0 <= b + 1e-6 and a <= g1 + 1e-6]
+    cause = known[0] if known else streams.gap_cause
+    return f"{a:.2f}–{b:.2f} s ({b - a:.2f} s without IMU data: {cause})"
+
+
+def cut(
+    rows: Rows, start_s: float, end_s: float, streams: LogStreams
+) -> tuple[np.ndarray, tuple[str, ...]]:
+    """(K,) bool: the rows in [start_s, end_s], and notes. A range across IMU gaps keeps its
+    longest stretch between them (said in a note); ranges with unusable rows are refused."""
     name = os.path.basename(streams.path)
     sel = (rows.t >= start_s) & (rows.t <= end_s)
     if not sel.any():
@@ -129,12 +156,24 @@ def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.nda
             f"{name}: no samples between {start_s:g} and {end_s:g} s; the paired data span "
             f"{rows.t[0]:.1f}–{rows.t[-1]:.1f} s (log time)"
         )
-    gap = _range_problem(rows, sel, rows.gap)
-    if gap is not None:
-        raise LogImportError(
-            f"{name}: IMU data are missing between {gap[0]:.2f} and {gap[1]:.2f} s (lost "
-            "messages), so the rotation there is unknown; choose a range without the gap "
-            "with --start/--end"
+    notes: tuple[str, ...] = ()
+    if (sel & rows.gap).any():
+        inside = [g for g in rows.gaps if g[1] > start_s and g[0] < end_s]
+        runs = _true_runs(sel & ~rows.gap)
+        a, b = max(runs, key=lambda r: r[1] - r[0], default=(0, 0))
+        listed = "; ".join(describe_gap(g, streams) for g in inside[:MAX_GAPS_LISTED])
+        more = f" and {len(inside) - MAX_GAPS_LISTED} more" if len(inside) > MAX_GAPS_LISTED else ""
+        if b - a < MIN_STRETCH_ROWS:
+            raise LogImportError(
+                f"{name}: IMU data are missing at {listed}{more}, and no stretch between the "
+                "gaps in this range is long enough to import; choose another range with "
+                "--start/--end"
+            )
+        sel = np.zeros_like(sel)
+        sel[a:b] = True
+        notes = (
+            f"IMU data are missing at {listed}{more}; the longest stretch between the gaps, "
+            f"{rows.t[a]:.2f}–{rows.t[b - 1]:.2f} s, was imported",
         )
     bad = _range_problem(rows, sel, rows.suspect)
     if bad is not None:
@@ -142,7 +181,13 @@ def cut(rows: Rows, start_s: float, end_s: float, streams: LogStreams) -> np.nda
             f"{name}: from {bad[0]:.2f} s on, {streams.mag.suspect_reason}; choose a range "
             "before it with --start/--end"
         )
-    return sel
+    return sel, notes
+
+
+def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
+    """[start, stop) index ranges where ``mask`` is true."""
+    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
+    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
 
 
 def _param_text(value: float) -> str:
@@ -195,10 +240,12 @@ def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, 
         "mag_unit": streams.mag.unit,
         "mag_frame": streams.mag.frame,
         "resampling": (
-            f"rows at the magnetometer's samples ({rows.mag_rate_hz:.1f} Hz); gyroscope averaged "
-            f"over each row's interval, accelerometer interpolated (IMU {rows.imu_rate_hz:.1f} Hz)"
+            f"every sample at its own rate: a row at each IMU sample ({rows.imu_rate_hz:.1f} Hz) "
+            f"and at each magnetometer sample ({rows.mag_rate_hz:.1f} Hz); the gyroscope of "
+            "each row is the IMU's mean rate over the interval to the next row"
         ),
     }
+    meta |= streams.meta
     external = compass_external(streams, in_force)
     if external is not None:
         meta["compass_external"] = external
@@ -213,8 +260,31 @@ def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, 
     return meta
 
 
+def multirate_arrays(
+    imu: ImuStream, mag: MagStream, t0: float, t1: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(t, gyr, acc, mag) of the multi-rate session over [t0, t1] (inside the IMU's span):
+    a row at every IMU and every magnetometer sample time (one row where both coincide);
+    ``acc`` NaN on rows without an IMU sample, ``mag`` NaN on rows without a magnetometer
+    sample; ``gyr`` of row k the mean rate of the IMU's piecewise-linear rate over
+    [t_k, t_k+1] (:func:`mean_rate`), of the last row its rate at that time."""
+    in_imu = (imu.t >= t0) & (imu.t <= t1)
+    in_mag = (mag.t >= t0) & (mag.t <= t1)
+    t = np.union1d(imu.t[in_imu], mag.t[in_mag])
+    gyr = np.empty((t.size, 3))
+    if t.size > 1:
+        gyr[:-1] = mean_rate(imu.t, imu.gyr, t[:-1], t[1:])
+    gyr[-1] = [np.interp(t[-1], imu.t, imu.gyr[:, j]) for j in range(3)]
+    acc = np.full((t.size, 3), np.nan)
+    acc[np.searchsorted(t, imu.t[in_imu])] = imu.acc[in_imu]
+    field = np.full((t.size, 3), np.nan)
+    field[np.searchsorted(t, mag.t[in_mag])] = mag.mag[in_mag]
+    return t, gyr, acc, field
+
+
 def to_session(streams: LogStreams, rows: Rows, sel: np.ndarray) -> Session:
-    """The selected rows as a :class:`~magcal.io.session.Session` with metadata."""
-    return session_from_arrays(
-        rows.t[sel], rows.gyr[sel], rows.acc[sel], rows.mag[sel], session_meta(streams, rows, sel)
-    )
+    """The selected range as a multi-rate :class:`~magcal.io.session.Session` (see the
+    module docstring) with metadata."""
+    t0, t1 = float(rows.t[sel][0]), float(rows.t[sel][-1])
+    t, gyr, acc, mag = multirate_arrays(streams.imu, streams.mag, t0, t1)
+    return session_from_arrays(t, gyr, acc, mag, session_meta(streams, rows, sel))

@@ -26,7 +26,7 @@ after a change mix old and new corrections).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -57,6 +57,7 @@ class Undone:
     param_compass  : the parameter set used (ArduPilot: 1-based compass of COMPASS_OFSn_X;
                      PX4: n of CAL_MAGn_*)
     naming         : ArduPilot's parameter naming (mapping.AP_NAMING_*); PX4: ""
+    meta           : session metadata about the correction (e.g. one taken as the identity)
     """
 
     mag: np.ndarray
@@ -66,6 +67,7 @@ class Undone:
     suspect_reason: str
     param_compass: int
     naming: str = ""
+    meta: dict[str, str] = field(default_factory=dict)
 
 
 #: The session's ``mag_frame`` for PX4's raw field (as ``magcal collect`` describes it).
@@ -148,6 +150,8 @@ def undo_ardupilot(
     instance: int,
     motor: np.ndarray | None = None,
     logged_offsets: np.ndarray | None = None,
+    params_complete: bool = False,
+    params_note: str = "",
 ) -> Undone:
     """ArduPilot's ``correct_field`` undone for logged compass ``instance`` (1-based).
 
@@ -158,20 +162,40 @@ def undo_ardupilot(
                      None when not logged (telemetry: zero while disarmed)
     logged_offsets : (N, 3) mG, the offsets the log says were in use (MAG OfsX/Y/Z); samples
                      where they contradict the parameters are marked ``suspect``
+    params_complete: the log holds every parameter the firmware has (DataFlash writes them
+                     all when a log opens; a ground station that received every index of
+                     PARAM_VALUE). Then soft-iron parameters that are absent do not exist in
+                     that firmware (ArduPilot before COMPASS_DIA/ODI): the identity is used
+    params_note    : why the parameters may be incomplete, for the error
     returns        : the field after rotate_field, before correct_field, mG
     """
     naming = ardupilot_naming(params.names())
     state = ardupilot_state_index(params.at(float(t[0]) if t.size else 0.0), instance)
     required = ardupilot_required(state, naming)
     missing = [n for n in required if n not in params.names()]
-    if missing:
+    names = mapping.ap_param_names(state, naming)
+    soft_iron = [names[f"{k}_{a}"] for k in ("DIA", "ODI") for a in "XYZ"]
+    identity = params_complete and bool(missing) and set(missing) <= set(soft_iron)
+    if missing and not identity:
         raise LogImportError(
             f"{source} has no value for {', '.join(missing)}: without the compass "
-            "parameters in force its corrected field cannot be undone; log the parameters "
-            "(ArduPilot writes PARM messages when a log opens; a ground station fetches "
-            "PARAM_VALUE when it connects)"
+            "parameters in force its corrected field cannot be undone; "
+            + (
+                params_note
+                or "log the parameters (ArduPilot writes PARM messages when a log opens; a "
+                "ground station fetches PARAM_VALUE when it connects)"
+            )
         )
-    names = mapping.ap_param_names(state, naming)
+    meta: dict[str, str] = {}
+    # no soft-iron parameters: diagonal 1, off-diagonal 0 (what correct_field then applies)
+    defaults = {names[f"{k}_{a}"]: v for k, v in (("DIA", 1.0), ("ODI", 0.0)) for a in "XYZ"}
+    defaults = {n: v for n, v in defaults.items() if n in missing}
+    if identity:
+        meta["onboard_soft_iron"] = (
+            f"the firmware has no {', '.join(missing)} (its log holds every parameter and "
+            "not these): its correction was the offsets alone, so the soft-iron matrix was "
+            "taken as the identity"
+        )
     watched = set(required) | {names["SCALE"]}
     changes = params.change_times(watched)
     mixed = _mixed(t, changes)
@@ -184,7 +208,7 @@ def undo_ardupilot(
             "(COMPASS_PRIOn_ID)"
         )
     for i0, i1 in _segments(t, changes):
-        p = params.at(float(t[i0]))
+        p = defaults | params.at(float(t[i0]))
         p.setdefault(names["SCALE"], 0.0)  # no COMPASS_SCALE (older firmware): no scaling
         field = np.asarray(corrected[i0:i1], dtype=float)
         if motor is not None:
@@ -203,7 +227,7 @@ def undo_ardupilot(
         "force (the logged OfsX/Y/Z differ): they changed without a parameter record "
         "(in-flight learning, COMPASS_LEARN), so the correction cannot be undone there"
     )
-    return Undone(mag[~mixed], ~mixed, tuple(notes), suspect[~mixed], reason, state, naming)
+    return Undone(mag[~mixed], ~mixed, tuple(notes), suspect[~mixed], reason, state, naming, meta)
 
 
 def _offsets_disagree(logged: np.ndarray, p: dict[str, float], names: dict[str, str]) -> np.ndarray:
@@ -247,16 +271,27 @@ def px4_level_adjustment(params: dict[str, float]) -> np.ndarray:
 
 
 def undo_px4(
-    source: str, t: np.ndarray, corrected: np.ndarray, params: ParamTimeline, index: int
+    source: str,
+    t: np.ndarray,
+    corrected: np.ndarray,
+    params: ParamTimeline,
+    index: int,
+    params_complete: bool = False,
 ) -> Undone:
     """PX4's ``L · Rot · S · (raw − off)`` undone with the parameters in force at each time.
 
     t : (N,) s;  corrected : (N, 3) gauss (vehicle_magnetometer);  returns raw gauss, sensor
     frame. ``Rot`` is CAL_MAG``index``_ROT, or for an internal magnetometer (ROT = −1) the
-    board rotation SENS_BOARD_ROT; ``L`` is :func:`px4_level_adjustment`.
+    board rotation SENS_BOARD_ROT; ``L`` is :func:`px4_level_adjustment`. With
+    ``params_complete`` (a ULog holds every parameter), absent off-diagonal terms
+    (CAL_MAGn_xODIAG, PX4 before 1.12) are zero: that firmware has none.
     """
     required = px4_required(index)
     missing = [n for n in required if n not in params.names()]
+    names = px4_param_names(index)
+    odiag = {names[f"{a}ODIAG"] for a in "XYZ"}
+    defaults = {n: 0.0 for n in missing if n in odiag} if params_complete else {}
+    missing = [n for n in missing if n not in defaults]
     if missing:
         raise LogImportError(
             f"{source} has no value for {', '.join(missing)}: without the calibration in force "
@@ -268,7 +303,7 @@ def undo_px4(
     mixed = _mixed(t, changes)
     mag = np.empty_like(np.asarray(corrected, dtype=float))
     for i0, i1 in _segments(t, changes):
-        p = params.at(float(t[i0]))
+        p = defaults | params.at(float(t[i0]))
         if p[rot] < 0:
             if "SENS_BOARD_ROT" not in p:
                 raise LogImportError(

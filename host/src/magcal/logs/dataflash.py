@@ -19,11 +19,25 @@ Message definitions, as in ArduPilot's sources (read with the code search tool):
   change as it happens.
 - ``ARM`` (``ArmState``) or ``EV`` (Id 10 armed, 11 disarmed): the armed state.
 
+**Layouts.** Every log defines its messages (FMT: name, format, column names), and since
+about 2017 their units and multipliers (FMTU, with UNIT and MULT): fields are found by
+name, and where FMTU gives a unit the value is scaled by its multiplier (the IMU must then
+be in rad/s and m/s², the compass in gauss: anything else is refused as an unknown kind of
+log). Older logs say no units; theirs are the ones ArduPilot has always logged (rad/s, m/s²,
+mG). Time is the column FMTU marks as seconds, else ``TimeUS`` (µs), else ``TimeMS`` (ms,
+logs before 2015). Messages without a time column (PARM, EV before 2015) are placed at the
+time of the IMU message before them in the file. Firmware without COMPASS_DIA/ODI (older
+ArduPilot, as in logs of 2014) corrected the compass with its offsets alone: the log holds
+every parameter, so their absence means that, and the session says so
+(``onboard_soft_iron``).
+
 The file is indexed by pymavlink's ``DFReader_binary`` (which finds every message of a type
 without parsing the others, with its C indexer when built); the few types needed are then
 decoded with numpy from that index, not one Python object per message, so a 100 MB log
 takes seconds. DFReader's clock pass is skipped: it reads the whole log message by message,
-without progress, when no GPS has a fix (a calibration indoors), and magcal uses TimeUS.
+without progress, when no GPS has a fix (a calibration indoors), and magcal uses the
+messages' own times. What the C indexer prints about bytes that are no message is held back
+and counted: a file that is mostly such bytes is not a DataFlash log.
 """
 
 from __future__ import annotations
@@ -44,6 +58,7 @@ from magcal.logs.streams import (
     ParamTimeline,
     StepSignal,
     instances_text,
+    quiet_native_output,
     strictly_increasing,
     untruncate,
 )
@@ -67,6 +82,34 @@ _NUMPY = {
     "16s": "S16",
     "64s": "S64",
 }
+#: FMTU multiplier ids (AP_Logger/LogStructure.h); a log's MULT messages override them.
+_MULTIPLIERS = {
+    "-": 0.0,
+    "?": None,
+    "2": 1e2,
+    "1": 1.0,
+    "0": 1.0,
+    "A": 1e-1,
+    "B": 1e-2,
+    "C": 1e-3,
+    "D": 1e-4,
+    "E": 1e-5,
+    "F": 1e-6,
+    "G": 1e-7,
+    "I": 1e-9,
+    "!": 3.6,
+    "/": 3600.0,
+}
+#: Time columns by name, for logs without FMTU: (column, s per count).
+TIME_COLUMNS = (("TimeUS", 1e-6), ("TimeMS", 1e-3))
+#: An IMU gap shorter than this is no logging pause, s.
+PAUSE_MIN_S = 1.0
+#: Bytes after the last message that are no damage (a log written in 256-byte pages, and
+#: DFReader's own allowance).
+TRAILER_BYTES = 528
+PAUSE_CAUSE = "a logging pause: nothing at all was logged"
+#: Above this fraction of skipped bytes the file is not a DataFlash log.
+BAD_FRACTION = 0.5
 #: EV ids (AP_Logger LogEvent): ARMED = 10, DISARMED = 11.
 EV_ARMED, EV_DISARMED = 10, 11
 #: A MAG sample is published at most this long before it is logged; beyond, S is not used.
@@ -82,7 +125,10 @@ class _Index(DFReader.DFReader_binary):
 
 
 def _decode(df: _Index, name: str) -> dict[str, np.ndarray] | None:
-    """Every message ``name`` as column arrays (multipliers of c/C/e/E/L applied), or None."""
+    """Every message ``name`` as column arrays (multipliers of c/C/e/E/L applied), or None.
+
+    The key ``OFFSET`` holds each message's byte offset in the file (its place in the log,
+    for messages without a time column)."""
     mtype = df.name_to_id.get(name)
     if mtype is None or not df.offsets[mtype]:
         return None
@@ -95,14 +141,16 @@ def _decode(df: _Index, name: str) -> dict[str, np.ndarray] | None:
     size = fmt.len - 3
     if dtype.itemsize != size:
         raise LogImportError(
-            f"{df.filehandle.name}: message {name} is defined with {size} bytes but its format "
-            f"{fmt.format!r} has {dtype.itemsize}: the log is damaged or of an unknown kind"
+            f"{os.path.basename(df.filehandle.name)}: message {name} is defined with {size} "
+            f"bytes but its format {fmt.format!r} has {dtype.itemsize}: the log is damaged or "
+            "of an unknown kind"
         )
     data = df.data_map
     end = len(data)
-    body = b"".join(data[o + 3 : o + 3 + size] for o in df.offsets[mtype] if o + 3 + size <= end)
+    offsets = [o for o in df.offsets[mtype] if o + 3 + size <= end]
+    body = b"".join(data[o + 3 : o + 3 + size] for o in offsets)
     rec = np.frombuffer(body, dtype=dtype)
-    out = {}
+    out = {"OFFSET": np.asarray(offsets, dtype=np.int64)}
     for col, code in zip(fmt.columns, fmt.format, strict=False):
         mult = DFReader.FORMAT_TO_STRUCT[code][1]
         v = rec[col]
@@ -110,93 +158,245 @@ def _decode(df: _Index, name: str) -> dict[str, np.ndarray] | None:
     return out
 
 
-def _instances(df: _Index, base: str) -> dict[int, dict[str, np.ndarray]]:
-    """1-based instance → columns, from ``base`` with an ``I`` column or BASE, BASE2, BASE3."""
-    out: dict[int, dict[str, np.ndarray]] = {}
+def _text(values: np.ndarray) -> list[str]:
+    """Fixed-width byte strings (DataFlash n/N/Z) as text."""
+    return [bytes(v).split(b"\0", 1)[0].decode("ascii", "replace") for v in values]
+
+
+def _units(df: _Index) -> dict[str, dict[str, tuple[str, float | None]]]:
+    """message → column → (unit id, multiplier) from the FMTU messages (with MULT's
+    multipliers where the log defines them); empty for logs without FMTU (before ~2017)."""
+    fmtu = _decode(df, "FMTU")
+    if fmtu is None or "FmtType" not in fmtu:
+        return {}
+    mults = dict(_MULTIPLIERS)
+    mult = _decode(df, "MULT")
+    if mult is not None and "Id" in mult and "Mult" in mult:
+        for i, m in zip(mult["Id"], mult["Mult"], strict=True):
+            mults[chr(int(i))] = float(m)
+    out: dict[str, dict[str, tuple[str, float | None]]] = {}
+    for ftype, unit_ids, mult_ids in zip(
+        fmtu["FmtType"], _text(fmtu["UnitIds"]), _text(fmtu["MultIds"]), strict=True
+    ):
+        fmt = df.formats.get(int(ftype))
+        if fmt is None:
+            continue
+        out[fmt.name] = {
+            col: (u, mults.get(m))
+            for col, u, m in zip(fmt.columns, unit_ids, mult_ids, strict=False)
+        }
+    return out
+
+
+def _time_column(
+    cols: dict[str, np.ndarray], units: dict[str, tuple[str, float | None]]
+) -> np.ndarray | None:
+    """The message's time in s: the column FMTU gives unit ``s``, else TimeUS (µs since
+    boot) or TimeMS (ms, before 2015); None for an untimed message (PARM, EV, MSG before
+    2015)."""
+    for col, (unit, mult) in units.items():
+        if unit == "s" and col in cols and mult:
+            return np.asarray(cols[col], dtype=float) * mult
+    for col, scale in TIME_COLUMNS:
+        if col in cols:
+            return np.asarray(cols[col], dtype=float) * scale
+    return None
+
+
+def _si(
+    name: str,
+    cols: dict[str, np.ndarray],
+    units: dict[str, tuple[str, float | None]],
+    names: tuple[str, ...],
+    unit: str,
+    scale: float,
+    source: str,
+) -> np.ndarray:
+    """(N, 3) columns ``names`` in the unit ``scale`` × SI: the FMTU multiplier when the log
+    declares one (the unit id must be ``unit``), else the historical unit (scale 1)."""
+    v = np.column_stack([np.asarray(cols[n], dtype=float) for n in names])
+    declared = units.get(names[0])
+    if declared is None or declared[0] in ("-", "?", "\0", ""):
+        return v
+    uid, mult = declared
+    if uid != unit:
+        raise LogImportError(
+            f"{name}: its FMTU gives {source} {names[0]} the unit {uid!r}, not {unit!r} as "
+            "ArduPilot has always logged it; the log is of an unknown kind"
+        )
+    if mult is None or mult == 0:
+        return v  # '-' or '?': no multiplier
+    return v * (mult / scale)
+
+
+def _placed(offsets: np.ndarray, ref_offsets: np.ndarray, ref_t: np.ndarray) -> np.ndarray:
+    """Times for untimed messages: that of the last timed message before each in the file
+    (the first one's for those before any)."""
+    i = np.searchsorted(ref_offsets, offsets, side="right") - 1
+    return ref_t[np.clip(i, 0, ref_t.size - 1)]
+
+
+class _Clock:
+    """Times of the log's messages, untimed ones placed by their position in the file."""
+
+    def __init__(self, units: dict[str, dict[str, tuple[str, float | None]]]) -> None:
+        self.units = units
+        self.ref_offsets = np.zeros(0, dtype=np.int64)
+        self.ref_t = np.zeros(0)
+
+    def reference(self, cols: dict[str, np.ndarray], name: str) -> None:
+        """Use the timed message ``name`` (the IMU: the most frequent) to place the others."""
+        t = _time_column(cols, self.units.get(name, {}))
+        if t is not None and t.size and self.ref_t.size == 0:
+            self.ref_offsets, self.ref_t = cols["OFFSET"], t
+
+    def times(self, cols: dict[str, np.ndarray], name: str) -> np.ndarray:
+        t = _time_column(cols, self.units.get(name, {}))
+        if t is not None:
+            return t
+        if self.ref_t.size == 0:
+            return np.zeros(cols["OFFSET"].size)
+        return _placed(cols["OFFSET"], self.ref_offsets, self.ref_t)
+
+
+def _instances(df: _Index, base: str) -> dict[int, tuple[str, dict[str, np.ndarray]]]:
+    """1-based instance → (message name, columns), from ``base`` with an ``I`` column
+    (ArduPilot 4.0 on) or BASE, BASE2, BASE3 (before)."""
+    out: dict[int, tuple[str, dict[str, np.ndarray]]] = {}
     cols = _decode(df, base)
     if cols is not None and "I" in cols:
         for i in np.unique(cols["I"]):
             sel = cols["I"] == i
-            out[int(i) + 1] = {k: v[sel] for k, v in cols.items()}
+            out[int(i) + 1] = (base, {k: v[sel] for k, v in cols.items()})
         return out
     if cols is not None:
-        out[1] = cols
+        out[1] = (base, cols)
     for k in (2, 3):
         more = _decode(df, f"{base}{k}")
         if more is not None:
-            out[k] = more
+            out[k] = (f"{base}{k}", more)
     return out
 
 
-def _vec(cols: dict[str, np.ndarray], *names: str) -> np.ndarray:
-    return np.column_stack([np.asarray(cols[n], dtype=float) for n in names])
-
-
-def _params(df: _Index) -> ParamTimeline | None:
+def _params(df: _Index, clock: _Clock) -> ParamTimeline | None:
+    """PARM records; without a time column (before 2015) each is placed at the time of the
+    IMU message before it in the file."""
     cols = _decode(df, "PARM")
     if cols is None:
         return None
-    names = [bytes(n).split(b"\0", 1)[0].decode("ascii", "replace") for n in cols["Name"]]
-    t = np.asarray(cols["TimeUS"], dtype=float) * 1e-6
+    names = _text(cols["Name"])
+    t = clock.times(cols, "PARM")
     values = np.asarray(cols["Value"], dtype=float)
     return ParamTimeline.from_records(list(zip(t.tolist(), names, values.tolist(), strict=True)))
 
 
-def _armed(df: _Index) -> StepSignal | None:
+def _armed(df: _Index, clock: _Clock) -> StepSignal | None:
     arm = _decode(df, "ARM")
     if arm is not None and "ArmState" in arm:
-        t = np.asarray(arm["TimeUS"], dtype=float) * 1e-6
+        t = clock.times(arm, "ARM")
         state = (np.asarray(arm["ArmState"]) != 0).astype(float)
         return StepSignal(t, state, before=1.0 - state[0])
     ev = _decode(df, "EV")
     if ev is not None and "Id" in ev:
         sel = np.isin(ev["Id"], (EV_ARMED, EV_DISARMED))
         if sel.any():
-            t = np.asarray(ev["TimeUS"][sel], dtype=float) * 1e-6
+            t = clock.times(ev, "EV")[sel]
             state = (ev["Id"][sel] == EV_ARMED).astype(float)
             return StepSignal(t, state, before=1.0 - state[0])
     return None
 
 
-def _mag_sample_times(cols: dict[str, np.ndarray]) -> np.ndarray:
-    """µs time of each MAG sample: S (publish time, uint32 µs) unwrapped against TimeUS when
-    it is plausible, else TimeUS."""
-    time_us = np.asarray(cols["TimeUS"], dtype=np.int64)
+def _mag_sample_times(cols: dict[str, np.ndarray], t_log: np.ndarray) -> np.ndarray:
+    """s: time of each MAG sample: S (publish time, uint32 µs) unwrapped against the log
+    time when it is plausible, else the log time (and always for logs without S)."""
     if "S" not in cols:
-        return time_us
+        return t_log
+    time_us = np.round(t_log * 1e6).astype(np.int64)
     s = np.asarray(cols["S"], dtype=np.int64)
     lag = (time_us - s) % (1 << 32)
     ok = (s != 0) & (lag <= MAX_PUBLISH_LAG_US)
-    return np.where(ok, time_us - lag, time_us)
+    return np.where(ok, time_us - lag, time_us) * 1e-6
+
+
+def _pauses(df: _Index, clock: _Clock, t_imu: np.ndarray) -> tuple[tuple[float, float, str], ...]:
+    """Where the IMU is missing for long and no other timed message was logged either:
+    logging stopped (ArduPilot pauses its log while disarmed unless LOG_DISARMED is set)."""
+    dt = np.diff(t_imu)
+    if dt.size == 0:
+        return ()
+    long = np.flatnonzero(dt > max(PAUSE_MIN_S, 10.0 * float(np.median(dt))))
+    if long.size == 0:
+        return ()
+    others = []
+    for name in ("GPS", "BARO", "ATT", "CTUN", "NTUN", "CURR", "RCIN", "PM"):
+        cols = _decode(df, name)
+        if cols is not None:
+            t = _time_column(cols, clock.units.get(name, {}))
+            if t is not None:
+                others.append(t)
+    seen = np.sort(np.concatenate(others)) if others else np.zeros(0)
+    out = []
+    for g in long:
+        a, b = float(t_imu[g]), float(t_imu[g + 1])
+        inside = np.searchsorted(seen, b, "left") - np.searchsorted(seen, a, "right")
+        if inside == 0:
+            out.append((a, b, PAUSE_CAUSE))
+    return tuple(out)
+
+
+def _open(path: str, progress: Progress | None) -> tuple[_Index, int]:
+    """DFReader's index of the file, and how many of its bytes are not DataFlash messages
+    (what its C indexer prints about them is held back)."""
+    with quiet_native_output() as native:
+
+        def indexed(pct: float) -> None:
+            if progress is not None:
+                progress(min(1.0, pct / 100.0))
+
+        try:
+            df = _Index(path, progress_callback=native.through(indexed))
+        except OSError:
+            raise  # the CLI reports file-system errors with the path
+        except Exception as exc:  # DFReader raises bare Exception on unknown formats
+            raise LogImportError(
+                f"{os.path.basename(path)}: not a readable DataFlash log ({exc}); is it an "
+                "ArduPilot .bin file?"
+            ) from exc
+    covered = sum(
+        len(offsets) * df.formats[t].len
+        for t, offsets in enumerate(df.offsets)
+        if offsets and t in df.formats
+    )
+    return df, max(0, df.data_len - covered)
 
 
 def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = None) -> LogStreams:
-    """Read an ArduPilot DataFlash ``.bin`` log.
+    """Read an ArduPilot DataFlash ``.bin`` log, of any ArduPilot version (see the module
+    docstring).
 
-    compass, imu : 1-based instance numbers (MAG ``I`` + 1, IMU ``I`` + 1)
+    compass, imu : 1-based instance numbers (MAG ``I`` + 1 or MAG, MAG2, MAG3; IMU likewise)
     progress     : called with the fraction of the file indexed (0–1)
     """
     name = os.path.basename(path)
-
-    def indexed(pct: float) -> None:
-        if progress is not None:
-            progress(min(1.0, pct / 100.0))
-
+    df, skipped = _open(path, progress)
     try:
-        df = _Index(path, progress_callback=indexed)
-    except OSError:
-        raise  # the CLI reports file-system errors with the path
-    except Exception as exc:  # DFReader raises bare Exception on unknown formats
-        raise LogImportError(
-            f"{name}: not a readable DataFlash log ({exc}); is it an ArduPilot .bin file?"
-        ) from exc
-    try:
-        if not df.name_to_id:
-            raise LogImportError(f"{name}: no DataFlash messages found; is it an ArduPilot .bin?")
+        size = max(1, df.data_len)
+        if not df.name_to_id or skipped > BAD_FRACTION * size:
+            raise LogImportError(
+                f"{name}: not a DataFlash log: {100 * skipped / size:.0f} % of its bytes are not "
+                "DataFlash messages (an ArduPilot .bin starts with FMT messages and holds "
+                "nothing else)"
+            )
+        clock = _Clock(_units(df))
         imus = _instances(df, "IMU")
         mags = _instances(df, "MAG")
-        params = _params(df)
-        armed = _armed(df)
+        if imus:
+            ref_name, ref = imus[min(imus)]
+            clock.reference(ref, ref_name)
+        params = _params(df, clock)
+        armed = _armed(df, clock)
+        t_imu_all = clock.times(imus[imu][1], imus[imu][0]) if imu in imus else np.zeros(0)
+        pauses = _pauses(df, clock, np.sort(t_imu_all))
     finally:
         df.close()
 
@@ -218,45 +418,64 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     if missing:
         raise LogImportError(f"{name} has {' and '.join(missing)}; {NEEDS}")
     assert params is not None
-
-    icol = imus[imu]
-    t_imu, gyr, acc = strictly_increasing(
-        np.asarray(icol["TimeUS"], dtype=float) * 1e-6,
-        _vec(icol, "GyrX", "GyrY", "GyrZ"),
-        _vec(icol, "AccX", "AccY", "AccZ"),
-    )
-    imu_stream = ImuStream(t_imu, gyr, acc, imu, f"IMU[{imu - 1}]")
-
-    mcol = mags[compass]
-    keep = np.ones(mcol["TimeUS"].shape[0], dtype=bool)
+    units = clock.units
     notes = []
+    if skipped > TRAILER_BYTES:
+        notes.append(f"{skipped} byte(s) of the log that are not DataFlash messages were skipped")
+
+    imu_name, icol = imus[imu]
+    u = units.get(imu_name, {})
+    t_imu, gyr, acc = strictly_increasing(
+        t_imu_all,
+        _si(name, icol, u, ("GyrX", "GyrY", "GyrZ"), "E", 1.0, imu_name),
+        _si(name, icol, u, ("AccX", "AccY", "AccZ"), "o", 1.0, imu_name),
+    )
+    imu_stream = ImuStream(t_imu, gyr, acc, imu, f"IMU[{imu - 1}]" if "I" in icol else imu_name)
+
+    mag_name, mcol = mags[compass]
+    u = units.get(mag_name, {})
+    keep = np.ones(mcol["MagX"].shape[0], dtype=bool)
     if "Health" in mcol:
         unhealthy = mcol["Health"] == 0
         keep &= ~unhealthy
+        if unhealthy.all():
+            raise LogImportError(
+                f"{name}: all {unhealthy.size} {mag_name} samples of compass {compass} are marked "
+                "unhealthy (Health = 0: the autopilot was not reading that compass)"
+                + (
+                    f"; choose another with --compass (found compasses {instances_text(mags)})"
+                    if len(mags) > 1
+                    else "; the log has no other compass"
+                )
+            )
         if unhealthy.any():
             notes.append(f"{int(unhealthy.sum())} MAG sample(s) marked unhealthy were dropped")
-    t_us = _mag_sample_times(mcol)
-    field = untruncate(_vec(mcol, "MagX", "MagY", "MagZ"))
+    t_mag = _mag_sample_times(mcol, clock.times(mcol, mag_name))
+    field = untruncate(_si(name, mcol, u, ("MagX", "MagY", "MagZ"), "G", 1e-3, mag_name))
     motor = None
     for names in (("MOX", "MOY", "MOZ"), ("MOfsX", "MOfsY", "MOfsZ")):
         if all(n in mcol for n in names):
-            motor = untruncate(_vec(mcol, *names))
-    offsets = _vec(mcol, "OfsX", "OfsY", "OfsZ") if "OfsX" in mcol else None
+            motor = untruncate(_si(name, mcol, u, names, "G", 1e-3, mag_name))
+    offsets = None
+    if "OfsX" in mcol:
+        offsets = _si(name, mcol, u, ("OfsX", "OfsY", "OfsZ"), "G", 1e-3, mag_name)
     # The field of one sensor reading is logged at every compass read until the next
     # arrives: the same S twice is the same sample.
     arrays = [field] + [a for a in (motor, offsets) if a is not None]
-    t_mag, *arrays = strictly_increasing(t_us[keep] * 1e-6, *(a[keep] for a in arrays))
+    t_mag, *arrays = strictly_increasing(t_mag[keep], *(a[keep] for a in arrays))
     field = arrays.pop(0)
     motor = arrays.pop(0) if motor is not None else None
     offsets = arrays.pop(0) if offsets is not None else None
-    undone = undo_ardupilot(name, t_mag, field, params, compass, motor, offsets)
+    undone = undo_ardupilot(
+        name, t_mag, field, params, compass, motor, offsets, params_complete=True
+    )
     mag_stream = MagStream(
         t=t_mag[undone.keep],
         mag=undone.mag,
         instance=compass,
         unit=vehicle.MAG_UNIT[vehicle.ARDUPILOT],
         frame=ardupilot_frame(motor is not None),
-        source=f"MAG[{compass - 1}]",
+        source=mag_name if "I" not in mcol else f"MAG[{compass - 1}]",
         suspect=undone.suspect,
         suspect_reason=undone.suspect_reason,
     )
@@ -272,4 +491,6 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         naming=undone.naming,
         armed=armed,
         notes=tuple(notes) + undone.notes,
+        known_gaps=pauses,
+        meta=undone.meta,
     )

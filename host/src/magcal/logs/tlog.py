@@ -2,8 +2,9 @@
 
 A tlog is a sequence of MAVLink frames, each after the 8-byte big-endian µs (Unix) time the
 ground station received it; pymavlink reads it (``mavutil.mavlink_connection`` on the
-file). The vehicle is the first HEARTBEAT that is not a ground station's (``autopilot`` not
-MAV_AUTOPILOT_INVALID, ``type`` not MAV_TYPE_GCS); only its messages are read, and its
+file). The vehicle is the source whose HEARTBEAT is not a ground station's (``autopilot`` not
+MAV_AUTOPILOT_INVALID, ``type`` not MAV_TYPE_GCS), the one with the most IMU messages if
+several; all its messages are read, wherever they are in the file, and its HEARTBEAT's
 ``autopilot`` field says which personality applies. Sample times are the vehicle's own
 (``time_usec`` / ``time_boot_ms``, since boot), not the reception times, which carry the
 link's latency; events that have no vehicle time (PARAM_VALUE, HEARTBEAT, VFR_HUD) are placed
@@ -66,8 +67,8 @@ MAV_MODE_FLAG_SAFETY_ARMED = 128
 #: HIGHRES_IMU fields_updated: bits 0–2 acceleration, 3–5 rate.
 HIGHRES_ACC_GYRO = 0x3F
 IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
-#: The vehicle's boot clock going back by more than this means it rebooted, s.
-REBOOT_JUMP_S = 1.0
+#: Link latency allowed when telling a reboot from a delayed message, s.
+LINK_LATENCY_S = 1.0
 #: Progress is reported every this many messages.
 PROGRESS_EVERY = 2000
 #: MAV_PARAM_TYPE → struct code of the bytes in PARAM_VALUE's float (bytewise encoding).
@@ -95,19 +96,25 @@ def _param_value(m, autopilot: int) -> float:
     return float(m.param_value)
 
 
-def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str, list]]:
-    """(autopilot, type → [(reception s, message)]) of the vehicle's messages."""
+def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str, list], str]:
+    """(autopilot, type → [(reception s, message)], parameter note) of the vehicle's
+    messages, whatever order they arrived in.
+
+    The vehicle is the source (system, component) whose HEARTBEAT is not a ground station's
+    and not MAV_AUTOPILOT_INVALID (a camera, a gimbal); of several, the one that sent the
+    most IMU messages. Its messages are kept from the start of the file, also those
+    before its first HEARTBEAT (a ground station may fetch the parameters first)."""
     name = os.path.basename(path)
     wanted = ["HEARTBEAT", "PARAM_VALUE", "VFR_HUD", "HIGHRES_IMU", *IMU_MESSAGES]
     try:
-        conn = mavutil.mavlink_connection(path, notimestamps=False, robust_parsing=True)
+        # mavlogfile, not mavlink_connection: that one chooses the reader by the file's
+        # suffix, and the format was recognised from the content
+        conn = mavutil.mavlogfile(path, notimestamps=False, robust_parsing=True)
     except OSError:
         raise
     except Exception as exc:
         raise LogImportError(f"{name}: not a readable MAVLink telemetry log ({exc})") from exc
-    vehicle: tuple[int, int] | None = None
-    autopilot = MAV_AUTOPILOT_INVALID
-    seen: dict[str, list] = {k: [] for k in wanted}
+    by_source: dict[tuple[int, int], dict[str, list]] = {}
     count = 0
     try:
         while True:
@@ -118,28 +125,48 @@ def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str,
             if progress is not None and count % PROGRESS_EVERY == 0:
                 progress(conn.percent / 100.0)
             src = (m.get_srcSystem(), m.get_srcComponent())
-            if vehicle is None:
-                if (
-                    m.get_type() == "HEARTBEAT"
-                    and m.autopilot != MAV_AUTOPILOT_INVALID
-                    and m.type != MAV_TYPE_GCS
-                ):
-                    vehicle, autopilot = src, m.autopilot
-                else:
-                    continue  # nothing is known to be the vehicle's before its heartbeat
-            if src != vehicle:
-                continue
-            seen[m.get_type()].append((m._timestamp, m))
+            mine = by_source.setdefault(src, {k: [] for k in wanted})
+            mine[m.get_type()].append((m._timestamp, m))
     finally:
         conn.close()
     if progress is not None:
         progress(1.0)
-    if vehicle is None:
+    vehicles = [
+        (sum(len(seen[k]) for k in ("HIGHRES_IMU", *IMU_MESSAGES)), src)
+        for src, seen in by_source.items()
+        if any(
+            m.autopilot != MAV_AUTOPILOT_INVALID and m.type != MAV_TYPE_GCS
+            for _, m in seen["HEARTBEAT"]
+        )
+    ]
+    if not vehicles:
         raise LogImportError(
             f"{name} has no HEARTBEAT from a vehicle (only ground stations, or no MAVLink at "
             "all); it cannot say which autopilot recorded the data"
         )
-    return autopilot, seen
+    src = max(vehicles)[1]
+    seen = by_source[src]
+    autopilot = next(
+        m.autopilot
+        for _, m in seen["HEARTBEAT"]
+        if m.autopilot != MAV_AUTOPILOT_INVALID and m.type != MAV_TYPE_GCS
+    )
+    return autopilot, seen, _params_note(seen["PARAM_VALUE"])
+
+
+def _params_note(samples: list) -> str:
+    """ "" when every parameter the vehicle has arrived (each PARAM_VALUE index of
+    0 … param_count − 1), else what is missing, for an error."""
+    if not samples:
+        return "the ground station never fetched the parameters while recording"
+    total = max(int(m.param_count) for _, m in samples)
+    got = {int(m.param_index) for _, m in samples if 0 <= m.param_index < total}
+    if len(got) >= total:
+        return ""
+    return (
+        f"the ground station received {len(got)} of the vehicle's {total} parameters while "
+        "recording; fetch them all (refresh the parameter list) while the log records"
+    )
 
 
 def _clock_offset(seen: dict[str, list]) -> float:
@@ -148,40 +175,64 @@ def _clock_offset(seen: dict[str, list]) -> float:
     return float(np.median(d)) if d else 0.0
 
 
-def _check_no_reboot(name: str, samples: list) -> None:
+def _in_order(name: str, samples: list) -> tuple[list, int]:
+    """The samples whose vehicle time is later than every one before (a message delayed on
+    the link, or a small clock step, goes back in time: it is dropped) and how many were
+    dropped. A reboot, where the vehicle's clock restarted, is refused: the evidence is a
+    clock after the step that is no later than the reception time that passed since the
+    message before (plus :data:`LINK_LATENCY_S`)."""
     boot = np.array([_boot_time_s(m) for _, m in samples])
-    back = np.flatnonzero(np.diff(boot) < -REBOOT_JUMP_S)
-    if back.size:
-        k = int(back[0]) + 1
-        raise LogImportError(
-            f"{name}: the vehicle's clock goes back from {boot[k - 1]:.1f} to {boot[k]:.1f} s "
-            "(it rebooted during the recording); split the log at the reboot"
-        )
+    rx = np.array([r for r, _ in samples])
+    back = np.flatnonzero(np.diff(boot) < 0) + 1
+    for k in back:
+        if boot[k] <= rx[k] - rx[k - 1] + LINK_LATENCY_S:
+            raise LogImportError(
+                f"{name}: the vehicle rebooted during the recording (its clock restarted at "
+                f"{boot[k]:.1f} s after {boot[k - 1]:.1f} s, {rx[k] - rx[k - 1]:.1f} s of "
+                "reception time later); split the log at the reboot"
+            )
+    latest = np.maximum.accumulate(boot)
+    keep = np.concatenate([[True], boot[1:] > latest[:-1]]) if boot.size else np.zeros(0, bool)
+    return [x for x, k in zip(samples, keep, strict=True) if k], int((~keep).sum())
 
 
-def _imu_from_scaled(name: str, msg_type: str, samples: list, instance: int) -> ImuStream:
-    _check_no_reboot(name, samples)
+def _order_note(count: int, msg_type: str) -> tuple[str, ...]:
+    if not count:
+        return ()
+    return (
+        f"{count} {msg_type} message(s) carried a vehicle time earlier than one received "
+        "before them (delayed on the link, or a clock step) and were dropped",
+    )
+
+
+def _imu_from_scaled(
+    name: str, msg_type: str, samples: list, instance: int
+) -> tuple[ImuStream, tuple[str, ...]]:
+    samples, late = _in_order(name, samples)
     t = np.array([_boot_time_s(m) for _, m in samples])
     acc = vehicle.acc_mg_to_si(untruncate([(m.xacc, m.yacc, m.zacc) for _, m in samples]))
     gyr = vehicle.gyro_mrad_to_si(untruncate([(m.xgyro, m.ygyro, m.zgyro) for _, m in samples]))
     t, gyr, acc = strictly_increasing(t, gyr, acc)
-    return ImuStream(t, gyr, acc, instance, msg_type)
+    return ImuStream(t, gyr, acc, instance, msg_type), _order_note(late, msg_type)
 
 
-def _imu_from_highres(name: str, samples: list, instance: int) -> ImuStream | None:
+def _imu_from_highres(
+    name: str, samples: list, instance: int
+) -> tuple[ImuStream | None, tuple[str, ...]]:
     mine = [(rx, m) for rx, m in samples if getattr(m, "id", 0) == instance - 1]
     if any(m.fields_updated for _, m in mine):
         mine = [
             (rx, m) for rx, m in mine if m.fields_updated & HIGHRES_ACC_GYRO == HIGHRES_ACC_GYRO
         ]
     if not mine:
-        return None
-    _check_no_reboot(name, mine)
+        return None, ()
+    mine, late = _in_order(name, mine)
     t = np.array([m.time_usec * 1e-6 for _, m in mine])
     acc = np.array([(m.xacc, m.yacc, m.zacc) for _, m in mine], float)
     gyr = np.array([(m.xgyro, m.ygyro, m.zgyro) for _, m in mine], float)
     t, gyr, acc = strictly_increasing(t, gyr, acc)
-    return ImuStream(t, gyr, acc, instance, f"HIGHRES_IMU id {instance - 1}")
+    stream = ImuStream(t, gyr, acc, instance, f"HIGHRES_IMU id {instance - 1}")
+    return stream, _order_note(late, "HIGHRES_IMU")
 
 
 def _imu_message(instance: int) -> str:
@@ -211,7 +262,7 @@ def _stale_note(count: int, msg_type: str) -> tuple[str, ...]:
 def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = None) -> LogStreams:
     """Read a MAVLink ``.tlog``; compass and imu are 1-based (see the module docstring)."""
     name = os.path.basename(path)
-    autopilot, seen = _read_messages(path, progress)
+    autopilot, seen, params_note = _read_messages(path, progress)
     offset = _clock_offset(seen)
     records = [
         (rx - offset, m.param_id, _param_value(m, autopilot)) for rx, m in seen["PARAM_VALUE"]
@@ -219,7 +270,7 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     params = ParamTimeline.from_records(records)
     armed, throttle = _armed_throttle(seen, offset)
     if autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
-        return _ardupilot(path, name, seen, params, compass, imu, armed, throttle)
+        return _ardupilot(path, name, seen, params, params_note, compass, imu, armed, throttle)
     if autopilot == MAV_AUTOPILOT_PX4:
         return _px4(path, name, seen, params, compass, imu, armed, throttle)
     raise LogImportError(
@@ -243,7 +294,7 @@ def _armed_throttle(seen: dict[str, list], offset: float) -> tuple[StepSignal | 
     return armed, throttle
 
 
-def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
+def _ardupilot(path, name, seen, params, params_note, compass, imu, armed, throttle) -> LogStreams:
     imu_type, mag_type = _imu_message(imu), _imu_message(compass)
     have_imu = [i for i in (1, 2, 3) if seen[_imu_message(i)]]
     have_mag = [i for i in (1, 2, 3) if _mag_samples(seen, _imu_message(i))]
@@ -261,14 +312,21 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
         missing.append("no PARAM_VALUE messages (the ground station never fetched parameters)")
     if missing:
         raise LogImportError(f"{name} (ArduPilot) has {' and '.join(missing)}; {NEEDS_AP}")
-    imu_stream = _imu_from_scaled(name, imu_type, seen[imu_type], imu)
-    samples = _mag_samples(seen, mag_type)
-    _check_no_reboot(name, samples)
+    imu_stream, imu_notes = _imu_from_scaled(name, imu_type, seen[imu_type], imu)
+    samples, late = _in_order(name, _mag_samples(seen, mag_type))
     t = np.array([_boot_time_s(m) for _, m in samples])
     t, field = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
     t, field, stale = _fresh(t, field)
     field = untruncate(field)
-    undone = undo_ardupilot(name, t, field, params, compass)
+    undone = undo_ardupilot(
+        name,
+        t,
+        field,
+        params,
+        compass,
+        params_complete=not params_note,
+        params_note=params_note,
+    )
     mag_stream = MagStream(
         t=t[undone.keep],
         mag=undone.mag,
@@ -289,16 +347,24 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
         naming=undone.naming,
         armed=armed,
         throttle=throttle,
-        notes=_stale_note(stale, mag_type) + undone.notes,
+        notes=tuple(
+            dict.fromkeys(
+                imu_notes
+                + _order_note(late, mag_type)
+                + _stale_note(stale, mag_type)
+                + undone.notes
+            )
+        ),
+        meta=undone.meta,
     )
 
 
 def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
     mag_type = ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")[compass - 1] if compass <= 3 else ""
-    imu_stream = _imu_from_highres(name, seen["HIGHRES_IMU"], imu)
+    imu_stream, imu_notes = _imu_from_highres(name, seen["HIGHRES_IMU"], imu)
     scaled = ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
     if imu_stream is None and imu <= 3 and seen[scaled[imu - 1]]:
-        imu_stream = _imu_from_scaled(name, scaled[imu - 1], seen[scaled[imu - 1]], imu)
+        imu_stream, imu_notes = _imu_from_scaled(name, scaled[imu - 1], seen[scaled[imu - 1]], imu)
     have_mag = [i for i, k in enumerate(scaled, 1) if _mag_samples(seen, k)]
     missing = []
     if imu_stream is None:
@@ -315,8 +381,7 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
     if missing:
         raise LogImportError(f"{name} (PX4) has {' and '.join(missing)}; {NEEDS_PX4}")
     assert imu_stream is not None
-    samples = _mag_samples(seen, mag_type)
-    _check_no_reboot(name, samples)
+    samples, late = _in_order(name, _mag_samples(seen, mag_type))
     t = np.array([_boot_time_s(m) for _, m in samples])
     t, wire = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
     t, wire, stale = _fresh(t, wire)
@@ -340,5 +405,7 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
         param_compass=compass - 1,
         armed=armed,
         throttle=throttle,
-        notes=_stale_note(stale, mag_type),
+        notes=tuple(
+            dict.fromkeys(imu_notes + _order_note(late, mag_type) + _stale_note(stale, mag_type))
+        ),
     )

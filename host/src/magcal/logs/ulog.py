@@ -12,11 +12,19 @@ Topics (PX4 ``msg/*.msg``, read with the code search tool):
   logged.
 - ``sensor_mag`` (SensorMag.msg): ``x, y, z`` "magnetic field in the FRD board frame … in
   Gauss", uncalibrated, one instance per magnetometer, at ``timestamp_sample`` (newer PX4)
-  or ``timestamp``. Used when present: it is the raw field.
+  or ``timestamp``: the raw field.
 - ``vehicle_magnetometer`` (VehicleMagnetometer.msg): ``magnetometer_ga[3]``, the
-  *calibrated* field in the body frame, with the ``device_id`` of its sensor. Without
-  sensor_mag, its calibration ``CAL_MAGn_*`` (n: the ``CAL_MAGn_ID`` equal to that device id)
-  is undone with the parameters in force (:func:`magcal.logs.correction.undo_px4`).
+  *calibrated* field in the body frame, with (newer PX4) the ``device_id`` of its sensor.
+- ``sensor_combined.magnetometer_ga[3]`` (PX4 before 1.7, at ``timestamp +
+  magnetometer_timestamp_relative``): the calibrated field of the primary magnetometer.
+
+**Which source.** Loggers often record the raw sensor_mag slowly (1 Hz) and the calibrated
+field at the sensor's rate: the source with the most samples per second is used, the raw one
+when it has at least :data:`RAW_RATE_SHARE` of the best rate. A calibrated field has its
+calibration ``CAL_MAGn_*`` undone with the parameters in force
+(:func:`magcal.logs.correction.undo_px4`); n is the ``CAL_MAGn_ID`` equal to its device id,
+or where the topic names none, the slot whose undone field agrees with the raw sensor_mag
+samples logged beside it (content), or the only calibrated slot.
 - ``actuator_armed.armed`` or ``vehicle_status.arming_state`` (2 = armed): the armed state.
 
 Parameters: the file's initial parameters, then its parameter changes (pyulog's
@@ -56,7 +64,17 @@ TOPICS = [
 ]
 RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
 ARMING_STATE_ARMED = 2
-NEEDS = "needs sensor_combined, and sensor_mag or vehicle_magnetometer"
+NEEDS = (
+    "needs sensor_combined, and sensor_mag, vehicle_magnetometer or a magnetometer in "
+    "sensor_combined"
+)
+#: The raw sensor_mag is used when its rate is at least this share of the best source's.
+RAW_RATE_SHARE = 0.5
+#: Matching a calibrated source to raw samples: time apart, s, and median distance, gauss.
+MATCH_DT_S = 0.05
+MATCH_GAUSS = 0.02
+#: The first PX4 release whose sensor_mag is the raw field (see _sensor_mag_is_raw).
+SENSOR_MAG_RAW_FROM = (1, 12)
 
 
 class _ProgressFile(io.RawIOBase):
@@ -177,8 +195,6 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
 
     combined = _datasets(ulog, "sensor_combined")
     vimu = _datasets(ulog, "vehicle_imu")
-    raw = _datasets(ulog, "sensor_mag")
-    calibrated = _datasets(ulog, "vehicle_magnetometer")
     params = _params(ulog)
     missing = []
     imu_stream = None
@@ -190,21 +206,14 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         found = ([1] if combined else []) + [i + 1 for i in vimu if i + 1 > 1]
         where = "sensor_combined" if imu == 1 else f"vehicle_imu instance {imu - 1}"
         missing.append(f"no {where} for IMU {imu} (found IMUs {instances_text(found)})")
-    mag_stream, notes = None, ()
-    if compass - 1 in raw:
-        mag_stream = _raw_mag(raw[compass - 1], compass)
-    elif compass - 1 in calibrated:
-        mag_stream, notes = _undone_mag(name, calibrated[compass - 1], compass, params)
-    else:
-        found = sorted({i + 1 for i in raw} | {i + 1 for i in calibrated})
-        missing.append(
-            f"no sensor_mag or vehicle_magnetometer for compass {compass} (found compasses "
-            f"{instances_text(found)})"
-        )
+    mag_stream, notes, index = None, (), compass - 1
+    try:
+        mag_stream, notes, index = _choose_mag(name, ulog, params, compass)
+    except _NoMag as exc:
+        missing.append(str(exc))
     if missing:
         raise LogImportError(f"{name} has {' and '.join(missing)}; {NEEDS}")
     assert imu_stream is not None and mag_stream is not None
-    index = _calibration_slot(params, raw.get(compass - 1), compass)
     return LogStreams(
         path=path,
         log_format="ULog",
@@ -216,16 +225,9 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         param_compass=index,
         armed=_armed(ulog),
         notes=notes,
+        known_gaps=_dropouts(ulog),
+        gap_cause="nothing was logged",
     )
-
-
-def _calibration_slot(params: ParamTimeline, data, compass: int) -> int:
-    """CAL_MAGn index of the compass: by device id when known, else compass − 1."""
-    if data is not None and "device_id" in data and len(data["device_id"]):
-        n = px4_calibration_index(params.initial, int(data["device_id"][0]))
-        if n is not None:
-            return n
-    return compass - 1
 
 
 def _raw_mag(data: dict[str, np.ndarray], compass: int) -> MagStream:
@@ -242,27 +244,218 @@ def _raw_mag(data: dict[str, np.ndarray], compass: int) -> MagStream:
     )
 
 
-def _undone_mag(
-    name: str, data: dict[str, np.ndarray], compass: int, params: ParamTimeline
-) -> tuple[MagStream, tuple[str, ...]]:
-    device = int(data["device_id"][0]) if "device_id" in data else None
-    index = px4_calibration_index(params.initial, device) if device is not None else None
-    if index is None:
-        raise LogImportError(
-            f"{name}: vehicle_magnetometer instance {compass - 1} (device id {device}) matches "
-            "no CAL_MAGn_ID parameter, so its calibration cannot be undone; log the raw "
-            "sensor_mag topic instead"
+class _NoMag(Exception):
+    """No magnetometer source for the compass asked for (text: what was found)."""
+
+
+def _rate_hz(t: np.ndarray) -> float:
+    return (t.size - 1) / (t[-1] - t[0]) if t.size > 1 and t[-1] > t[0] else 0.0
+
+
+def _calibrated(
+    data: dict[str, np.ndarray], field: str, stamp_relative: str | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(t s, field gauss) of a calibrated field, sorted, repeats dropped."""
+    stamp = np.asarray(data.get("timestamp_sample", data["timestamp"]), dtype=np.int64)
+    valid = np.ones(stamp.size, dtype=bool)
+    if stamp_relative and stamp_relative in data:
+        rel = np.asarray(data[stamp_relative], dtype=np.int64)
+        valid = rel != RELATIVE_TIMESTAMP_INVALID
+        stamp = stamp + np.where(valid, rel, 0)
+    v = _vec(data, field)
+    valid &= np.all(np.isfinite(v), axis=1)
+    t, v = strictly_increasing(stamp[valid] * 1e-6, v[valid])
+    # sensor_combined repeats the last magnetometer sample until a new one arrives
+    fresh = np.concatenate([[True], np.any(v[1:] != v[:-1], axis=1)]) if t.size else t > 0
+    return t[fresh], v[fresh]
+
+
+def _slots(params: ParamTimeline) -> list[int]:
+    """CAL_MAGn slots that hold a magnetometer (CAL_MAGn_ID ≠ 0)."""
+    return [n for n in range(8) if params.initial.get(f"CAL_MAG{n}_ID", 0) not in (0, None)]
+
+
+def _version(ulog) -> tuple[int, int] | None:
+    """(major, minor) of the PX4 release that wrote the log (ULog info ver_sw_release,
+    0xAABBCCTT), or None when the log does not say."""
+    v = ulog.msg_info_dict.get("ver_sw_release")
+    if not isinstance(v, int) or v <= 0:
+        return None
+    return (v >> 24) & 0xFF, (v >> 16) & 0xFF
+
+
+def _sensor_mag_is_raw(ulog) -> bool:
+    """Whether sensor_mag holds the raw field. Before PX4 1.12 the driver
+    (PX4Magnetometer) applied CAL_MAGn's offsets and scales before publishing it, and the
+    sensors module only rotated it: in the logs at hand sensor_mag equals
+    vehicle_magnetometer up to a rotation under 1.11.2, and equals it with CAL_MAGn undone
+    (within 0.01 gauss) under 1.12.3 and later. Unknown versions: raw."""
+    version = _version(ulog)
+    return version is None or version >= SENSOR_MAG_RAW_FROM
+
+
+def _unrotated(params: ParamTimeline, slot: int) -> ParamTimeline:
+    """The parameters with CAL_MAG``slot``'s rotation and the board level adjustment set to
+    none: undoing with them undoes the offsets and scales alone."""
+    fixed = {f"CAL_MAG{slot}_ROT": 0.0} | {f"SENS_BOARD_{a}_OFF": 0.0 for a in "XYZ"}
+    changes = tuple(c for c in params.changes if c[1] not in fixed)
+    return ParamTimeline(params.initial | fixed, changes)
+
+
+def _slot_by_content(
+    t: np.ndarray, field: np.ndarray, params: ParamTimeline, raws: dict, raw_is_raw: bool
+) -> int | None:
+    """The CAL_MAGn slot of a calibrated field that names no device, from the sensor_mag
+    instances logged beside it (at most MATCH_DT_S apart): the one whose field norm agrees
+    within MATCH_GAUSS (norms do not depend on the rotations), with the calibrated field
+    undone by the slot of that instance's device when sensor_mag is raw, as it is."""
+    best = None
+    for data in raws.values():
+        if "device_id" not in data or not len(data["device_id"]):
+            continue
+        n = px4_calibration_index(params.initial, int(data["device_id"][0]))
+        if n is None:
+            continue
+        raw = _raw_mag(data, 1)
+        ours = field
+        if raw_is_raw:
+            try:
+                ours = undo_px4("", t, field, params, n, params_complete=True).mag
+            except LogImportError:
+                continue
+        i = np.clip(np.searchsorted(t, raw.t), 1, max(1, t.size - 1))
+        near = np.where(np.abs(t[i - 1] - raw.t) < np.abs(t[i] - raw.t), i - 1, i)
+        close = np.abs(t[near] - raw.t) <= MATCH_DT_S
+        if close.sum() < 3:
+            continue
+        diff = np.linalg.norm(ours[near[close]], axis=1) - np.linalg.norm(raw.mag[close], axis=1)
+        err = float(np.median(np.abs(diff)))
+        if best is None or err < best[0]:
+            best = (err, n)
+    return best[1] if best is not None and best[0] <= MATCH_GAUSS else None
+
+
+def _choose_mag(
+    name: str, ulog, params: ParamTimeline, compass: int
+) -> tuple[MagStream, tuple[str, ...], int]:
+    """The compass's magnetometer stream, its notes and its CAL_MAGn slot (see the module
+    docstring, "Which source")."""
+    raw_sets = _datasets(ulog, "sensor_mag")
+    vmag_sets = _datasets(ulog, "vehicle_magnetometer")
+    combined = _datasets(ulog, "sensor_combined").get(0)
+    i = compass - 1
+    raw_is_raw = _sensor_mag_is_raw(ulog)
+    raw = _raw_mag(raw_sets[i], compass) if i in raw_sets else None
+    calibrated = []  # (t, field, source, device id or None)
+    if i in vmag_sets:
+        d = vmag_sets[i]
+        t, f = _calibrated(d, "magnetometer_ga", None)
+        dev = int(d["device_id"][0]) if "device_id" in d and len(d["device_id"]) else None
+        calibrated.append((t, f, f"vehicle_magnetometer[{i}]", dev))
+    if compass == 1 and combined is not None and "magnetometer_ga[0]" in combined:
+        t, f = _calibrated(combined, "magnetometer_ga", "magnetometer_timestamp_relative")
+        calibrated.append((t, f, "sensor_combined.magnetometer_ga", None))
+    calibrated = [c for c in calibrated if c[0].size >= 2]
+    if raw is None and not calibrated:
+        found = sorted({k + 1 for k in raw_sets} | {k + 1 for k in vmag_sets})
+        if combined is not None and "magnetometer_ga[0]" in combined:
+            found = sorted(set(found) | {1})
+        raise _NoMag(
+            f"no sensor_mag, vehicle_magnetometer or sensor_combined magnetometer for compass "
+            f"{compass} (found compasses {instances_text(found)})"
         )
-    stamp = data["timestamp_sample"] if "timestamp_sample" in data else data["timestamp"]
-    field = _vec(data, "magnetometer_ga")
-    t, field = strictly_increasing(np.asarray(stamp, dtype=float) * 1e-6, field)
-    undone = undo_px4(name, t, field, params, index)
+    raw_rate = _rate_hz(raw.t) if raw is not None else 0.0
+    best = max(calibrated, key=lambda c: _rate_hz(c[0]), default=None)
+    best_rate = _rate_hz(best[0]) if best is not None else 0.0
+    if raw is not None and raw_rate >= RAW_RATE_SHARE * best_rate:
+        slot = _slot_of_device(params, raw_sets[i], compass)
+        if raw_is_raw:
+            return raw, (), slot
+        return _undone(
+            name,
+            raw.t,
+            raw.mag,
+            _unrotated(params, slot),
+            slot,
+            compass,
+            raw.source,
+            (
+                "PX4 before 1.12 applied CAL_MAGn's offsets and scales in the driver: they "
+                f"were undone on sensor_mag[{i}]",
+            ),
+        )
+    assert best is not None
+    t, field, source, device = best
+    notes: list[str] = []
+    slot = px4_calibration_index(params.initial, device) if device is not None else None
+    if slot is None and raw_sets:
+        slot = _slot_by_content(t, field, params, raw_sets, raw_is_raw)
+        if slot is not None:
+            notes.append(
+                f"{source} names no device; its calibration is CAL_MAG{slot}_* (its field's "
+                "norm agrees with that magnetometer's sensor_mag samples)"
+            )
+    prime = params.initial.get("CAL_MAG_PRIME")
+    if slot is None and prime:
+        slot = px4_calibration_index(params.initial, int(prime))
+        if slot is not None:
+            notes.append(
+                f"{source} names no device; CAL_MAG_PRIME says the primary magnetometer, "
+                f"calibrated by CAL_MAG{slot}_*"
+            )
+    if slot is None and len(_slots(params)) == 1:
+        slot = _slots(params)[0]
+    if slot is None:
+        raise LogImportError(
+            f"{name}: the magnetometer is logged fast only calibrated ({source}, "
+            f"{_rate_hz(t):.0f} Hz), which names no device, and no CAL_MAGn_* set could be "
+            "shown to be its calibration, so it cannot be undone; log sensor_mag at the "
+            "sensor's rate"
+        )
+    if raw is not None:
+        notes.append(
+            f"sensor_mag[{i}] is logged at {raw_rate:.1f} Hz only; {source} "
+            f"({_rate_hz(t):.1f} Hz) was used with CAL_MAG{slot}_* undone"
+        )
+    return _undone(name, t, field, params, slot, compass, source, tuple(notes))
+
+
+def _undone(
+    name: str,
+    t: np.ndarray,
+    field: np.ndarray,
+    params: ParamTimeline,
+    slot: int,
+    compass: int,
+    source: str,
+    notes: tuple[str, ...],
+) -> tuple[MagStream, tuple[str, ...], int]:
+    undone = undo_px4(name, t, field, params, slot, params_complete=True)
     stream = MagStream(
         t=t[undone.keep],
         mag=undone.mag,
         instance=compass,
         unit=vehicle.MAG_UNIT[vehicle.PX4],
-        frame=f"PX4 raw sensor frame: vehicle_magnetometer with CAL_MAG{index}_* undone (Rot0 = I)",
-        source=f"vehicle_magnetometer[{compass - 1}]",
+        frame=f"PX4 raw sensor frame: {source} with CAL_MAG{slot}_* undone (Rot0 = I)",
+        source=source,
     )
-    return stream, undone.notes
+    return stream, notes + undone.notes, slot
+
+
+def _slot_of_device(params: ParamTimeline, data, compass: int) -> int:
+    """CAL_MAGn index of a sensor_mag instance: by device id when known, else compass − 1."""
+    if data is not None and "device_id" in data and len(data["device_id"]):
+        n = px4_calibration_index(params.initial, int(data["device_id"][0]))
+        if n is not None:
+            return n
+    return compass - 1
+
+
+def _dropouts(ulog) -> tuple[tuple[float, float, str], ...]:
+    """The logger's dropouts (ULog 'O' messages: data lost because its buffer was full), as
+    known gaps: from the last data before each, for its duration."""
+    out = []
+    for d in getattr(ulog, "dropouts", []) or []:
+        t0 = d.timestamp * 1e-6
+        out.append((t0, t0 + d.duration * 1e-3, f"the logger dropped {d.duration} ms of data"))
+    return tuple(out)

@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
+from magcal.calib import samples
 from magcal.calib.diagnostics import quality, replay, uncertainty
 from magcal.calib.diagnostics.uncertainty import CalibrationUncertainty
 from magcal.errors import CalibrationError, MagcalError
@@ -127,13 +128,20 @@ def _recorded_norm(result: CalibrationResult) -> dict | None:
     return {"mean": float(values[0]), "std": float(values[1])}
 
 
+def _raw_norm(session: Session) -> dict:
+    """The raw field norm as the calibration records it: over the magnetometer's samples
+    that it used (a multi-rate session's rows without one, and its glitches, left out)."""
+    used, _ = samples.drop_magnetometer_glitches(session)
+    return quality.norm_stats(samples.at_magnetometer_rows(used).mag)
+
+
 def is_fit_session(result: CalibrationResult, session: Session) -> bool | None:
     """Whether ``session`` is the one the result was calibrated from, by the raw field norm
     the result records; None when it records none."""
     recorded = _recorded_norm(result)
     if recorded is None:
         return None
-    got = quality.norm_stats(session.mag)
+    got = _raw_norm(session)
     return all(
         math.isclose(got[k], recorded[k], rel_tol=SAME_SESSION_RTOL, abs_tol=0.0)
         for k in ("mean", "std")
@@ -153,7 +161,7 @@ def check_fit_session(
         )
     if not same:
         recorded = _recorded_norm(result)
-        got = quality.norm_stats(session.mag)
+        got = _raw_norm(session)
         raise ReportError(
             f"the result {result_path} was not calibrated from the session {session_path}: "
             f"the result records a raw field norm of {recorded['mean']:.6g} ± "
@@ -180,7 +188,11 @@ def evaluate_session(
     result: CalibrationResult, session: Session, path: str, label: str
 ) -> SessionEvaluation:
     """Apply ``result`` to ``session``: norms, the ML filter's normalised innovations,
-    per-sample dip angles, and their figures."""
+    per-sample dip angles, and their figures. The filter runs on every row; the rest is per
+    magnetometer sample (a multi-rate session at its magnetometer's rows, glitches left out,
+    as the calibration sees it)."""
+    full = session
+    session = samples.at_magnetometer_rows(samples.drop_magnetometer_glitches(full)[0])
     calibrated = apply_correction(result, session.mag)
     notes = []
     figures = [
@@ -197,7 +209,7 @@ def evaluate_session(
     except replay.ModelUnavailableError:
         model = None  # build_report notes it once for the whole page
     if model is not None:
-        out = replay.run_filter_at(session, model)
+        out = replay.run_filter_at(full, model)
         normalised = out.present_normalised()
         if np.isfinite(normalised).all():
             innovations = quality.innovation_stats(normalised)

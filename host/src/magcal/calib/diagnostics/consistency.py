@@ -74,6 +74,10 @@ NORM_SPREAD_MAX_RATIO = 2.0
 #: ... plus this, as a fraction of the field: a spread 1 % above a tiny one changes a heading
 #: by well under a degree and contradicts nothing.
 NORM_SPREAD_MARGIN = 0.01
+#: A result whose field-norm spread exceeds this × the uncorrected field's (plus the margin)
+#: carries a warning even where the plain fit is as bad (a degenerate session, forced): the
+#: correction then makes the field far less constant than no correction at all.
+NORM_WORSE_THAN_RAW = 3.0
 #: Largest ratio of the result's dip spread to the plain fit's. Good simulated results stay
 #: at ≤ 1.02 (the largest: hand-held accelerations of 2 m/s², which blur both alike); results
 #: with heading errors of 80–100° reach 1.4–2.
@@ -135,7 +139,8 @@ class Checks:
     """The figures of :func:`check` and the ones that contradict the result.
 
     refusals : one sentence per failed check, naming the figure and its limit
-    warnings : changes of the field too short to refuse
+    warnings : changes of the field too short to refuse; a field norm far less constant
+               than the uncorrected one where the plain fit's is as bad
     figures  : every figure measured, for the result's ``extra["consistency"]``
     """
 
@@ -437,6 +442,15 @@ def check(
             )
 
     field_refusals, warnings, figures["field_stretches"] = _field_change(t, mag, plain_cal)
+    worse = NORM_WORSE_THAN_RAW * spread["raw"] + NORM_SPREAD_MARGIN
+    if spread["result"] > worse and spread["result"] <= limit:
+        warnings.append(
+            f"the corrected field norm varies by {100 * spread['result']:.1f} % (std/mean), "
+            f"{spread['result'] / spread['raw']:.0f}× the uncorrected field's "
+            f"{100 * spread['raw']:.2f} %: this correction makes the field far less constant "
+            "than none (a plain ellipsoid fit of this session is as bad: "
+            f"{100 * spread['plain_fit']:.1f} %); the session does not determine a calibration"
+        )
     return Checks(refusals + field_refusals, warnings, figures)
 
 

@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from magcal.calib import frames
+from magcal.io.session import session_from_arrays
 from magcal_evaluation import real
 
 DECLINATION_DEG = 23.0
@@ -184,3 +185,29 @@ def test_a_lagging_magnetometer_is_scored_at_its_own_time():
     # Samples whose earlier time falls before the reference starts are not scored.
     _, ok = real.reference_at(trial, delay)
     assert not ok[: int(round(delay / 0.005))].any() and ok[int(round(delay / 0.005)) :].all()
+
+
+def test_the_imu_axes_are_found_in_the_reference_frame():
+    # The reference's body frame is the IMU's turned by a known rotation; the gyroscope
+    # measures in the IMU's axes.
+    t = np.arange(0.0, 20.0, 0.01)
+    rate_imu = np.column_stack([np.sin(0.7 * t), np.cos(0.4 * t), 0.5 * np.sin(1.1 * t + 1.0)])
+    q_imu = frames.integrate_rates(rate_imu[:-1], np.diff(t))
+    C = frames.quat_to_matrix(frames.rotvec_to_quat(np.deg2rad([1.0, -2.0, 3.0])))
+    # R_imu = R_ref C, so R_ref = R_imu Cᵀ.
+    q_ref = frames.quat_multiply(q_imu, frames.quat_conjugate(frames.matrix_to_quat(C)))
+    D, o = _distortion(4, symmetric=False)
+    mag = _simulate(D, o, q_ref)
+    session = session_from_arrays(t, rate_imu, np.zeros_like(mag) + [0, 0, 9.8], mag)
+    case = real.Case(
+        "rig", {}, session, (real.Trial("rig", t, mag, q_ref, np.ones(t.size, bool)),), 0.0
+    )
+    found = real.imu_to_reference_rotation(case)
+    assert (
+        np.rad2deg(np.linalg.norm(frames.quat_to_rotvec(frames.matrix_to_quat(found.T @ C)))) < 0.05
+    )
+    # In the IMU's frame the attitudes are the IMU's own.
+    turned = real.in_imu_frame(case, found)
+    np.testing.assert_allclose(
+        frames.quat_to_matrix(turned.trials[0].q_wb), frames.quat_to_matrix(q_imu), atol=1e-3
+    )

@@ -46,6 +46,7 @@ metric never needs, since it compares headings in the world frame.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import re
@@ -93,6 +94,11 @@ CHANGING_FIELD_MESSAGE = re.compile(
 )
 #: No method may be worse than this factor of the plain fit without refusing.
 ANY_METHOD_MAX_RATIO_TO_PLAIN = 2.0
+
+#: Span of the rotations compared to find the IMU's axes in the reference's body frame, s,
+#: and the smallest gyroscope rotation over it that counts, rad.
+IMU_ALIGNMENT_WINDOW_S = 0.1
+IMU_ALIGNMENT_MIN_TURN_RAD = 0.05
 
 #: Known-attitude floor: the alternating least squares that start the Levenberg–Marquardt
 #: fit (each one cheap; a few bring it close).
@@ -477,9 +483,67 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
             entry["forced"] = dict(run_method(case, method, force=True).__dict__)
         out["methods"][method] = entry
     ml = out["methods"].get("ml", {})
-    out["at_magnetometer_time"] = _at_magnetometer_time(case, plain, ml.get("forced", ml))
+    ml_result = ml.get("forced", ml)
+    for key, score in (
+        ("at_magnetometer_time", _at_magnetometer_time),
+        ("imu_frame", _in_imu_frame),
+    ):
+        out[key] = score(case, plain, ml_result)
+        if out[key] is not None:
+            out[key]["ml_forced"] = "forced" in ml
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+def imu_to_reference_rotation(case: Case) -> np.ndarray | None:
+    """(3, 3) C with ``v_reference = C v_imu``: how the IMU's axes sit in the reference's body
+    frame (markers, a rig), from the rotations over :data:`IMU_ALIGNMENT_WINDOW_S` windows:
+    the reference's (rotation vector of R(t)ᵀ R(t + T)) against the gyroscope's integrated
+    rate, by least squares (Wahba). None unless the case is scored on its own recording."""
+    if not scored_on_own_recording(case):
+        return None
+    trial, session = case.trials[0], case.session
+    have = np.all(np.isfinite(trial.q_wb), axis=1)
+    step = max(1, int(round(IMU_ALIGNMENT_WINDOW_S / np.median(np.diff(session.t)))))
+    q_xyzw = np.where(have[:, None], trial.q_wb, [1.0, 0.0, 0.0, 0.0])[:, [1, 2, 3, 0]]
+    rotations = Rotation.from_quat(q_xyzw)
+    rate_dt = session.gyr[:-1] * np.diff(session.t)[:, None]
+    starts = np.arange(0, len(session.t) - step, step)
+    starts = starts[have[starts] & have[starts + step]]
+    reference = (rotations[starts].inv() * rotations[starts + step]).as_rotvec()
+    gyro = np.array([rate_dt[k : k + step].sum(axis=0) for k in starts])
+    turned = np.linalg.norm(gyro, axis=1) > IMU_ALIGNMENT_MIN_TURN_RAD
+    if turned.sum() < 3:
+        return None
+    C, _ = Rotation.align_vectors(reference[turned], gyro[turned])
+    return C.as_matrix()
+
+
+def in_imu_frame(case: Case, C: np.ndarray) -> Case:
+    """The case with its reference attitudes turned to the IMU's axes: R_imu = R_reference C."""
+    qc = frames.matrix_to_quat(C)
+    trials = tuple(
+        dataclasses.replace(tr, q_wb=frames.quat_multiply(tr.q_wb, qc)) for tr in case.trials
+    )
+    return dataclasses.replace(case, trials=trials)
+
+
+def _in_imu_frame(case: Case, plain, ml_run: dict) -> dict | None:
+    """The plain fit, the floor and ML (forced, if it refused) scored with the reference
+    attitude turned to the IMU's axes (:func:`imu_to_reference_rotation`): the body frame an
+    inertial calibration aligns the magnetometer to (None where there is no such rotation)."""
+    C = imu_to_reference_rotation(case)
+    if C is None or ml_run.get("D") is None:
+        return None
+    imu = in_imu_frame(case, C)
+    floor = case_floor(imu)
+    north = None if floor is None else floor.heading_deg
+    return {
+        "rotation_deg": [float(x) for x in np.rad2deg(Rotation.from_matrix(C).as_rotvec())],
+        "plain": None if plain is None else case_heading_deg(*plain, imu, north),
+        "floor": None if floor is None else case_heading_deg(floor.D, floor.o, imu, north),
+        "ml": case_heading_deg(np.array(ml_run["D"]), np.array(ml_run["o"]), imu, north),
+    }
 
 
 def _at_magnetometer_time(case: Case, plain, ml_run: dict) -> dict | None:

@@ -174,9 +174,39 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
             continue
         ratios = [f"{a['ml'] / a[ref]:.2f}×{ref[0]}" for ref in ("plain", "floor") if a.get(ref)]
         ml = _f(a["ml"]) + (f" ({', '.join(ratios)})" if ratios else "")
+        if a.get("ml_forced"):
+            ml = f"refused (forced {ml})"
         lines.append(
             f"| {r['case']} | {1e3 * a['delay_s']:.1f} | {_f(a['plain'])} | {_f(a['floor'])} "
             f"| {ml} |"
+        )
+    lines += [
+        "",
+        "## Scored in the IMU's frame",
+        "",
+        "The reference attitude is that of the optical markers' body frame. An inertial "
+        "calibration aligns the magnetometer to the IMU's axes, which sit in that frame turned "
+        "by the rotation given here (from the gyroscope's rotations over 0.1 s against the "
+        "reference's, least squares: `magcal_evaluation.real.imu_to_reference_rotation`). "
+        "Here the reference is turned to the IMU's axes before scoring, the floor refitted "
+        "there, and all three share the floor's north. Cases scored on other recordings are "
+        "left out.",
+        "",
+        "| case | IMU in the reference frame, ° | plain | floor | ml |",
+        "|---|---|---:|---:|---:|",
+    ]
+    for r in good:
+        a = r.get("imu_frame")
+        if not a:
+            continue
+        ratios = [f"{a['ml'] / a[ref]:.2f}×{ref[0]}" for ref in ("plain", "floor") if a.get(ref)]
+        ml = _f(a["ml"]) + (f" ({', '.join(ratios)})" if ratios else "")
+        if a.get("ml_forced"):
+            ml = f"refused (forced {ml})"
+        angle = float(np.linalg.norm(a["rotation_deg"]))
+        vec = ", ".join(f"{x:+.2f}" for x in a["rotation_deg"])
+        lines.append(
+            f"| {r['case']} | {angle:.2f} ({vec}) | {_f(a['plain'])} | {_f(a['floor'])} | {ml} |"
         )
     lines += [
         "",

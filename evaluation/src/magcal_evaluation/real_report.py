@@ -104,6 +104,13 @@ def _detail_row(r: dict, method: str, m: dict, forced: bool) -> str:
     )
 
 
+def _rescored_ml_cell(a: dict) -> str:
+    """ML's heading in a rescored table, with its ratios to that table's plain fit and floor."""
+    ratios = [f"{a['ml'] / a[ref]:.2f}×{ref[0]}" for ref in ("plain", "floor") if a.get(ref)]
+    cell = _f(a["ml"]) + (f" ({', '.join(ratios)})" if ratios else "")
+    return f"refused (forced {cell})" if a.get("ml_forced") else cell
+
+
 def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: dict) -> str:
     lines = [
         "# magcal on real recordings",
@@ -172,10 +179,7 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         a = r.get("at_magnetometer_time")
         if not a:
             continue
-        ratios = [f"{a['ml'] / a[ref]:.2f}×{ref[0]}" for ref in ("plain", "floor") if a.get(ref)]
-        ml = _f(a["ml"]) + (f" ({', '.join(ratios)})" if ratios else "")
-        if a.get("ml_forced"):
-            ml = f"refused (forced {ml})"
+        ml = _rescored_ml_cell(a)
         lines.append(
             f"| {r['case']} | {1e3 * a['delay_s']:.1f} | {_f(a['plain'])} | {_f(a['floor'])} "
             f"| {ml} |"
@@ -199,10 +203,7 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         a = r.get("imu_frame")
         if not a:
             continue
-        ratios = [f"{a['ml'] / a[ref]:.2f}×{ref[0]}" for ref in ("plain", "floor") if a.get(ref)]
-        ml = _f(a["ml"]) + (f" ({', '.join(ratios)})" if ratios else "")
-        if a.get("ml_forced"):
-            ml = f"refused (forced {ml})"
+        ml = _rescored_ml_cell(a)
         angle = float(np.linalg.norm(a["rotation_deg"]))
         vec = ", ".join(f"{x:+.2f}" for x in a["rotation_deg"])
         lines.append(

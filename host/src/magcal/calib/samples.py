@@ -13,8 +13,8 @@ Two functions here serve every calibration method, in this order:
   consistency checks). The maximum-likelihood step instead uses every row: it propagates
   with every IMU row and updates each sensor where it measured (``likelihood/problem.py``).
 
-A single-rate session passes through both unchanged (the same object), so its results do
-not change.
+A session whose rows all have both sensors and whose magnetometer has no glitches passes
+through both unchanged (the same object).
 """
 
 from __future__ import annotations

@@ -60,7 +60,7 @@ log = logging.getLogger(__name__)
 
 #: The IMU message rate asked for on a network link (UDP, TCP), Hz: a magnetometer value's
 #: time is that of the first message carrying it, so the faster the stream, the closer.
-NETWORK_RATE_HZ = 200.0
+NETWORK_RATE_HZ = 100.0
 #: ... and never less than this, Hz.
 MIN_RATE_HZ = 10.0
 #: A MAVLink 2 RAW_IMU on the wire: 12 bytes of framing and 29 of payload.

@@ -65,7 +65,7 @@ def add_parser(sub) -> None:
         "--rate",
         type=positive(float),
         metavar="HZ",
-        help="with --mavlink: the IMU message rate to ask for (default: 200 on a network link, "
+        help="with --mavlink: the IMU message rate to ask for (default: 100 on a network link, "
         "what half a serial link's baud rate carries there)",
     )
     p.set_defaults(run=run)

@@ -48,7 +48,7 @@ lint: setup
 	$(VENV)/bin/ruff format --check host evaluation tests bench
 
 test: setup deps-target lint test-native firmware-lib $(TEST_EXTRA)
-	$(PY) -m pytest -q tests --ignore=tests/target
+	$(PY) -m pytest -q tests --ignore=tests/target --ignore=tests/autopilot_sitl
 
 # ---------------------------------------------------------------- firmware (native)
 # Native tests (no Python) under AddressSanitizer and UndefinedBehaviorSanitizer: the EKF

@@ -11,6 +11,8 @@ import datetime as dt
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from magcal.commands.common import compass_params
 from magcal.errors import MagcalError
 from magcal.ui import EXIT_INTERRUPTED, refusal, say
@@ -103,11 +105,19 @@ def _rotation_sigma_deg(args, result):
     except (replay.ModelUnavailableError, CalibrationError) as exc:
         _say(f"note: no uncertainty of the rotation ({exc}): it is written as estimated")
         return None
-    sigma = unc.sigma["misalignment_deg"]
+    sigma = np.asarray(unc.sigma["misalignment_deg"], dtype=float)
+    # The curvature knows only the noise model; the corrected field's own norm spread (std /
+    # mean) bounds how well any direction is held, whatever the model says: a floor.
+    after = (result.extra.get("field_norm") or {}).get("after") or {}
+    floor = 0.0
+    if after.get("mean"):
+        floor = float(np.degrees(after["std"] / after["mean"]))
+    sigma = np.sqrt(sigma**2 + floor**2)
     _say(
         "misalignment σ "
         + ", ".join(f"{v:.3f}" for v in sigma)
-        + f"° (roll, pitch, yaw axes) from {args.session}"
+        + f"° (roll, pitch, yaw axes; the curvature on {args.session}, at least the corrected "
+        f"field's norm spread, {floor:.3f}°)"
     )
     return sigma
 

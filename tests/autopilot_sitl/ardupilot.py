@@ -45,7 +45,10 @@ _running: set[int] = set()
 def available() -> str | None:
     """None when SITL can run here, else why not (the skip message)."""
     if not BINARY.exists():
-        return f"ArduPilot SITL not found at {BINARY} (set MAGCAL_SITL_DIR or put it beside the checkout)"
+        return (
+            f"ArduPilot SITL not found at {BINARY} (set MAGCAL_SITL_DIR or put it beside the "
+            "checkout)"
+        )
     return None
 
 

@@ -3,7 +3,7 @@
 :func:`magcal_case`: a random compass error (and mounting rotation), a wrong calibration in
 force, the stand in its automatic pose sequence, then ``magcal collect --mavlink``,
 ``magcal calibrate`` and ``magcal flash --location ... --session ...``; the parameters read
-back from the vehicle give the heading error (:func:`~tests.autopilot_sitl.ardupilot.heading_rms_deg`).
+back from the vehicle give the heading error (``ardupilot.heading_rms_deg``).
 """
 
 from __future__ import annotations

@@ -94,6 +94,7 @@ bench: setup sil
 	$(PY) bench/run_bench.py --out bench/results.json
 	$(PY) bench/firmware_figures.py --out bench/firmware.json
 	$(PY) bench/link_figures.py --out bench/link.json
+	$(MAKE) bench-sitl
 
 clean:
 	rm -rf $(OUT) build host/build host/src/*.egg-info evaluation/build evaluation/src/*.egg-info $(STAMP)

@@ -3,7 +3,7 @@
 # against the simulated calibration stand); without SITL it says so and passes. `make test`
 # runs it too.
 
-.PHONY: test-sitl
+.PHONY: test-sitl bench-sitl
 
 SITL_DIR ?= ../shared/sitl
 
@@ -15,3 +15,8 @@ test-sitl: setup
 	fi
 
 TEST_EXTRA += test-sitl
+
+# magcal beside ArduPilot's on-board calibrator on the same SITL set-ups (figures, no
+# assertions): bench/sitl.json. Part of `make bench` when SITL is there.
+bench-sitl: setup
+	MAGCAL_SITL_DIR="$(abspath $(SITL_DIR))" $(PY) bench/sitl_bench.py --out bench/sitl.json

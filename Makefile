@@ -48,7 +48,7 @@ lint: setup
 	$(VENV)/bin/ruff format --check host evaluation tests bench
 
 test: setup deps-target lint test-native firmware-lib $(TEST_EXTRA)
-	$(PY) -m pytest -q tests --ignore=tests/target
+	$(PY) -m pytest -q tests --ignore=tests/target --ignore=tests/autopilot_sitl
 
 # ---------------------------------------------------------------- firmware (native)
 # Native tests (no Python) under AddressSanitizer and UndefinedBehaviorSanitizer: the EKF
@@ -94,6 +94,7 @@ bench: setup sil
 	$(PY) bench/run_bench.py --out bench/results.json
 	$(PY) bench/firmware_figures.py --out bench/firmware.json
 	$(PY) bench/link_figures.py --out bench/link.json
+	$(MAKE) bench-sitl
 
 clean:
 	rm -rf $(OUT) build host/build host/src/*.egg-info evaluation/build evaluation/src/*.egg-info $(STAMP)

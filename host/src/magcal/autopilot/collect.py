@@ -37,6 +37,7 @@ import numpy as np
 
 from magcal.autopilot import vehicle
 from magcal.autopilot.connection import Autopilot
+from magcal.autopilot.magstream import MAX_PROPAGATION_STEP_S, MagnetometerScreen
 from magcal.calib.norm_only.live import LiveState
 from magcal.device.collect import (
     COVERAGE_MIN_EXTENT_UT,
@@ -50,14 +51,20 @@ from magcal.device.collect import (
     live_metadata,
     record_stream,
 )
-from magcal.device.coverage import CoverageState
+from magcal.device.coverage import AttitudeCoverage, CoverageState
 from magcal.errors import MagcalError
 from magcal.io.session import session_from_arrays
 from magcal.link.mavlink import MavlinkTimeoutError
 
 log = logging.getLogger(__name__)
 
-DEFAULT_RATE_HZ = 50.0
+#: The IMU message rate asked for on a network link (UDP, TCP), Hz: a magnetometer value's
+#: time is that of the first message carrying it, so the faster the stream, the closer.
+NETWORK_RATE_HZ = 100.0
+#: ... and never less than this, Hz.
+MIN_RATE_HZ = 10.0
+#: A MAVLink 2 RAW_IMU on the wire: 12 bytes of framing and 29 of payload.
+IMU_MESSAGE_BYTES = 41
 MAV_RESULT_ACCEPTED = 0
 MAV_DATA_STREAM_RAW_SENSORS = 1
 #: Session magnetometer units per µT (for the coverage tracker's minimum extent).
@@ -98,7 +105,10 @@ def stop_stream(ap: Autopilot, message: str, how: str) -> None:
 
 
 class _Recorder:
-    """The messages received: timestamp ticks, IMU fields, the wire magnetometer, host times."""
+    """The messages received (timestamp ticks, IMU fields, the wire magnetometer, host times)
+    and the magnetometer screen over them (:mod:`magcal.autopilot.magstream`). Its length
+    and ``mag`` are the accepted magnetometer samples: what the coverage, the live estimate
+    and the stop rules count."""
 
     def __init__(self, stream: str) -> None:
         self.base = vehicle.TIME_BASES[stream]
@@ -106,33 +116,87 @@ class _Recorder:
         self.host: list[float] = []
         self.acc: list[tuple[int, int, int]] = []
         self.gyr: list[tuple[int, int, int]] = []
-        self.mag: list[tuple[int, int, int]] = []
+        self.wire_mag: list[tuple[int, int, int]] = []
+        self.screen = MagnetometerScreen()
         self.gaps = 0
         self._step: int | None = None  # the nominal step, ticks
+        self._t = 0.0  # the screen's running time, s
+
+    @property
+    def mag(self) -> list[tuple[float, float, float]]:
+        return self.screen.values
+
+    @property
+    def rotations(self) -> list[np.ndarray]:
+        return self.screen.rotations
 
     def add(self, msg, host_s: float) -> None:
         tick = int(getattr(msg, self.base.field))
         if self.ticks:
             step = tick - self.ticks[-1]
+            if step < 0 and self.base.modulus is not None:
+                step += self.base.modulus
             if step > 0 and self._step:
                 self.gaps += max(0, round(step / self._step) - 1)
             if step > 0 and (self._step is None or step < self._step):
                 self._step = step
+            if step == 0:  # a repeated time stamp: dropped from the session, not screened
+                self._append(msg, tick, host_s)
+                return
+            dt = step * self.base.tick_s
+            # a reset or a long pause: no propagation across it
+            self._t += dt if dt <= vehicle.MAX_WRAP_STEP_S else 2 * MAX_PROPAGATION_STEP_S
+        self._append(msg, tick, host_s)
+        gyr = vehicle.gyro_mrad_to_si(np.array(self.gyr[-1], dtype=float))
+        self.screen.add(len(self.ticks) - 1, self._t, gyr, self.wire_mag[-1])
+
+    def _append(self, msg, tick: int, host_s: float) -> None:
         self.ticks.append(tick)
         self.host.append(host_s)
         self.acc.append((msg.xacc, msg.yacc, msg.zacc))
         self.gyr.append((msg.xgyro, msg.ygyro, msg.zgyro))
-        self.mag.append((msg.xmag, msg.ymag, msg.zmag))
+        self.wire_mag.append((msg.xmag, msg.ymag, msg.zmag))
 
     def __len__(self) -> int:
-        return len(self.ticks)
+        return len(self.screen.values)
+
+
+class _AttitudeMonitor(CollectMonitor):
+    """The recorders' monitor with the coverage of orientations the vehicle really took
+    (:class:`magcal.device.coverage.AttitudeCoverage`, from the screen's attitude at each
+    accepted sample) in place of the raw field directions'."""
+
+    def __init__(self, rec: _Recorder, min_extent: float, *args) -> None:
+        super().__init__(min_extent, *args)
+        self.tracker = AttitudeCoverage(min_extent)  # type: ignore[assignment]
+        self._rec = rec
+
+    def feed(self, mag, force: bool = False) -> CoverageState:
+        if len(mag) > self._fed:
+            readings = self._to_session_units(np.array(mag[self._fed :], dtype=float))
+            rotations = np.array(self._rec.rotations[self._fed : len(mag)])
+            self.tracker.add(readings, rotations)
+            self.live.add(readings)
+            self._fed = len(mag)
+        return self.tracker.state(force=force)
+
+
+def link_rate_hz(url: str) -> float:
+    """The IMU message rate to ask for on ``url``: NETWORK_RATE_HZ on a network link; on a
+    serial link (``DEVICE,BAUD``) what half its bandwidth carries of a MAVLink 2 RAW_IMU
+    (IMU_MESSAGE_BYTES, 10 bits a byte), at most NETWORK_RATE_HZ and at least MIN_RATE_HZ."""
+    parts = url.split(",")
+    if len(parts) > 1 and parts[-1].strip().isdigit():
+        carried = 0.5 * int(parts[-1]) / (10 * IMU_MESSAGE_BYTES)
+        return float(max(MIN_RATE_HZ, min(NETWORK_RATE_HZ, round(carried))))
+    return NETWORK_RATE_HZ
 
 
 def collect(
     ap: Autopilot,
     cp: vehicle.CompassParams,
     *,
-    rate_hz: float = DEFAULT_RATE_HZ,
+    rate_hz: float | None = None,
     duration_s: float | None = None,
     coverage_target: float | None = None,
     max_samples: int | None = None,
@@ -143,16 +207,20 @@ def collect(
 ) -> CollectResult:
     """Record compass ``cp.compass``'s stream into a session (module docstring).
 
-    rate_hz : the message rate asked for; duration_s, coverage_target (0..1, with at least
-    min_samples), max_samples : stop conditions as for the serial collect; progress : called
-    about every PROGRESS_INTERVAL_S. Raises CollectError with the partial result on a link
+    rate_hz : the message rate asked for (None: :func:`link_rate_hz`); duration_s,
+    coverage_target (0..1, with at least min_samples), max_samples : stop conditions as for
+    the serial collect (samples: accepted magnetometer samples); progress : called about
+    every PROGRESS_INTERVAL_S. Raises CollectError with the partial result on a link
     error or when no message arrives for STALL_TIMEOUT_S."""
     rules = StopRules(duration_s, coverage_target, max_samples, min_samples)
+    if rate_hz is None:
+        rate_hz = link_rate_hz(ap.url)
     stream = vehicle.collect_stream(ap.autopilot, cp.compass)
     rec = _Recorder(stream)
-    monitor = CollectMonitor(
+    monitor = _AttitudeMonitor(
+        rec,
         COVERAGE_MIN_EXTENT_UT * UNIT_PER_UT[ap.autopilot],
-        rate_hz,
+        None,  # the live estimate on every magnetometer sample (the compass's own rate)
         coverage_target,
         lambda wire: vehicle.session_mag(wire.astype(float), cp),
     )
@@ -181,6 +249,7 @@ def collect(
         clock=clock,
     )
     stop_stream(ap, stream, how)
+    rec.screen.finish()
     elapsed = clock() - start
     state, live = final_report(rec, monitor, elapsed, progress)
     result = _result(ap, cp, rec, stream, how, rate_hz, firmware, stopped, state, elapsed, live)
@@ -207,35 +276,47 @@ def _result(
     timeline = vehicle.unwrap_times(np.array(rec.ticks), rec.base, np.array(rec.host))
     keep = timeline.keep
     repeated = int(np.count_nonzero(~keep))
+    counts = rec.screen.counts()
+    rows = np.array([r for r in rec.screen.rows if keep[r]], dtype=np.int64)
     session = None
-    if np.any(keep):
+    if rows.size:
+        mag = np.full((len(rec.ticks), 3), np.nan)
+        pairs = zip(rec.screen.rows, rec.mag, strict=True)
+        values = np.array([v for r, v in pairs if keep[r]], dtype=float)
+        mag[rows] = vehicle.session_mag(values, cp)
+        t = timeline.t[keep]
         meta = session_metadata(ap, cp, stream, firmware)
         meta.update(
             {
                 "stream_request": f"{how}, {rate_hz:g} Hz",
+                "stream_rate_hz": f"{_rate(t, t.size):.1f}",
+                "magnetometer_rate_hz": f"{_rate(t, counts.changes):.1f}",
                 "collected_at": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-                "samples": str(int(np.count_nonzero(keep))),
+                "samples": str(int(rows.size)),
+                "imu_rows": str(int(t.size)),
+                "magnetometer_repeats": str(counts.repeats),
+                "magnetometer_fast_turn": str(counts.fast_turn),
+                "magnetometer_frozen": str(counts.frozen),
                 "dropped": str(timeline.missing),
                 "repeated_timestamps_skipped": str(repeated),
                 "time_wraps": str(timeline.wraps),
                 "time_resets": str(timeline.resets),
                 "coverage": f"{100 * state.coverage:.1f} % of {len(state.counts)} equal-area "
-                "cells of field directions",
+                "cells of field directions at the orientations taken (gyroscope)",
                 "stopped": stopped,
             }
         )
         meta.update(live_metadata(live))
-        mag = vehicle.session_mag(np.array(rec.mag, dtype=float)[keep], cp)
         session = session_from_arrays(
-            timeline.t[keep],
+            t,
             vehicle.gyro_mrad_to_si(np.array(rec.gyr, dtype=float)[keep]),
             vehicle.acc_mg_to_si(np.array(rec.acc, dtype=float)[keep]),
-            mag,
+            mag[keep],
             meta,
         )
     return CollectResult(
         session=session,
-        samples=int(np.count_nonzero(keep)),
+        samples=int(rows.size),
         stopped=stopped,
         dropped=timeline.missing,
         gaps=timeline.missing,
@@ -244,7 +325,14 @@ def _result(
         coverage=state,
         elapsed_s=elapsed,
         live=live,
+        screen=counts,
     )
+
+
+def _rate(t: np.ndarray, count: int) -> float:
+    """count events per second over the times t (s); 0 without a span."""
+    span = float(t[-1] - t[0]) if t.size > 1 else 0.0
+    return count / span if span > 0 else 0.0
 
 
 def session_metadata(

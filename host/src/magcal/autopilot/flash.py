@@ -220,6 +220,7 @@ def plan_flash(
     *,
     recorded: dict[str, float] | None = None,
     allow_custom: bool = True,
+    rotation_sigma_deg: np.ndarray | None = None,
 ) -> Plan:
     """The parameters for a calibration (pure; module docstring, step 1).
 
@@ -229,7 +230,10 @@ def plan_flash(
     recorded : the compass parameters in force when the session was recorded (ArduPilot:
         the rotation the session's y went through; needed for an external compass)
     allow_custom : ArduPilot: may write a custom rotation; PX4: may write CAL_MAGn_ROT = 100
-        with CAL_MAGn_ROLL/PITCH/YAW (only when the vehicle has those)."""
+        with CAL_MAGn_ROLL/PITCH/YAW (only when the vehicle has those)
+    rotation_sigma_deg : (3,) the result's misalignment σ, degrees (None: unknown): a rotation
+        within it of an enumerated one is written as that one
+        (:func:`magcal.autopilot.mapping.within_uncertainty`)."""
     unit = cp.unit
     F = fld.strength(unit)
     incl = (
@@ -261,6 +265,7 @@ def plan_flash(
             custom_slot=slot or 1,
             offs_max_mG=cp.values.get("COMPASS_OFFS_MAX", mapping.AP_OFFS_MAX_DEFAULT_MG),
             inclination_deg=incl,
+            rotation_sigma_deg=rotation_sigma_deg,
         )
         new = dict(mapped.params)
         scale_name = mapping.ap_param_names(cp.compass, cp.naming)["SCALE"]
@@ -313,6 +318,7 @@ def plan_flash(
             index=index,
             allow_custom=allow_custom,
             inclination_deg=incl,
+            rotation_sigma_deg=rotation_sigma_deg,
         )
     entries = []
     unchanged = []

@@ -183,6 +183,25 @@ def _split_scale(P: np.ndarray) -> tuple[np.ndarray, float]:
     return P / s, s
 
 
+#: A rotation is written as the nearest enumerated one when their difference is within the
+#: estimate's own uncertainty: Σ (Δ_i / σ_i)² ≤ this (the 99 % point of χ² with 3 degrees of
+#: freedom), Δ the rotation vector from the enumerated rotation to the estimate and σ the
+#: misalignment's standard deviation per axis.
+SNAP_CHI2 = 11.34
+
+
+def within_uncertainty(R_want: np.ndarray, R_near: np.ndarray, sigma_deg) -> bool:
+    """Whether R_want (3, 3) is R_near within its uncertainty (:data:`SNAP_CHI2`; sigma_deg:
+    (3,) the misalignment's σ per axis, degrees, or None: unknown, never)."""
+    if sigma_deg is None:
+        return False
+    sigma = np.asarray(sigma_deg, dtype=float)
+    if sigma.shape != (3,) or not np.all(np.isfinite(sigma)) or np.any(sigma <= 0):
+        return False
+    delta = rotations.rotation_vector_deg(R_want @ R_near.T)
+    return float(np.sum((delta / sigma) ** 2)) <= SNAP_CHI2
+
+
 def to_ardupilot(
     D_inv: np.ndarray,
     o: np.ndarray,
@@ -196,6 +215,7 @@ def to_ardupilot(
     custom_slot: int = 1,
     offs_max_mG: float = AP_OFFS_MAX_DEFAULT_MG,
     inclination_deg: float = DEFAULT_INCLINATION_DEG,
+    rotation_sigma_deg: np.ndarray | None = None,
 ) -> AutopilotParams:
     """ArduPilot parameters for ``B = F · D⁻¹ (y − o)``, ``y = R_old · raw`` (mG).
 
@@ -204,6 +224,8 @@ def to_ardupilot(
     compass : 1, 2, 3 (parameter names COMPASS_OFS_X, COMPASS_OFS2_X, … in ``naming``)
     external : an internal compass follows AHRS_ORIENTATION, so its rotation stays R_old
     allow_custom : may ORIENT be 101/102 (CUST_ROT_ENABLE and CUST_ROTn_ROLL/PITCH/YAW)
+    rotation_sigma_deg : (3,) the estimated misalignment's σ: a rotation within it of an
+        enumerated one is written as that one (:func:`within_uncertainty`)
     """
     A = _check_calibration(D_inv, field_mG, "ArduPilot mapping")
     o = np.asarray(o, dtype=float)
@@ -225,6 +247,9 @@ def to_ardupilot(
             )
     elif near.angle_deg < 1e-6:
         R_new, orient = near.matrix, near.index
+    elif within_uncertainty(R_want, near.matrix, rotation_sigma_deg):
+        R_new, orient = near.matrix, near.index
+        notes.append(_snapped_note(near))
     elif allow_custom:
         R_new, orient = R_want, AP_CUSTOM_ORIENT[custom_slot - 1]
         roll, pitch, yaw = rotations.matrix_to_euler_deg(R_want)
@@ -258,9 +283,25 @@ def to_ardupilot(
         params[names["ORIENT"]] = float(orient)
     residual = rotations.rotation_angle_deg(R_want, R_new)
     heading = 0.0 if residual < 1e-6 else _heading_rms_deg(A, P @ C, inclination_deg)
-    if heading:
+    if heading and not snapped(notes):
         notes.append(f"leaving it out costs {heading:.2f}° RMS heading error")
     return AutopilotParams(params, R_new, residual, heading, tuple(notes))
+
+
+SNAPPED = "within its uncertainty"
+
+
+def _snapped_note(near) -> str:
+    return (
+        f"the estimated rotation is {near.angle_deg:.2f}° from enumerated rotation {near.index} "
+        f"{near.name}, {SNAPPED}: written as {near.index} (no custom rotation)"
+    )
+
+
+def snapped(notes) -> bool:
+    """Whether the notes say the rotation was written as an enumerated one within its
+    uncertainty."""
+    return any(SNAPPED in n for n in notes)
 
 
 def _check_ardupilot_limits(ofs: np.ndarray, M: np.ndarray, s: float, offs_max: float) -> None:
@@ -305,13 +346,15 @@ def to_px4(
     allow_custom: bool = False,
     max_rotation_index: int = rotations.PX4_MAX_COMMON_INDEX,
     inclination_deg: float = DEFAULT_INCLINATION_DEG,
+    rotation_sigma_deg: np.ndarray | None = None,
 ) -> AutopilotParams:
     """PX4 parameters for ``B = F · D⁻¹ (y − o)``, ``y = Rot0 · raw`` (gauss).
 
     D_inv : (3, 3) unit-field calibration, per gauss;  o : (3,) offset in gauss (y frame)
     field_gauss : F;  Rot0 : (3, 3) rotation already applied to y (default: y is raw)
     index : n in CAL_MAGn_*;  allow_custom : write ROT = 100 with CAL_MAGn_ROLL/PITCH/YAW
-    (unconfirmed in the sources read; off by default).
+    (unconfirmed in the sources read; off by default); rotation_sigma_deg : as for
+    :func:`to_ardupilot`.
     """
     A = _check_calibration(D_inv, field_gauss, "PX4 mapping")
     o = np.asarray(o, dtype=float)
@@ -325,6 +368,10 @@ def to_px4(
     if near.angle_deg < 1e-6:
         R_new = near.matrix
         params[names["ROT"]] = float(near.index)
+    elif within_uncertainty(R_want, near.matrix, rotation_sigma_deg):
+        R_new = near.matrix
+        params[names["ROT"]] = float(near.index)
+        notes.append(_snapped_note(near))
     elif allow_custom:
         R_new = R_want
         roll, pitch, yaw = rotations.matrix_to_euler_deg(R_want)
@@ -363,7 +410,8 @@ def to_px4(
     if residual >= 1e-6:
         # y-frame correction applied: R_new S Rot0ᵀ (y − o) = R_new Rot0ᵀ P (y − o)
         heading = _heading_rms_deg(A, R_new @ Rot0.T @ P, inclination_deg)
-        notes.append(f"leaving it out costs {heading:.2f}° RMS heading error")
+        if not snapped(notes):
+            notes.append(f"leaving it out costs {heading:.2f}° RMS heading error")
     return AutopilotParams(params, R_new, residual, heading, tuple(notes))
 
 

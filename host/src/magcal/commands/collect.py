@@ -65,7 +65,8 @@ def add_parser(sub) -> None:
         "--rate",
         type=positive(float),
         metavar="HZ",
-        help="with --mavlink: the IMU message rate to ask for (default 50)",
+        help="with --mavlink: the IMU message rate to ask for (default: 100 on a network link, "
+        "what half a serial link's baud rate carries there)",
     )
     p.set_defaults(run=run)
 
@@ -150,10 +151,6 @@ def finish_collect(
 def run(args, out=None) -> int:
     check_link_options(args, ("rate",))
     if args.mavlink:
-        if args.rate is None:
-            from magcal.autopilot.collect import DEFAULT_RATE_HZ
-
-            args.rate = DEFAULT_RATE_HZ
         return run_autopilot(args, out)
     out = out or sys.stdout
     if args.duration is None and args.coverage is None and args.max_samples is None:
@@ -216,6 +213,14 @@ def run_autopilot(args, out=None) -> int:
             ),
             args.output,
             progress,
+        )
+    if result.session is not None:
+        meta = result.session.meta
+        print(
+            f"{meta['stream']} asked {meta['stream_request']}, arrived at "
+            f"{meta['stream_rate_hz']} Hz, new magnetometer values at "
+            f"{meta['magnetometer_rate_hz']} Hz; {result.screen.text()}",
+            file=out,
         )
     return finish_collect(
         args,

@@ -43,7 +43,7 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from datetime import datetime, timezone
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -107,7 +107,9 @@ class CollectResult:
     dropped : max(seq gaps, device_dropped); gaps : samples missing between received seqs;
     device_dropped : stream_stop's count (-1 when the stream could not be stopped);
     out_of_order : samples skipped because their time did not increase;
-    live : the live estimate's last state (None if it failed)."""
+    live : the live estimate's last state (None if it failed);
+    screen : the MAVLink recorder's magnetometer decisions
+        (:class:`magcal.autopilot.magstream.ScreenCounts`; None from the device)."""
 
     session: Session | None
     samples: int
@@ -119,6 +121,7 @@ class CollectResult:
     coverage: CoverageState
     elapsed_s: float
     live: LiveState | None = None
+    screen: Any = None
 
     @property
     def interrupted(self) -> bool:

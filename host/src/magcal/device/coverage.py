@@ -286,6 +286,11 @@ class CoverageTracker:
             self._chunks.append(y)
             self._n += len(y)
 
+    @property
+    def readings(self) -> int:
+        """Readings added so far."""
+        return self._n
+
     def state(self, force: bool = False) -> CoverageState:
         """The coverage now; the centre and cells are recomputed every refresh_samples."""
         if self._n and (force or self._n - self._n_at_refresh >= self.refresh_samples):
@@ -310,3 +315,64 @@ class CoverageTracker:
             centre,
             counts,
         )
+
+
+class AttitudeCoverage:
+    """Coverage of the field directions the vehicle really took, from its attitude.
+
+    A centre fitted to raw readings can be fooled: around a small cloud of noisy readings of
+    a still sensor, the noise points everywhere. Here the directions come from the attitude
+    integrated from the gyroscope instead: each sample i brings its rotation ``R_i`` (body to
+    the start frame) with its reading ``y_i``; the field's direction in the start frame is
+    ``f = normalise(mean_i R_i u_i)`` with ``u_i`` the unit reading about the raw tracker's
+    centre (:class:`CoverageTracker`), and the directions counted are ``R_iᵀ f``, the field in
+    the body frame at the orientations the vehicle took. A still vehicle gives one direction,
+    a yaw-only motion one circle, whatever its readings do. Without a raw centre (readings
+    spanning less than ``min_extent``) there is no coverage, as for :class:`CoverageTracker`.
+
+    ``add(y, rotations)`` the readings (N, 3) and their rotations (N, 3, 3); ``state()`` as
+    CoverageTracker's.
+    """
+
+    def __init__(self, min_extent: float, n_cells: int = DEFAULT_CELLS, min_count: int = 1):
+        self.raw = CoverageTracker(min_extent, n_cells, min_count)
+        self.cells = self.raw.cells
+        self.min_count = min_count
+        self._y: list[np.ndarray] = []
+        self._R: list[np.ndarray] = []
+        self._n_at_refresh = 0
+        self._state = self.raw.state()
+
+    def add(self, y: np.ndarray, rotations: np.ndarray) -> None:
+        y = np.asarray(y, dtype=np.float64).reshape(-1, 3)
+        R = np.asarray(rotations, dtype=np.float64).reshape(-1, 3, 3)
+        if y.shape[0] != R.shape[0]:
+            raise MagcalError(f"coverage: {y.shape[0]} readings but {R.shape[0]} rotations")
+        if len(y):
+            self.raw.add(y)
+            self._y.append(y)
+            self._R.append(R)
+
+    def state(self, force: bool = False) -> CoverageState:
+        raw = self.raw.state(force)
+        n = self.raw.readings
+        if not n or not (force or n - self._n_at_refresh >= self.raw.refresh_samples):
+            return self._state
+        self._n_at_refresh = n
+        if raw.centre is None:
+            self._state = raw
+            return raw
+        y, R = np.concatenate(self._y), np.concatenate(self._R)
+        self._y, self._R = [y], [R]
+        u = y - raw.centre
+        u /= np.maximum(np.linalg.norm(u, axis=1, keepdims=True), 1e-300)
+        f = np.einsum("nij,nj->i", R, u)
+        f /= max(float(np.linalg.norm(f)), 1e-300)
+        counts = cell_counts(self.cells, np.einsum("nji,j->ni", R, f))
+        self._state = CoverageState(
+            coverage_fraction(counts, self.min_count),
+            missing_hint(self.cells, counts, self.min_count),
+            raw.centre,
+            counts,
+        )
+        return self._state

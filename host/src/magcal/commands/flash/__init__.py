@@ -83,14 +83,15 @@ def add_parser(sub) -> None:
     ap.add_argument(
         "--no-custom-rotation",
         action="store_true",
-        help="ArduPilot: do not write a custom rotation (CUST_ROTn_*); the misalignment is then "
-        "left out and its heading error reported",
+        help="do not write a custom rotation (ArduPilot CUST_ROTn_*, PX4 CAL_MAGn_ROT 100 with "
+        "CAL_MAGn_ROLL/PITCH/YAW); a misalignment is then left out, its heading error "
+        "reported, and one costing 0.5° or more exits with code 3",
     )
     ap.add_argument(
         "--px4-custom-rotation",
         action="store_true",
-        help="PX4: write CAL_MAGn_ROT = 100 with CAL_MAGn_ROLL/PITCH/YAW when the misalignment "
-        "is not an enumerated rotation (newer PX4 only; off by default)",
+        help="PX4: require CAL_MAGn_ROLL/PITCH/YAW (refuse a firmware without them); they are "
+        "used by default whenever the vehicle reports them",
     )
     ap.add_argument(
         "--reboot",

@@ -11,6 +11,8 @@ import datetime as dt
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from magcal.commands.common import compass_params
 from magcal.errors import MagcalError
 from magcal.ui import EXIT_INTERRUPTED, refusal, say
@@ -82,6 +84,44 @@ def _recorded(args, result, cp) -> dict[str, float] | None:
     return recorded
 
 
+#: Exit code of a flash that wrote the calibration but left out a misalignment costing at
+#: least LEFT_OUT_WARN_DEG of heading (the values are in force; the warning says what it costs).
+EXIT_MISALIGNMENT_LEFT_OUT = 3
+LEFT_OUT_WARN_DEG = 0.5
+
+
+def _rotation_sigma_deg(args, result):
+    """The result's misalignment σ per axis (degrees) from the ML cost's curvature on the
+    session it was fitted on (``--session``), or None without one or when it cannot be had
+    (then a rotation is written as an enumerated one only when it is one)."""
+    if not args.session:
+        return None
+    from magcal.calib.diagnostics import replay, uncertainty
+    from magcal.errors import CalibrationError
+    from magcal.io.session import read_session
+
+    try:
+        unc = uncertainty.calibration_uncertainty(result, read_session(args.session))
+    except (replay.ModelUnavailableError, CalibrationError) as exc:
+        _say(f"note: no uncertainty of the rotation ({exc}): it is written as estimated")
+        return None
+    sigma = np.asarray(unc.sigma["misalignment_deg"], dtype=float)
+    # The curvature knows only the noise model; the corrected field's own norm spread (std /
+    # mean) bounds how well any direction is held, whatever the model says: a floor.
+    after = (result.extra.get("field_norm") or {}).get("after") or {}
+    floor = 0.0
+    if after.get("mean"):
+        floor = float(np.degrees(after["std"] / after["mean"]))
+    sigma = np.sqrt(sigma**2 + floor**2)
+    _say(
+        "misalignment σ "
+        + ", ".join(f"{v:.3f}" for v in sigma)
+        + f"° (roll, pitch, yaw axes; the curvature on {args.session}, at least the corrected "
+        f"field's norm spread, {floor:.3f}°)"
+    )
+    return sigma
+
+
 def _print_plan(plan, cp, out) -> None:
     from magcal.autopilot import params
 
@@ -134,8 +174,9 @@ def run(args) -> int:
             raise MagcalError(f"flash: backup file {args.backup} exists; give a new path")
     compass = args.compass or 1
     with open_autopilot(args.mavlink) as ap:
+        # PX4: CAL_MAGn_ROLL/PITCH/YAW are read (and used) unless --no-custom-rotation
         cp = compass_params(
-            ap, compass, custom_angles=args.px4_custom_rotation and ap.autopilot == vehicle.PX4
+            ap, compass, custom_angles=ap.autopilot == vehicle.PX4 and not args.no_custom_rotation
         )
         _say(f"vehicle {ap.describe()}; compass {compass}, unit {cp.unit}")
         D_inv, o, res_unit = apflash.result_in_unit(result, cp.unit, args.mag_unit, args.result)
@@ -149,13 +190,24 @@ def run(args) -> int:
                 else ""
             ),
         )
-        allow_custom = (
-            not args.no_custom_rotation
-            if ap.autopilot == vehicle.ARDUPILOT
-            else bool(args.px4_custom_rotation)
-        )
+        allow_custom = not args.no_custom_rotation
+        if ap.autopilot == vehicle.PX4:
+            index = vehicle.px4_index(compass)
+            has_angles = all(n in cp.values for n in vehicle.px4_custom_angles(index))
+            if args.px4_custom_rotation and not has_angles:
+                raise MagcalError(
+                    f"flash: --px4-custom-rotation, but this PX4 has no CAL_MAG{index}_ROLL/"
+                    "PITCH/YAW (older firmware): drop the option; nothing was written"
+                )
+            allow_custom = allow_custom and has_angles
         plan = apflash.plan_flash(
-            D_inv, o, cp, fld, recorded=_recorded(args, result, cp), allow_custom=allow_custom
+            D_inv,
+            o,
+            cp,
+            fld,
+            recorded=_recorded(args, result, cp),
+            allow_custom=allow_custom,
+            rotation_sigma_deg=_rotation_sigma_deg(args, result),
         )
         _print_plan(plan, cp, sys.stdout)
         if args.param_file:
@@ -212,7 +264,26 @@ def run(args) -> int:
         )
         print(f"previous values saved in {backup.path} (magcal flash --restore to put them back)")
         _reboot(ap, plan.reboot_reasons, args.reboot, plan.never_applied)
-    return 0
+    return _left_out(plan)
+
+
+def _left_out(plan) -> int:
+    """0, or EXIT_MISALIGNMENT_LEFT_OUT with a warning when the values written leave out a
+    misalignment costing at least LEFT_OUT_WARN_DEG of heading."""
+    from magcal.autopilot import mapping
+
+    m = plan.mapped
+    if m.heading_rms_deg < LEFT_OUT_WARN_DEG or mapping.snapped(m.notes):
+        return 0
+    print(
+        f"magcal flash: warning: the values written leave out a misalignment of "
+        f"{m.residual_angle_deg:.2f}°, costing {m.heading_rms_deg:.2f}° RMS heading error "
+        "(see the notes): allow a custom rotation (ArduPilot: without --no-custom-rotation; "
+        "PX4: a firmware with CAL_MAGn_ROLL/PITCH/YAW) or mount the compass along an "
+        "enumerated rotation",
+        file=sys.stderr,
+    )
+    return EXIT_MISALIGNMENT_LEFT_OUT
 
 
 def _interrupted(exc, message: str, backup_path: Path) -> int:

@@ -1,0 +1,103 @@
+"""The magnetometer screen of ``collect --mavlink`` and the coverage of orientations taken.
+
+A stream at 50 Hz carrying a 10 Hz compass: repeats are IMU-only rows, each value's time is
+its first row; a value read during a fast flip, or left frozen while the vehicle turns, is
+rejected and counted. Coverage from the attitude: a still vehicle with noisy readings (a
+centre fitted to its noise makes them point everywhere) and a yaw-only one never reach the
+target; a tumble does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from magcal.autopilot.magstream import MAX_TURN_RAD, MagnetometerScreen, rotation_exp
+from magcal.device.coverage import AttitudeCoverage, CoverageTracker
+
+FIELD = np.array([0.25, 0.05, -0.55]) * 1000  # mG, world frame
+RATE_HZ = 50.0
+MAG_EVERY = 5  # a 10 Hz compass
+
+
+def _stream(rates: np.ndarray, glitch: dict[int, np.ndarray] | None = None):
+    """Rows of (t, gyr, mag value) for body rates (N, 3) rad/s: the magnetometer reads the
+    field in the body frame every MAG_EVERY rows and holds it in between."""
+    R = np.eye(3)
+    rows = []
+    held = None
+    for i, w in enumerate(rates):
+        if i % MAG_EVERY == 0:
+            held = tuple(np.round(R.T @ FIELD).astype(int))
+            if glitch and i in glitch:
+                held = tuple(glitch[i])
+        rows.append((i / RATE_HZ, w, held))
+        R = R @ rotation_exp(w / RATE_HZ)
+    return rows
+
+
+def _screen(rows) -> MagnetometerScreen:
+    s = MagnetometerScreen()
+    for i, (t, w, m) in enumerate(rows):
+        s.add(i, t, w, m)
+    s.finish()
+    return s
+
+
+def test_only_changes_are_samples_at_their_first_row():
+    rates = np.tile([0.3, 0.8, -0.2], (500, 1))
+    s = _screen(_stream(rates))
+    c = s.counts()
+    assert c.rows == 500 and c.accepted == 100 and c.repeats == 400
+    assert c.fast_turn == c.frozen == 0
+    assert s.rows == list(range(0, 500, MAG_EVERY))
+    # the attitude at each sample turns the body-frame reading back into the world field
+    for R, y in zip(s.rotations, s.values, strict=True):
+        assert np.linalg.norm(R @ np.array(y) - FIELD) < 2.0
+
+
+def test_a_fast_flip_and_a_frozen_value_are_rejected_and_counted():
+    rates = np.tile([0.0, 0.0, 1.0], (400, 1))
+    rates[200:205] = [25.0, 0.0, 0.0]  # a 0.1 s flip of 2.5 rad between two readings
+    frozen = _stream(rates)
+    s = _screen(frozen)
+    c = s.counts()
+    assert c.fast_turn == 1 and 205 not in s.rows  # the reading after the flip
+    assert c.frozen == 1 and 200 not in s.rows  # the one held through it
+    # a value that stays while the vehicle turns by more than MAX_TURN_RAD
+    rows = _stream(np.tile([0.0, 0.0, 1.0], (400, 1)))
+    stuck = rows[100][2]
+    rows = [(t, w, stuck if 100 <= i < 150 else m) for i, (t, w, m) in enumerate(rows)]
+    s = _screen(rows)
+    assert s.counts().frozen == 1 and 100 not in s.rows
+    assert 50 * 1.0 / RATE_HZ > MAX_TURN_RAD  # the hold really turned that far
+
+
+def _coverage(rates: np.ndarray, noise: float, seed: int = 0) -> tuple[float, float]:
+    """(attitude coverage, raw field-direction coverage) of a stream with sensor noise."""
+    rng = np.random.default_rng(seed)
+    offset = np.array([120.0, -40.0, 60.0])
+    R = np.eye(3)
+    ys, Rs = [], []
+    for w in rates:
+        ys.append(R.T @ FIELD + offset + noise * rng.standard_normal(3))
+        Rs.append(R.copy())
+        R = R @ rotation_exp(w / 10.0)
+    att = AttitudeCoverage(min_extent=100.0)
+    att.add(np.array(ys), np.array(Rs))
+    raw = CoverageTracker(min_extent=100.0)
+    raw.add(np.array(ys))
+    return att.state(force=True).coverage, raw.state(force=True).coverage
+
+
+def test_a_still_or_yaw_only_vehicle_never_reaches_the_target_a_tumble_does():
+    n = 1200  # two minutes of a 10 Hz compass
+    # still, with noise spanning more than the minimum extent (PX4 SIH: 20-30 mG)
+    still_att, still_raw = _coverage(np.zeros((n, 3)), noise=30.0)
+    assert still_raw > 0.5  # the raw directions are fooled by the noise ...
+    assert still_att <= 0.02  # ... the orientations taken are one
+    yaw_att, _ = _coverage(np.tile([0.0, 0.0, 1.0], (n, 1)), noise=3.0)
+    assert yaw_att < 0.3
+    t = np.arange(n) / 10.0
+    tumble = np.column_stack([np.sin(0.31 * t), np.cos(0.23 * t), np.sin(0.071 * t + 1)]) * 2.0
+    tumble_att, tumble_raw = _coverage(tumble, noise=3.0)
+    assert tumble_att >= 0.9 and abs(tumble_att - tumble_raw) < 0.1

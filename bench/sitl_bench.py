@@ -66,12 +66,17 @@ def onboard_case(seed: int, misaligned: bool, speedup: float) -> dict:
             if ack is not None and ack.command == MAV_CMD_DO_START_MAG_CAL and ack.result == 0:
                 break
             time.sleep(1.0)
+        # Done when MAG_CAL_REPORT arrives or, as it may not reach every link, when the
+        # autosave replaces the offsets in force (polled once per wall second).
+        before = [sitl.get(f"COMPASS_OFS_{a}") for a in "XYZ"]
         t0 = time.monotonic()
         report = None
         while time.monotonic() - t0 < ONBOARD_TIMEOUT_SIM_S / speedup:
             m = drv.recv_match(type="MAG_CAL_REPORT", blocking=True, timeout=1.0)
             if m is not None and m.compass_id == 0:
                 report = m
+                break
+            if [sitl.get(f"COMPASS_OFS_{a}") for a in "XYZ"] != before:
                 break
         elapsed = (time.monotonic() - t0) * speedup
         time.sleep(2.0 / speedup + 0.5)  # autosave

@@ -11,7 +11,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from magcal.autopilot.magstream import MAX_TURN_RAD, MagnetometerScreen, rotation_exp
+from magcal.autopilot.magstream import MAX_TURN_RAD, MagnetometerScreen
+from magcal.calib.frames import rotvec_to_matrix
 from magcal.device.coverage import AttitudeCoverage, CoverageTracker
 
 FIELD = np.array([0.25, 0.05, -0.55]) * 1000  # mG, world frame
@@ -31,7 +32,7 @@ def _stream(rates: np.ndarray, glitch: dict[int, np.ndarray] | None = None):
             if glitch and i in glitch:
                 held = tuple(glitch[i])
         rows.append((i / RATE_HZ, w, held))
-        R = R @ rotation_exp(w / RATE_HZ)
+        R = R @ rotvec_to_matrix(w / RATE_HZ)
     return rows
 
 
@@ -81,7 +82,7 @@ def _coverage(rates: np.ndarray, noise: float, seed: int = 0) -> tuple[float, fl
     for w in rates:
         ys.append(R.T @ FIELD + offset + noise * rng.standard_normal(3))
         Rs.append(R.copy())
-        R = R @ rotation_exp(w / 10.0)
+        R = R @ rotvec_to_matrix(w / 10.0)
     att = AttitudeCoverage(min_extent=100.0)
     att.add(np.array(ys), np.array(Rs))
     raw = CoverageTracker(min_extent=100.0)

@@ -134,7 +134,7 @@ def per_sample_costs(
         Rt = np.swapaxes(R, 1, 2)
         # The magnetometer's delay τ: it sees the body turned back by τ times the rate.
         rate = data.gyr[max(t - 1, 0)] - bias
-        E = frames.quat_to_matrix(frames.rotvec_to_quat(delay[:, None] * rate))
+        E = frames.rotvec_to_matrix(delay[:, None] * rate)
         ERt = E @ Rt
         f = x_acc[:, :3] - g_n  # specific force in n
         eps = np.concatenate(

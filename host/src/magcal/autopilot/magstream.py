@@ -26,10 +26,11 @@ really took (:class:`magcal.device.coverage.AttitudeCoverage`).
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
+
+from magcal.calib import frames
 
 #: A magnetometer value is rejected when the vehicle turned more than this (rad) between the
 #: previous value's row and its own (fast turn), or while it stayed (frozen): a direction
@@ -59,16 +60,6 @@ class ScreenCounts:
             f"{self.repeats} rows repeated the previous value, {self.fast_turn} readings during "
             f"a fast turn and {self.frozen} frozen while turning were not used"
         )
-
-
-def rotation_exp(phi: np.ndarray) -> np.ndarray:
-    """The rotation matrix of the rotation vector phi (3,) (Rodrigues)."""
-    angle = float(np.linalg.norm(phi))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = phi / angle
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + math.sin(angle) * K + (1.0 - math.cos(angle)) * (K @ K)
 
 
 class MagnetometerScreen:
@@ -101,7 +92,7 @@ class MagnetometerScreen:
         if self._t_prev is not None:
             dt = t_s - self._t_prev
             if 0.0 < dt <= MAX_PROPAGATION_STEP_S:
-                self._R = self._R @ rotation_exp(self._w_prev * dt)
+                self._R = self._R @ frames.rotvec_to_matrix(self._w_prev * dt)
                 self._turn += float(np.linalg.norm(self._w_prev)) * dt
         self._t_prev, self._w_prev = t_s, w
         self._n += 1

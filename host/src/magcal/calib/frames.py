@@ -92,6 +92,11 @@ def rotvec_to_quat(phi: np.ndarray) -> np.ndarray:
     return quat_exp(0.5 * np.asarray(phi, dtype=float))
 
 
+def rotvec_to_matrix(phi: np.ndarray) -> np.ndarray:
+    """Rotation vector(s) (..., 3) (axis × angle, rad) → rotation matrices (..., 3, 3)."""
+    return quat_to_matrix(rotvec_to_quat(phi))
+
+
 def quat_to_rotvec(q: np.ndarray) -> np.ndarray:
     """Unit quaternion → rotation vector (axis × angle, rad), angle in [0, π]."""
     return 2.0 * quat_log(q)

@@ -36,7 +36,7 @@ from magcal.calib.frames import (
     GRAVITY_M_S2,
     nearest_rotation,
     quat_to_matrix,
-    rotvec_to_quat,
+    rotvec_to_matrix,
     skew,
     so3_grid,
 )
@@ -130,10 +130,6 @@ def vertical_from_accelerometer(acc: np.ndarray) -> np.ndarray:
     return acc / norm
 
 
-def _rotation_exp(phi: np.ndarray) -> np.ndarray:
-    return quat_to_matrix(rotvec_to_quat(phi))
-
-
 # Generators: vec([e_k×] R) for the left increment exp([φ×]) R.
 _GENERATORS = skew(np.eye(3))  # (3, 3, 3), _GENERATORS[k] = [e_k×]
 
@@ -161,7 +157,7 @@ def _refine(L: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             except np.linalg.LinAlgError:
                 phi = None
             if phi is not None and np.all(np.isfinite(phi)):
-                R_new = _rotation_exp(phi) @ R
+                R_new = rotvec_to_matrix(phi) @ R
                 new_cost = float(np.sum((L @ R_new.ravel()) ** 2))
                 if new_cost <= cost:
                     accepted = True

@@ -327,7 +327,7 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
     normed = np.zeros((n, 6))
     for t in range(n):
         rate = data.gyr[max(t - 1, 0)] - p.gyro_bias
-        E = frames.quat_to_matrix(frames.rotvec_to_quat(p.time_offset_s * rate))  # its delay
+        E = frames.rotvec_to_matrix(p.time_offset_s * rate)  # its delay
         if t > 0:
             dt = data.dt[t]
             q = frames.quat_multiply(q, frames.quat_exp(0.5 * dt * (data.gyr[t - 1] - p.gyro_bias)))

@@ -19,8 +19,6 @@ FW_INC := -Ifirmware/include
 # QEMU, protocol generation and fuzzing, the product installed on its own). A fragment adds
 # what `make test` must also run to TEST_EXTRA.
 TEST_EXTRA :=
-# ... and what `make bench` must also run, to BENCH_EXTRA.
-BENCH_EXTRA :=
 .DEFAULT_GOAL := setup
 include $(sort $(wildcard mk/*.mk))
 
@@ -92,7 +90,7 @@ real: setup
 cramer-rao: setup
 	$(PY) -m magcal_evaluation.cramer_rao_report --runs 20 --out bench/cramer_rao.md
 
-bench: setup sil $(BENCH_EXTRA)
+bench: setup sil
 	$(PY) bench/run_bench.py --out bench/results.json
 	$(PY) bench/firmware_figures.py --out bench/firmware.json
 	$(PY) bench/link_figures.py --out bench/link.json

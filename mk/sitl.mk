@@ -18,7 +18,5 @@ TEST_EXTRA += test-sitl
 
 # magcal beside ArduPilot's on-board calibrator on the same SITL set-ups (figures, no
 # assertions): bench/sitl.json. Part of `make bench` when SITL is there.
-BENCH_EXTRA += bench-sitl
-
 bench-sitl: setup
 	MAGCAL_SITL_DIR="$(abspath $(SITL_DIR))" $(PY) bench/sitl_bench.py --out bench/sitl.json

@@ -8,7 +8,8 @@ one whose UDP ports are free, and an ``<airframe>.post`` hook (which PX4's start
 runs after its own MAVLink links) adds two links that send to ports of their own: one for
 magcal (:attr:`Px4Sitl.url`) and one for the fixture's driver (parameters, streams, turning
 the vehicle), so that runs side by side never see each other's vehicle on 14550. The process
-group is always stopped: on ``close`` / leaving the ``with``, and at interpreter exit.
+group is always stopped: on ``close`` / leaving the ``with``, and at interpreter exit;
+``close`` removes the unpacked PX4 and its flight logs and keeps ``run/px4.log``.
 
 What SIH simulates (its README): the world magnetic model's field turned by the true attitude,
 noise, and one sensor error, the offset ``SIM_MAG_OFFSET_X/Y/Z`` (gauss); the magnetometer is
@@ -21,6 +22,7 @@ from __future__ import annotations
 import atexit
 import math
 import os
+import shutil
 import signal
 import socket
 import subprocess
@@ -295,6 +297,9 @@ class Px4Sitl:
         else:
             _running.discard(self.proc.pid)
         self.log.close()
+        # the unpacked PX4 and its flight logs go (≈ 20 MB a run); px4.log stays
+        shutil.rmtree(self.dir / "px4", ignore_errors=True)
+        shutil.rmtree(self.dir / "run" / "log", ignore_errors=True)
 
     def __enter__(self) -> Px4Sitl:
         return self

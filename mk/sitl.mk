@@ -1,17 +1,23 @@
 # Real autopilots in the loop: ArduCopter SITL from SITL_DIR (../shared/sitl beside the
-# checkout by default). `make test-sitl` runs tests/autopilot_sitl (the real command line
-# against the simulated calibration stand); without SITL it says so and passes. `make test`
-# runs it too.
+# checkout by default) and PX4 SITL with SIH from PX4SITL_DIR (../shared/px4sitl). `make
+# test-sitl` runs tests/autopilot_sitl (the real command line against the simulated vehicles);
+# an autopilot whose SITL is absent is skipped with a message. `make test` runs it too.
 
 .PHONY: test-sitl bench-sitl
 
 SITL_DIR ?= ../shared/sitl
+PX4SITL_DIR ?= ../shared/px4sitl
 
 test-sitl: setup
-	@if [ -x "$(SITL_DIR)/arducopter" ]; then \
-		MAGCAL_SITL_DIR="$(abspath $(SITL_DIR))" $(PY) -m pytest -q tests/autopilot_sitl; \
-	else \
+	@if [ ! -x "$(SITL_DIR)/arducopter" ]; then \
 		echo "test-sitl: skipped: no ArduPilot SITL at $(SITL_DIR)/arducopter (see tests/autopilot_sitl/ardupilot.py)"; \
+	fi
+	@if [ ! -f "$(PX4SITL_DIR)/px4-sih.tar.gz" ]; then \
+		echo "test-sitl: skipped: no PX4 SITL at $(PX4SITL_DIR)/px4-sih.tar.gz (see tests/autopilot_sitl/px4.py)"; \
+	fi
+	@if [ -x "$(SITL_DIR)/arducopter" ] || [ -f "$(PX4SITL_DIR)/px4-sih.tar.gz" ]; then \
+		MAGCAL_SITL_DIR="$(abspath $(SITL_DIR))" MAGCAL_PX4SITL_DIR="$(abspath $(PX4SITL_DIR))" \
+			$(PY) -m pytest -q tests/autopilot_sitl; \
 	fi
 
 TEST_EXTRA += test-sitl

@@ -267,3 +267,49 @@ def test_px4_never_applied_vectors_are_noted_with_their_cost_and_are_no_reboot_r
     # a vector beyond the threshold is applied, and a reboot reason only while it is not in use
     bigger = F.px4_reboot_reasons(cp.values, (P.ParamEntry("CAL_MAG0_XODIAG", 0.02, P.REAL32),), 0)
     assert bigger == []
+
+
+@pytest.mark.parametrize("board", [0, 2])
+def test_px4_internal_compass_keeps_the_board_rotation(board):
+    """PX4 turns an internal compass (CAL_MAG0_ROT −1) with SENS_BOARD_ROT: the plan writes
+    offsets and scales, never CAL_MAG0_ROT, and the vehicle's correction with them is the
+    calibration when the sensor sits along the board."""
+    rng = np.random.default_rng(5)
+    W = np.eye(3) + 0.02 * rng.normal(size=(3, 3))
+    W = (W + W.T) / 2
+    R = rotations.px4_matrix(board)
+    A = R @ np.linalg.inv(W)
+    o = rng.uniform(-0.15, 0.15, 3)
+    F_G = 0.5
+    cp = _px4_in_force(external=False)
+    cp.values["SENS_BOARD_ROT"] = float(board)
+    cp.types["SENS_BOARD_ROT"] = P.INT32
+    plan = F.plan_flash(A / F_G, o, cp, wmm.Field(F_G * 1e5, 60.0, None, "t"), allow_custom=True)
+    names = {e.name for e in plan.writes} | {e.name for e in plan.unchanged}
+    assert "CAL_MAG0_ROT" not in names and "CAL_MAG0_ROLL" not in names
+    assert plan.mapped.residual_angle_deg < 1e-6
+    new = cp.values | {e.name: e.value for e in plan.writes}
+    y = rng.normal(size=(20, 3)) * 0.4
+    got = vehicle.onboard_correction(
+        y, vehicle.CompassParams(vehicle.PX4, 1, new, cp.types, "", False)
+    )
+    assert np.abs(got - (y - o) @ A.T).max() < 1e-6
+
+
+def test_px4_internal_compass_misalignment_left_out_and_noted():
+    cp = _px4_in_force(external=False)
+    cp.values["SENS_BOARD_ROT"] = 0.0
+    A = rotations.euler_deg_to_matrix(0.0, 0.0, 9.0)
+    plan = F.plan_flash(A / 0.5, np.zeros(3), cp, wmm.Field(0.5e5, 60.0, None, "t"))
+    assert abs(plan.mapped.residual_angle_deg - 9.0) < 1e-6
+    assert plan.mapped.heading_rms_deg > 5.0
+    assert any("SENS_BOARD_ROT only" in n for n in plan.mapped.notes)
+    # within its uncertainty the board rotation is kept without a warning
+    plan = F.plan_flash(
+        A / 0.5,
+        np.zeros(3),
+        cp,
+        wmm.Field(0.5e5, 60.0, None, "t"),
+        rotation_sigma_deg=np.array([5.0, 5.0, 5.0]),
+    )
+    assert mapping.snapped(plan.mapped.notes)

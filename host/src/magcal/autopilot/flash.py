@@ -292,12 +292,17 @@ def plan_flash(
         )
     else:
         index = vehicle.px4_index(cp.compass)
+        board = None
         if not cp.external:
-            raise MagcalError(
-                f"flash: PX4 compass {cp.compass} is internal (CAL_MAG{index}_ROT = -1): PX4 "
-                "turns it with the board rotation SENS_BOARD_ROT, which magcal does not write; "
-                "nothing was written"
-            )
+            if "SENS_BOARD_ROT" not in cp.values:
+                raise MagcalError(
+                    f"flash: PX4 compass {cp.compass} is internal (CAL_MAG{index}_ROT = -1): PX4 "
+                    "turns it with the board rotation SENS_BOARD_ROT, which the vehicle did not "
+                    "report; nothing was written"
+                )
+            # PX4 ignores CAL_MAGn_ROT and CAL_MAGn_ROLL/PITCH/YAW for an internal compass
+            board = rotations.px4_matrix(int(cp.values["SENS_BOARD_ROT"]))
+            allow_custom = False
         has_custom = all(n in cp.values for n in vehicle.px4_custom_angles(index))
         if allow_custom and not has_custom:
             raise MagcalError(
@@ -319,6 +324,7 @@ def plan_flash(
             allow_custom=allow_custom,
             inclination_deg=incl,
             rotation_sigma_deg=rotation_sigma_deg,
+            board_rotation=board,
         )
     entries = []
     unchanged = []

@@ -347,6 +347,7 @@ def to_px4(
     max_rotation_index: int = rotations.PX4_MAX_COMMON_INDEX,
     inclination_deg: float = DEFAULT_INCLINATION_DEG,
     rotation_sigma_deg: np.ndarray | None = None,
+    board_rotation: np.ndarray | None = None,
 ) -> AutopilotParams:
     """PX4 parameters for ``B = F · D⁻¹ (y − o)``, ``y = Rot0 · raw`` (gauss).
 
@@ -354,7 +355,9 @@ def to_px4(
     field_gauss : F;  Rot0 : (3, 3) rotation already applied to y (default: y is raw)
     index : n in CAL_MAGn_*;  allow_custom : write ROT = 100 with CAL_MAGn_ROLL/PITCH/YAW
     (unconfirmed in the sources read; off by default); rotation_sigma_deg : as for
-    :func:`to_ardupilot`.
+    :func:`to_ardupilot`; board_rotation : an internal compass (CAL_MAGn_ROT −1): the
+    rotation PX4 turns it with (SENS_BOARD_ROT's), kept: CAL_MAGn_ROT is not written and a
+    misalignment beyond it is left out (noted).
     """
     A = _check_calibration(D_inv, field_gauss, "PX4 mapping")
     o = np.asarray(o, dtype=float)
@@ -365,7 +368,22 @@ def to_px4(
     params: dict[str, float] = {}
     notes: list[str] = []
     near = rotations.nearest(R_want, "px4", max_rotation_index)
-    if near.angle_deg < 1e-6:
+    if board_rotation is not None:
+        R_new = np.asarray(board_rotation, dtype=float)
+        angle = rotations.rotation_angle_deg(R_want, R_new)
+        if angle < 1e-6:
+            pass
+        elif within_uncertainty(R_want, R_new, rotation_sigma_deg):
+            notes.append(
+                f"the estimated rotation is {angle:.2f}° from the board rotation (SENS_BOARD_ROT) "
+                f"that PX4 turns this internal compass with, {SNAPPED}: kept"
+            )
+        else:
+            notes.append(
+                "misalignment not represented (an internal compass: PX4 turns it with the board "
+                f"rotation SENS_BOARD_ROT only): the estimate is {angle:.2f}° from it"
+            )
+    elif near.angle_deg < 1e-6:
         R_new = near.matrix
         params[names["ROT"]] = float(near.index)
     elif within_uncertainty(R_want, near.matrix, rotation_sigma_deg):
@@ -500,9 +518,13 @@ def ardupilot_uncorrect(
 
 
 def px4_rotation(params: dict[str, float], index: int = 0) -> np.ndarray:
-    """(3, 3) rotation selected by CAL_MAGn_ROT (0–47, or 100 with CAL_MAGn_ROLL/PITCH/YAW)."""
+    """(3, 3) rotation selected by CAL_MAGn_ROT (0–47, or 100 with CAL_MAGn_ROLL/PITCH/YAW;
+    −1, an internal compass: SENS_BOARD_ROT's, when ``params`` hold it)."""
     n = px4_param_names(index)
     rot_value = int(params[n["ROT"]])
+    if rot_value < 0 and "SENS_BOARD_ROT" in params:
+        # internal: PX4 uses the board rotation (Magnetometer::set_rotation, GetBoardRotation)
+        return rotations.px4_matrix(int(params["SENS_BOARD_ROT"]))
     if rot_value == PX4_CUSTOM_ROT:
         return rotations.euler_deg_to_matrix(
             params[n["ROLL"]], params[n["PITCH"]], params[n["YAW"]]

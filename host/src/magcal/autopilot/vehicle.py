@@ -218,6 +218,10 @@ def px4_required(index: int) -> list[str]:
     return [*names, p + "ROT", *board, p + "ID"]
 
 
+#: PX4's board rotation, which turns an internal compass (CAL_MAGn_ROT −1).
+PX4_BOARD_ROT = "SENS_BOARD_ROT"
+
+
 def px4_custom_angles(index: int) -> list[str]:
     return [f"CAL_MAG{index}_{a}" for a in ("ROLL", "PITCH", "YAW")]
 
@@ -289,6 +293,9 @@ def read_compass_params(
     _raise_missing(missing, autopilot, compass)
     _refuse_absent(read, values, autopilot, compass, "")
     external = values[f"CAL_MAG{index}_ROT"] >= 0
+    if not external:
+        # PX4 turns an internal compass with the board rotation instead of CAL_MAGn_ROT
+        get([PX4_BOARD_ROT], OPTIONAL_READ_TRIES, required=False)
     return CompassParams(autopilot, compass, values, types, "", external, tuple(notes))
 
 

@@ -121,11 +121,14 @@ def _compass_line(cp, rotations, mapping) -> str:
         naming = f", parameter naming {cp.naming}"
     else:
         rot_value = int(cp.values[f"CAL_MAG{n - 1}_ROT"])
-        rot = (
-            "internal: turned by SENS_BOARD_ROT"
-            if not cp.external
-            else f"external, CAL_MAG{n - 1}_ROT {rot_value}"
-        )
+        if cp.external:
+            rot = f"external, CAL_MAG{n - 1}_ROT {rot_value}"
+        elif vehicle.PX4_BOARD_ROT in cp.values:
+            board = int(cp.values[vehicle.PX4_BOARD_ROT])
+            name = rotations.PX4_TABLE[board][0] if 0 <= board < len(rotations.PX4_TABLE) else "?"
+            rot = f"internal: turned by SENS_BOARD_ROT {board} ({name})"
+        else:
+            rot = "internal: turned by SENS_BOARD_ROT (not reported)"
         naming = ""
     # read_compass_params refuses a compass whose device id is 0: this one is present
     dev = int(cp.values[vehicle.dev_id_name(cp.autopilot, n, cp.naming)])

@@ -102,3 +102,33 @@ def test_a_still_or_yaw_only_vehicle_never_reaches_the_target_a_tumble_does():
     tumble = np.column_stack([np.sin(0.31 * t), np.cos(0.23 * t), np.sin(0.071 * t + 1)]) * 2.0
     tumble_att, tumble_raw = _coverage(tumble, noise=3.0)
     assert tumble_att >= 0.9 and abs(tumble_att - tumble_raw) < 0.1
+
+
+def test_a_jittering_millisecond_clock_is_no_gap_and_a_lost_stretch_is_counted():
+    from types import SimpleNamespace
+
+    from magcal.autopilot.collect import _Recorder
+
+    rec = _Recorder("SCALED_IMU")
+    rng = np.random.default_rng(0)
+    t_ms = 1000
+    for k in range(400):
+        # 100 Hz with a millisecond stamp that jitters by a tick either way; at k = 300 five
+        # messages are lost (a 60 ms step).
+        t_ms += 60 if k == 300 else 10 + int(rng.integers(-1, 2))
+        rec.add(
+            SimpleNamespace(
+                time_boot_ms=t_ms,
+                xacc=0,
+                yacc=0,
+                zacc=1000,
+                xgyro=0,
+                ygyro=0,
+                zgyro=0,
+                xmag=k,
+                ymag=0,
+                zmag=0,
+            ),
+            host_s=t_ms / 1000.0,
+        )
+    assert rec.gaps == 5

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import time
+from collections import deque
 from collections.abc import Callable
 from datetime import datetime, timezone
 
@@ -104,6 +105,12 @@ def stop_stream(ap: Autopilot, message: str, how: str) -> None:
         log.warning("%s: could not restore the default rate of %s (%r)", ap.url, message, exc)
 
 
+#: Recent time steps whose median is a stream's nominal step.
+NOMINAL_STEP_WINDOW = 256
+#: A step longer than this many nominal steps is a gap (lost messages).
+GAP_STEPS = 1.5
+
+
 class _Recorder:
     """The messages received (timestamp ticks, IMU fields, the wire magnetometer, host times)
     and the magnetometer screen over them (:mod:`magcal.autopilot.magstream`). Its length
@@ -119,7 +126,9 @@ class _Recorder:
         self.wire_mag: list[tuple[int, int, int]] = []
         self.screen = MagnetometerScreen()
         self.gaps = 0
-        self._step: int | None = None  # the nominal step, ticks
+        # The nominal step (ticks): the median of the recent ones, since a millisecond time
+        # stamp of a 100 Hz stream jitters by a tick or two either way.
+        self._steps: deque[int] = deque(maxlen=NOMINAL_STEP_WINDOW)
         self._t = 0.0  # the screen's running time, s
 
     @property
@@ -136,10 +145,12 @@ class _Recorder:
             step = tick - self.ticks[-1]
             if step < 0 and self.base.modulus is not None:
                 step += self.base.modulus
-            if step > 0 and self._step:
-                self.gaps += max(0, round(step / self._step) - 1)
-            if step > 0 and (self._step is None or step < self._step):
-                self._step = step
+            if step > 0:
+                if self._steps:
+                    nominal = float(np.median(self._steps))
+                    if step > GAP_STEPS * nominal:
+                        self.gaps += max(0, round(step / nominal) - 1)
+                self._steps.append(step)
             if step == 0:  # a repeated time stamp: dropped from the session, not screened
                 self._append(msg, tick, host_s)
                 return
@@ -226,8 +237,11 @@ def collect(
     )
 
     def receive(wait_s: float) -> bool:
+        # A sample is a new magnetometer value (the IMU rows between are not): the rate shown
+        # is the samples'.
+        before = len(rec)
         rec.add(ap.client.recv((stream,), wait_s), clock())
-        return True
+        return len(rec) > before
 
     def stalled() -> MavlinkTimeoutError:
         return MavlinkTimeoutError(

@@ -88,6 +88,12 @@ def _recorded(args, result, cp) -> dict[str, float] | None:
 #: least LEFT_OUT_WARN_DEG of heading (the values are in force; the warning says what it costs).
 EXIT_MISALIGNMENT_LEFT_OUT = 3
 LEFT_OUT_WARN_DEG = 0.5
+#: Largest floor the corrected field's norm spread puts under the rotation's σ, degrees. The
+#: floor stands for model errors the curvature does not know (on SITL it turned a 0.05° custom
+#: rotation of an aligned compass into an enumerated one); capped so that on a sensor whose
+#: field norm scatters by percents it never hides a real misalignment of degrees (the
+#: largest rotation it can write as an enumerated one is about 0.35°).
+SIGMA_FLOOR_MAX_DEG = 0.1
 
 
 def _rotation_sigma_deg(args, result):
@@ -111,13 +117,13 @@ def _rotation_sigma_deg(args, result):
     after = (result.extra.get("field_norm") or {}).get("after") or {}
     floor = 0.0
     if after.get("mean"):
-        floor = float(np.degrees(after["std"] / after["mean"]))
+        floor = min(float(np.degrees(after["std"] / after["mean"])), SIGMA_FLOOR_MAX_DEG)
     sigma = np.sqrt(sigma**2 + floor**2)
     _say(
         "misalignment σ "
         + ", ".join(f"{v:.3f}" for v in sigma)
         + f"° (roll, pitch, yaw axes; the curvature on {args.session}, at least the corrected "
-        f"field's norm spread, {floor:.3f}°)"
+        f"field's norm spread up to {SIGMA_FLOOR_MAX_DEG}°: {floor:.3f}°)"
     )
     return sigma
 

@@ -15,9 +15,7 @@ that true field: the RMS heading error over an even grid of attitudes.
 
 from __future__ import annotations
 
-import atexit
 import os
-import signal
 import socket
 import subprocess
 import tempfile
@@ -29,6 +27,7 @@ import numpy as np
 
 from magcal.autopilot import mapping, rotations
 from magcal.calib import frames
+from tests.autopilot_sitl import processes
 
 REPO = Path(__file__).resolve().parents[2]
 SITL_DIR = Path(os.environ.get("MAGCAL_SITL_DIR", REPO.parent / "shared" / "sitl"))
@@ -39,8 +38,6 @@ MAV_CMD_DO_SET_SERVO = 183
 STAND_AUTOMATIC_PWM = 1250
 STAND_STOP_PWM = 1000
 
-_running: set[int] = set()
-
 
 def available() -> str | None:
     """None when SITL can run here, else why not (the skip message)."""
@@ -50,31 +47,6 @@ def available() -> str | None:
             "checkout)"
         )
     return None
-
-
-def _stop_group(pid: int) -> None:
-    for sig, wait in ((signal.SIGTERM, 3.0), (signal.SIGKILL, 3.0)):
-        try:
-            os.killpg(pid, sig)
-        except ProcessLookupError:
-            break
-        deadline = time.monotonic() + wait
-        while time.monotonic() < deadline:
-            try:
-                if os.waitpid(pid, os.WNOHANG)[0]:
-                    _running.discard(pid)
-                    return
-            except ChildProcessError:
-                _running.discard(pid)
-                return
-            time.sleep(0.05)
-    _running.discard(pid)
-
-
-@atexit.register
-def _stop_all() -> None:
-    for pid in list(_running):
-        _stop_group(pid)
 
 
 @dataclass(frozen=True)
@@ -170,7 +142,7 @@ class ArduPilotSitl:
         defaults = self.dir / "extra.parm"
         defaults.write_text("".join(f"{k} {v!r}\n" for k, v in extra.items()))
         self.log = open(self.dir / "sitl.log", "wb")
-        self.proc = subprocess.Popen(
+        self.proc = processes.start(
             [
                 str(BINARY),
                 "--model",
@@ -189,9 +161,7 @@ class ArduPilotSitl:
             cwd=self.dir,
             stdout=self.log,
             stderr=subprocess.STDOUT,
-            start_new_session=True,
         )
-        _running.add(self.proc.pid)
         self.drv = None
         try:
             self.drv = self._connect(5762 + 10 * self.instance)
@@ -272,10 +242,7 @@ class ArduPilotSitl:
                 self.drv.close()
             except OSError:
                 pass
-        if self.proc.poll() is None:
-            _stop_group(self.proc.pid)
-        else:
-            _running.discard(self.proc.pid)
+        processes.stop(self.proc)
         self.log.close()
 
     def __enter__(self) -> ArduPilotSitl:

@@ -19,11 +19,9 @@ ground, disarmed, by ``MAV_CMD_ACTUATOR_TEST`` bursts on pairs of motors (:meth:
 
 from __future__ import annotations
 
-import atexit
 import math
 import os
 import shutil
-import signal
 import socket
 import subprocess
 import tarfile
@@ -35,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from magcal.calib import frames
+from tests.autopilot_sitl import processes
 
 REPO = Path(__file__).resolve().parents[2]
 PX4SITL_DIR = Path(os.environ.get("MAGCAL_PX4SITL_DIR", REPO.parent / "shared" / "px4sitl"))
@@ -49,43 +48,6 @@ HIGHRES_IMU_ID = 105
 MOTOR_PAIRS = ((1, 3), (2, 4), (1, 2), (3, 4), (1, 4), (2, 3))
 #: Samples of the corrected field are compared with the true attitude below this rate, rad/s.
 SLOW_RAD_S = 0.1
-
-_running: set[int] = set()
-
-
-def available() -> str | None:
-    """None when PX4 SITL can run here, else why not (the skip message)."""
-    if not TARBALL.exists():
-        return (
-            f"PX4 SITL not found at {TARBALL} (set MAGCAL_PX4SITL_DIR or put it beside the "
-            "checkout)"
-        )
-    return None
-
-
-def _stop_group(pid: int) -> None:
-    for sig, wait in ((signal.SIGTERM, 5.0), (signal.SIGKILL, 3.0)):
-        try:
-            os.killpg(pid, sig)
-        except ProcessLookupError:
-            break
-        deadline = time.monotonic() + wait
-        while time.monotonic() < deadline:
-            try:
-                if os.waitpid(pid, os.WNOHANG)[0]:
-                    _running.discard(pid)
-                    return
-            except ChildProcessError:
-                _running.discard(pid)
-                return
-            time.sleep(0.05)
-    _running.discard(pid)
-
-
-@atexit.register
-def _stop_all() -> None:
-    for pid in list(_running):
-        _stop_group(pid)
 
 
 def _udp_free(port: int) -> bool:
@@ -113,6 +75,16 @@ def quat_to_matrix(q) -> np.ndarray:
     return frames.quat_to_matrix(np.asarray(q, dtype=float))
 
 
+def available() -> str | None:
+    """None when PX4 SITL can run here, else why not (the skip message)."""
+    if not TARBALL.exists():
+        return (
+            f"PX4 SITL not found at {TARBALL} (set MAGCAL_PX4SITL_DIR or put it beside the "
+            "checkout)"
+        )
+    return None
+
+
 class Px4Sitl:
     """PX4 SITL with SIH and ``params`` set at start (module docstring)."""
 
@@ -137,7 +109,7 @@ class Px4Sitl:
         env |= {"PX4_SIM_MODEL": "sihsim_quadx", "PX4_SIMULATOR": "sihsim"}
         env |= {f"PX4_PARAM_{k}": f"{v:g}" for k, v in (params or {}).items()}
         self.log = open(run / "px4.log", "wb")
-        self.proc = subprocess.Popen(
+        self.proc = processes.start(
             [
                 str(self.dir / "px4" / "bin" / "px4"),
                 "-i",
@@ -152,9 +124,7 @@ class Px4Sitl:
             stdin=subprocess.DEVNULL,
             stdout=self.log,
             stderr=subprocess.STDOUT,
-            start_new_session=True,
         )
-        _running.add(self.proc.pid)
         self.drv = None
         self._lock = threading.Lock()
         try:
@@ -292,10 +262,7 @@ class Px4Sitl:
                 self.drv.close()
             except OSError:
                 pass
-        if self.proc.poll() is None:
-            _stop_group(self.proc.pid)
-        else:
-            _running.discard(self.proc.pid)
+        processes.stop(self.proc, term_wait_s=5.0)
         self.log.close()
         # the unpacked PX4 and its flight logs go (≈ 20 MB a run); px4.log stays
         shutil.rmtree(self.dir / "px4", ignore_errors=True)

@@ -87,54 +87,43 @@ def maximum_likelihood(
 
     theta0 = problem.theta0.copy()
     theta0[INDEX_TIME_OFFSET] = 0.0
-    plain = minimize_bfgs(
-        without_time_offset,
-        theta0,
-        problem.scales,
-        options,
-        fun=line_search_cost,
-        progress=progress,
-    )
-    done = plain.iterations
 
-    def progress_after_plain(iteration: int, cost: float, decrement: float) -> None:
-        if progress:
-            progress(done + iteration, cost, decrement)
+    def run(fun_and_grad, x0, budget: int, done: int) -> OptimizeReport:
+        def progress_after(iteration: int, cost: float, decrement: float) -> None:
+            if progress:
+                progress(done + iteration, cost, decrement)
 
-    if plain.iterations >= options.max_iter:  # no budget left to test a delay
-        theta = on_canonical_branch(plain.x)
-        return MLEstimate(
-            params=problem.model_params(theta),
-            theta=theta,
-            theta0=problem.theta0,
-            report=plain,
+        return minimize_bfgs(
+            fun_and_grad,
+            x0,
+            problem.scales,
+            dataclasses.replace(options, max_iter=budget),
+            fun=line_search_cost,
+            progress=progress_after,
         )
-    delayed = minimize_bfgs(
-        fun_and_grad,
-        plain.x,
-        problem.scales,
-        dataclasses.replace(options, max_iter=options.max_iter - plain.iterations),
-        fun=line_search_cost,
-        progress=progress_after_plain,
-    )
-    threshold = float(scipy.stats.chi2.isf(TIME_OFFSET_TEST_LEVEL, df=1))
-    statistic = 2.0 * (plain.cost - delayed.cost)
-    test = TimeOffsetTest(
-        statistic=float(statistic),
-        threshold=threshold,
-        fitted_s=float(delayed.x[INDEX_TIME_OFFSET]),
-        kept=bool(statistic > threshold),
-    )
-    chosen = delayed if test.kept else plain
-    report = dataclasses.replace(
-        chosen,
-        iterations=plain.iterations + delayed.iterations,
-        cost_evaluations=plain.cost_evaluations + delayed.cost_evaluations,
-        gradient_evaluations=plain.gradient_evaluations + delayed.gradient_evaluations,
-        seconds=plain.seconds + delayed.seconds,
-        history=plain.history + delayed.history,
-        hessian_resets=plain.hessian_resets + delayed.hessian_resets,
-    )
+
+    plain = run(without_time_offset, theta0, options.max_iter, 0)
+    chosen, report, test = plain, plain, None
+    if plain.iterations < options.max_iter:  # budget left to test a delay
+        delayed = run(fun_and_grad, plain.x, options.max_iter - plain.iterations, plain.iterations)
+        statistic = 2.0 * (plain.cost - delayed.cost)
+        threshold = float(scipy.stats.chi2.isf(TIME_OFFSET_TEST_LEVEL, df=1))
+        test = TimeOffsetTest(
+            statistic=float(statistic),
+            threshold=threshold,
+            fitted_s=float(delayed.x[INDEX_TIME_OFFSET]),
+            kept=bool(statistic > threshold),
+        )
+        chosen = delayed if test.kept else plain
+        report = dataclasses.replace(
+            chosen,
+            iterations=plain.iterations + delayed.iterations,
+            cost_evaluations=plain.cost_evaluations + delayed.cost_evaluations,
+            gradient_evaluations=plain.gradient_evaluations + delayed.gradient_evaluations,
+            seconds=plain.seconds + delayed.seconds,
+            history=plain.history + delayed.history,
+            hessian_resets=plain.hessian_resets + delayed.hessian_resets,
+        )
     theta = on_canonical_branch(chosen.x)
     return MLEstimate(
         params=problem.model_params(theta),

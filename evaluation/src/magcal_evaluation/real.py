@@ -511,7 +511,8 @@ def imu_to_reference_rotation(case: Case) -> np.ndarray | None:
     starts = np.arange(0, len(session.t) - step, step)
     starts = starts[have[starts] & have[starts + step]]
     reference = (rotations[starts].inv() * rotations[starts + step]).as_rotvec()
-    gyro = np.array([rate_dt[k : k + step].sum(axis=0) for k in starts])
+    turned_by = np.vstack([np.zeros(3), np.cumsum(rate_dt, axis=0)])  # ∫ω dt from the start
+    gyro = turned_by[starts + step] - turned_by[starts]
     turned = np.linalg.norm(gyro, axis=1) > IMU_ALIGNMENT_MIN_TURN_RAD
     if turned.sum() < 3:
         return None

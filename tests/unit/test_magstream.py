@@ -132,3 +132,38 @@ def test_a_jittering_millisecond_clock_is_no_gap_and_a_lost_stretch_is_counted()
             host_s=t_ms / 1000.0,
         )
     assert rec.gaps == 5
+
+
+def test_a_clock_restart_is_no_gap():
+    from types import SimpleNamespace
+
+    from magcal.autopilot.collect import _Recorder
+
+    rec = _Recorder("SCALED_IMU")
+    # 100 Hz from 100 s, the vehicle reboots at row 50 (its clock starts again near 1 s).
+    for k in range(100):
+        t_ms = 100_000 + 10 * k if k < 50 else 1_000 + 10 * k
+        rec.add(
+            SimpleNamespace(
+                time_boot_ms=t_ms,
+                xacc=0,
+                yacc=0,
+                zacc=1000,
+                xgyro=0,
+                ygyro=0,
+                zgyro=0,
+                xmag=k,
+                ymag=0,
+                zmag=0,
+            ),
+            host_s=k / 100.0,
+        )
+    assert rec.gaps == 0
+
+
+def test_the_rotation_vector_of_a_half_turn_keeps_its_axis_signs():
+    from magcal.autopilot.rotations import rotation_vector_deg
+
+    axis = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
+    R = rotvec_to_matrix(np.pi * axis)
+    np.testing.assert_allclose(rotation_vector_deg(R), 180.0 * axis, atol=1e-6)

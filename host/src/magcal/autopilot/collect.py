@@ -142,9 +142,7 @@ class _Recorder:
     def add(self, msg, host_s: float) -> None:
         tick = int(getattr(msg, self.base.field))
         if self.ticks:
-            step = tick - self.ticks[-1]
-            if step < 0 and self.base.modulus is not None:
-                step += self.base.modulus
+            step = vehicle.tick_step(self.ticks[-1], tick, self.base)
             if step > 0:
                 if self._steps:
                     nominal = float(np.median(self._steps))
@@ -156,7 +154,7 @@ class _Recorder:
                 return
             dt = step * self.base.tick_s
             # a reset or a long pause: no propagation across it
-            self._t += dt if dt <= vehicle.MAX_WRAP_STEP_S else 2 * MAX_PROPAGATION_STEP_S
+            self._t += dt if 0 < dt <= vehicle.MAX_WRAP_STEP_S else 2 * MAX_PROPAGATION_STEP_S
         self._append(msg, tick, host_s)
         gyr = vehicle.gyro_mrad_to_si(np.array(self.gyr[-1], dtype=float))
         self.screen.add(len(self.ticks) - 1, self._t, gyr, self.wire_mag[-1])

@@ -27,7 +27,6 @@ Sources checked (read with the code search tool):
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,16 +139,7 @@ def rotation_angle_deg(A: np.ndarray, B: np.ndarray) -> float:
 
 def rotation_vector_deg(R: np.ndarray) -> np.ndarray:
     """(3,) the rotation vector of R (3, 3), degrees (axis times angle, angle in [0, 180])."""
-    R = np.asarray(R, dtype=float)
-    angle = math.acos(max(-1.0, min(1.0, (np.trace(R) - 1.0) / 2.0)))
-    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    if angle < 1e-9:
-        return np.degrees(0.5 * w)
-    s = math.sin(angle)
-    if s < 1e-6:  # 180°: the axis from the symmetric part
-        axis = np.sqrt(np.maximum((np.diag(R) + 1.0) / 2.0, 0.0))
-        return np.degrees(angle * axis)
-    return np.degrees(angle * w / (2.0 * s))
+    return np.degrees(frames.quat_to_rotvec(frames.matrix_to_quat(np.asarray(R, dtype=float))))
 
 
 def _matrices(table: tuple[tuple[str, float, float, float], ...]) -> np.ndarray:

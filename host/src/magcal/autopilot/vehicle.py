@@ -450,6 +450,17 @@ class Timeline:
     missing: int
 
 
+def tick_step(previous: int, tick: int, base: TimeBase) -> int:
+    """Ticks from ``previous`` to ``tick``: a backward step that ``base.modulus`` explains as a
+    counter wrap within MAX_WRAP_STEP_S is that wrap's forward step; any other backward step
+    stays negative (a clock restart)."""
+    step = tick - previous
+    if step < 0 and base.modulus is not None:
+        if 0 < step + base.modulus <= MAX_WRAP_STEP_S / base.tick_s:
+            step += base.modulus
+    return step
+
+
 def unwrap_times(ticks: np.ndarray, base: TimeBase, host_s: np.ndarray) -> Timeline:
     """Monotonic session time from a stream's timestamps (pure).
 
@@ -469,12 +480,10 @@ def unwrap_times(ticks: np.ndarray, base: TimeBase, host_s: np.ndarray) -> Timel
         return Timeline(t, keep, 0, 0, 0)
     t[0], keep[0] = 0.0, True
     last = 0  # index of the last kept sample
-    max_wrap = MAX_WRAP_STEP_S / base.tick_s
     for i in range(1, n):
-        step = int(ticks[i] - ticks[last])
-        if step < 0 and base.modulus is not None and 0 < step + base.modulus <= max_wrap:
-            step += base.modulus
-            wraps += 1
+        raw = int(ticks[i] - ticks[last])
+        step = tick_step(int(ticks[last]), int(ticks[i]), base)
+        wraps += raw < 0 <= step
         if step == 0:
             continue
         if step < 0:

@@ -45,16 +45,16 @@ def _field(args):
     )
 
 
-def _recorded(args, result, cp) -> dict[str, float] | None:
+def _recorded(args, result, cp, session) -> dict[str, float] | None:
     """The compass parameters in force when the result's session was recorded: from
-    ``--session``'s metadata, else the result's copy (``session_meta``) when it has one."""
+    ``--session``'s metadata (``session``, read), else the result's copy (``session_meta``)
+    when it has one."""
     from magcal.autopilot import vehicle
-    from magcal.io.session import read_session
 
     meta = None
     where = ""
-    if args.session:
-        meta, where = read_session(args.session).meta, args.session
+    if session is not None:
+        meta, where = session.meta, args.session
     elif isinstance(result_meta := result.extra.get("session_meta"), dict):
         meta, where = {str(k): str(v) for k, v in result_meta.items()}, args.result
     if meta is None:
@@ -96,18 +96,17 @@ LEFT_OUT_WARN_DEG = 0.5
 SIGMA_FLOOR_MAX_DEG = 0.1
 
 
-def _rotation_sigma_deg(args, result):
+def _rotation_sigma_deg(args, result, session):
     """The result's misalignment σ per axis (degrees) from the ML cost's curvature on the
-    session it was fitted on (``--session``), or None without one or when it cannot be had
-    (then a rotation is written as an enumerated one only when it is one)."""
-    if not args.session:
+    session it was fitted on (``--session``, read), or None without one or when it cannot be
+    had (then a rotation is written as an enumerated one only when it is one)."""
+    if session is None:
         return None
     from magcal.calib.diagnostics import replay, uncertainty
     from magcal.errors import CalibrationError
-    from magcal.io.session import read_session
 
     try:
-        unc = uncertainty.calibration_uncertainty(result, read_session(args.session))
+        unc = uncertainty.calibration_uncertainty(result, session)
     except (replay.ModelUnavailableError, CalibrationError) as exc:
         _say(f"note: no uncertainty of the rotation ({exc}): it is written as estimated")
         return None
@@ -166,6 +165,7 @@ def run(args) -> int:
     from magcal.autopilot import params, vehicle
     from magcal.autopilot.connection import open_autopilot
     from magcal.io.result import read_result
+    from magcal.io.session import read_session
 
     if args.restore:  # flash.run has checked that exactly one of the two is given
         return _run_restore(args)
@@ -179,6 +179,9 @@ def run(args) -> int:
         if Path(args.backup).exists():
             raise MagcalError(f"flash: backup file {args.backup} exists; give a new path")
     compass = args.compass or 1
+    # The session and the rotation's σ (a Hessian of the ML cost) before the link is open.
+    session = read_session(args.session) if args.session else None
+    rotation_sigma_deg = _rotation_sigma_deg(args, result, session)
     with open_autopilot(args.mavlink) as ap:
         # PX4: CAL_MAGn_ROLL/PITCH/YAW are read (and used) unless --no-custom-rotation
         cp = compass_params(
@@ -211,9 +214,9 @@ def run(args) -> int:
             o,
             cp,
             fld,
-            recorded=_recorded(args, result, cp),
+            recorded=_recorded(args, result, cp, session),
             allow_custom=allow_custom,
-            rotation_sigma_deg=_rotation_sigma_deg(args, result),
+            rotation_sigma_deg=rotation_sigma_deg,
         )
         _print_plan(plan, cp, sys.stdout)
         if args.param_file:

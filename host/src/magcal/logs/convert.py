@@ -41,6 +41,7 @@ import numpy as np
 from magcal.autopilot import mapping, params, vehicle
 from magcal.io.session import Session, session_from_arrays
 from magcal.logs.streams import ImuStream, LogImportError, LogStreams, MagStream
+from magcal.logs.stretch import true_runs
 
 IMU_GAP_MIN_S = 0.1
 IMU_GAP_FACTOR = 10.0
@@ -159,7 +160,7 @@ def cut(
     notes: tuple[str, ...] = ()
     if (sel & rows.gap).any():
         inside = [g for g in rows.gaps if g[1] > start_s and g[0] < end_s]
-        runs = _true_runs(sel & ~rows.gap)
+        runs = true_runs(sel & ~rows.gap)
         a, b = max(runs, key=lambda r: r[1] - r[0], default=(0, 0))
         listed = "; ".join(describe_gap(g, streams) for g in inside[:MAX_GAPS_LISTED])
         more = f" and {len(inside) - MAX_GAPS_LISTED} more" if len(inside) > MAX_GAPS_LISTED else ""
@@ -182,12 +183,6 @@ def cut(
             "before it with --start/--end"
         )
     return sel, notes
-
-
-def _true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
-    """[start, stop) index ranges where ``mask`` is true."""
-    d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
-    return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
 
 
 def _param_text(value: float) -> str:

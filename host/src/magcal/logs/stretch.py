@@ -94,7 +94,7 @@ def _moving_average(x: np.ndarray, w: int) -> np.ndarray:
     return (c[hi] - c[lo]) / count
 
 
-def _runs(mask: np.ndarray) -> list[tuple[int, int]]:
+def true_runs(mask: np.ndarray) -> list[tuple[int, int]]:
     """[start, stop) index ranges where ``mask`` is true."""
     d = np.diff(np.concatenate([[0], mask.astype(np.int8), [0]]))
     return list(zip(np.flatnonzero(d == 1).tolist(), np.flatnonzero(d == -1).tolist(), strict=True))
@@ -136,7 +136,7 @@ def find_hand_rotation(
     rotating = (rate >= config.min_rate_rad_s) & ~flying
 
     runs: list[list[int]] = []
-    for a, b in _runs(rotating):
+    for a, b in true_runs(rotating):
         # Join to the previous run across a short pause in which the vehicle did not fly.
         if (
             runs
@@ -227,7 +227,7 @@ def explain_none(
     dt = float(np.median(np.diff(t)))
     rate = _moving_average(np.linalg.norm(gyr, axis=1), max(1, int(round(config.smooth_s / dt))))
     fast = rate >= config.min_rate_rad_s
-    longest = max((t[b - 1] - t[a] for a, b in _runs(fast)), default=0.0)
+    longest = max((t[b - 1] - t[a] for a, b in true_runs(fast)), default=0.0)
     text = (
         f"the angular rate (averaged over {config.smooth_s:g} s) exceeded "
         f"{config.min_rate_rad_s:g} rad/s for at most {longest:.1f} s at a time "

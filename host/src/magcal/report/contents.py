@@ -132,7 +132,7 @@ def _raw_norm(session: Session) -> dict:
     """The raw field norm as the calibration records it: over the magnetometer's samples
     that it used (a multi-rate session's rows without one, and its glitches, left out)."""
     used, _ = samples.drop_magnetometer_glitches(session)
-    return quality.norm_stats(samples.at_magnetometer_rows(used).mag)
+    return quality.norm_stats(used.mag[used.has_mag])
 
 
 def is_fit_session(result: CalibrationResult, session: Session) -> bool | None:

@@ -7,6 +7,7 @@ import os
 import numpy as np
 import pytest
 
+import magcal.io.session as session_module
 from magcal.errors import MagcalError, SessionFormatError
 from magcal.io.session import (
     COLUMNS,
@@ -161,9 +162,15 @@ def test_errors_are_magcal_errors():
     assert issubclass(SessionFormatError, MagcalError)
 
 
-def test_reads_60k_rows_back_exactly(tmp_path):
-    # A ten-minute 100 Hz session; its reading time is a figure for the benchmark, not a
-    # test bound (it depends on how busy the host is).
+def _without_the_slow_path(monkeypatch):
+    """Valid files are read by the vectorised parse alone: the line-by-line re-scan fails."""
+    monkeypatch.setattr(session_module, "_parse_slow", lambda *a, **k: pytest.fail("re-scan"))
+
+
+def test_reads_60k_rows_back_exactly(tmp_path, monkeypatch):
+    # A ten-minute 100 Hz session, by the fast path; its reading time is not a test bound
+    # (it depends on how busy the host is).
+    _without_the_slow_path(monkeypatch)
     path = tmp_path / "big.csv"
     s = make_session(60_000)
     write_session(path, s)
@@ -599,7 +606,8 @@ def test_session_from_arrays_checks_nan_rows():
         session_from_arrays(t, gyr, v, v)
 
 
-def test_version_2_large_file_fast_path_is_exact(tmp_path):
+def test_version_2_large_file_fast_path_is_exact(tmp_path, monkeypatch):
+    _without_the_slow_path(monkeypatch)
     s = make_multi_rate_session(n=20000, every=7)
     path = tmp_path / "s.csv"
     write_session(path, s)

@@ -312,4 +312,4 @@ def test_px4_internal_compass_misalignment_left_out_and_noted():
         wmm.Field(0.5e5, 60.0, None, "t"),
         rotation_sigma_deg=np.array([5.0, 5.0, 5.0]),
     )
-    assert mapping.snapped(plan.mapped.notes)
+    assert plan.mapped.snapped

@@ -86,6 +86,8 @@ class AutopilotParams:
     residual_angle_deg   : angle of the misalignment left out (0 when represented)
     heading_rms_deg      : RMS heading error over SO(3) caused by leaving it out
     notes                : human-readable remarks (nearest rotation chosen, warnings)
+    snapped              : the rotation left out is within its own uncertainty (written as
+                           the enumerated or board rotation it is close to)
     """
 
     params: dict[str, float]
@@ -93,6 +95,7 @@ class AutopilotParams:
     residual_angle_deg: float = 0.0
     heading_rms_deg: float = 0.0
     notes: tuple[str, ...] = field(default_factory=tuple)
+    snapped: bool = False
 
 
 def polar_right(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -233,6 +236,7 @@ def to_ardupilot(
     P, U = polar_left(A)
     R_want = U @ R_old
     notes: list[str] = []
+    snapped = False  # left out within its own uncertainty
     params: dict[str, float] = {}
     names = _ap_names(compass, naming)
     near = rotations.nearest(R_want, "ardupilot")
@@ -247,7 +251,7 @@ def to_ardupilot(
             )
     elif near.angle_deg < 1e-6:
         R_new, orient = near.matrix, near.index
-    elif within_uncertainty(R_want, near.matrix, rotation_sigma_deg):
+    elif snapped := within_uncertainty(R_want, near.matrix, rotation_sigma_deg):
         R_new, orient = near.matrix, near.index
         notes.append(_snapped_note(near))
     elif allow_custom:
@@ -283,25 +287,16 @@ def to_ardupilot(
         params[names["ORIENT"]] = float(orient)
     residual = rotations.rotation_angle_deg(R_want, R_new)
     heading = 0.0 if residual < 1e-6 else _heading_rms_deg(A, P @ C, inclination_deg)
-    if heading and not snapped(notes):
+    if heading and not snapped:
         notes.append(f"leaving it out costs {heading:.2f}° RMS heading error")
-    return AutopilotParams(params, R_new, residual, heading, tuple(notes))
-
-
-SNAPPED = "within its uncertainty"
+    return AutopilotParams(params, R_new, residual, heading, tuple(notes), snapped)
 
 
 def _snapped_note(near) -> str:
     return (
         f"the estimated rotation is {near.angle_deg:.2f}° from enumerated rotation {near.index} "
-        f"{near.name}, {SNAPPED}: written as {near.index} (no custom rotation)"
+        f"{near.name}, within its uncertainty: written as {near.index} (no custom rotation)"
     )
-
-
-def snapped(notes) -> bool:
-    """Whether the notes say the rotation was written as an enumerated one within its
-    uncertainty."""
-    return any(SNAPPED in n for n in notes)
 
 
 def _check_ardupilot_limits(ofs: np.ndarray, M: np.ndarray, s: float, offs_max: float) -> None:
@@ -367,16 +362,17 @@ def to_px4(
     names = px4_param_names(index)
     params: dict[str, float] = {}
     notes: list[str] = []
+    snapped = False  # left out within its own uncertainty
     near = rotations.nearest(R_want, "px4", max_rotation_index)
     if board_rotation is not None:
         R_new = np.asarray(board_rotation, dtype=float)
         angle = rotations.rotation_angle_deg(R_want, R_new)
         if angle < 1e-6:
             pass
-        elif within_uncertainty(R_want, R_new, rotation_sigma_deg):
+        elif snapped := within_uncertainty(R_want, R_new, rotation_sigma_deg):
             notes.append(
                 f"the estimated rotation is {angle:.2f}° from the board rotation (SENS_BOARD_ROT) "
-                f"that PX4 turns this internal compass with, {SNAPPED}: kept"
+                "that PX4 turns this internal compass with, within its uncertainty: kept"
             )
         else:
             notes.append(
@@ -386,7 +382,7 @@ def to_px4(
     elif near.angle_deg < 1e-6:
         R_new = near.matrix
         params[names["ROT"]] = float(near.index)
-    elif within_uncertainty(R_want, near.matrix, rotation_sigma_deg):
+    elif snapped := within_uncertainty(R_want, near.matrix, rotation_sigma_deg):
         R_new = near.matrix
         params[names["ROT"]] = float(near.index)
         notes.append(_snapped_note(near))
@@ -428,9 +424,9 @@ def to_px4(
     if residual >= 1e-6:
         # y-frame correction applied: R_new S Rot0ᵀ (y − o) = R_new Rot0ᵀ P (y − o)
         heading = _heading_rms_deg(A, R_new @ Rot0.T @ P, inclination_deg)
-        if not snapped(notes):
+        if not snapped:
             notes.append(f"leaving it out costs {heading:.2f}° RMS heading error")
-    return AutopilotParams(params, R_new, residual, heading, tuple(notes))
+    return AutopilotParams(params, R_new, residual, heading, tuple(notes), snapped)
 
 
 def ardupilot_rotation(

@@ -279,10 +279,9 @@ def run(args) -> int:
 def _left_out(plan) -> int:
     """0, or EXIT_MISALIGNMENT_LEFT_OUT with a warning when the values written leave out a
     misalignment costing at least LEFT_OUT_WARN_DEG of heading."""
-    from magcal.autopilot import mapping
 
     m = plan.mapped
-    if m.heading_rms_deg < LEFT_OUT_WARN_DEG or mapping.snapped(m.notes):
+    if m.heading_rms_deg < LEFT_OUT_WARN_DEG or m.snapped:
         return 0
     print(
         f"magcal flash: warning: the values written leave out a misalignment of "

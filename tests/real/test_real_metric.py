@@ -9,6 +9,7 @@ import numpy as np
 import pytest
 
 from magcal.calib import frames
+from magcal.calib.diagnostics.uncertainty import misalignment_deg
 from magcal.io.session import session_from_arrays
 from magcal_evaluation import real
 
@@ -187,9 +188,10 @@ def test_a_lagging_magnetometer_is_scored_at_its_own_time():
     assert not ok[: int(round(delay / 0.005))].any() and ok[int(round(delay / 0.005)) :].all()
 
 
-def test_the_imu_axes_are_found_in_the_reference_frame():
-    # The reference's body frame is the IMU's turned by a known rotation; the gyroscope
-    # measures in the IMU's axes.
+def _rig(gyro_bias_deg_s=(0.0, 0.0, 0.0)):
+    """A case scored on its own recording whose reference body frame is the IMU's turned by a
+    known rotation C (v_ref = C v_imu); the gyroscope measures in the IMU's axes, with a bias.
+    Returns the case, C and the IMU's own attitudes."""
     t = np.arange(0.0, 20.0, 0.01)
     rate_imu = np.column_stack([np.sin(0.7 * t), np.cos(0.4 * t), 0.5 * np.sin(1.1 * t + 1.0)])
     q_imu = frames.integrate_rates(rate_imu[:-1], np.diff(t))
@@ -198,10 +200,16 @@ def test_the_imu_axes_are_found_in_the_reference_frame():
     q_ref = frames.quat_multiply(q_imu, frames.quat_conjugate(frames.matrix_to_quat(C)))
     D, o = _distortion(4, symmetric=False)
     mag = _simulate(D, o, q_ref)
-    session = session_from_arrays(t, rate_imu, np.zeros_like(mag) + [0, 0, 9.8], mag)
+    gyr = rate_imu + np.deg2rad(gyro_bias_deg_s)
+    session = session_from_arrays(t, gyr, np.zeros_like(mag) + [0, 0, 9.8], mag)
     case = real.Case(
         "rig", {}, session, (real.Trial("rig", t, mag, q_ref, np.ones(t.size, bool)),), 0.0
     )
+    return case, C, q_imu
+
+
+def test_the_imu_axes_are_found_in_the_reference_frame():
+    case, C, q_imu = _rig()
     found = real.imu_to_reference_rotation(case)
     assert (
         np.rad2deg(np.linalg.norm(frames.quat_to_rotvec(frames.matrix_to_quat(found.T @ C)))) < 0.05
@@ -211,3 +219,38 @@ def test_the_imu_axes_are_found_in_the_reference_frame():
     np.testing.assert_allclose(
         frames.quat_to_matrix(turned.trials[0].q_wb), frames.quat_to_matrix(q_imu), atol=1e-3
     )
+
+
+def test_the_gyroscope_bias_is_read_against_the_reference():
+    bias = np.array([0.3, -0.5, 2.0])
+    case, C, _ = _rig(bias)
+    np.testing.assert_allclose(np.rad2deg(real.reference_gyro_bias(case, C)), bias, atol=0.01)
+    # Read in the wrong axes, the reference's rate leaks into the bias.
+    assert np.abs(np.rad2deg(real.reference_gyro_bias(case, np.eye(3))) - bias).max() > 0.05
+
+
+def test_the_rotation_the_scored_recordings_show():
+    # A phone scored on two other recordings, with the calibration's own D = P U.
+    P, o = _distortion(8, symmetric=True)
+    U = frames.quat_to_matrix(frames.rotvec_to_quat(np.deg2rad([0.5, -2.0, 1.0])))
+    D = P @ U
+    trials = tuple(
+        _trial(_simulate(D, o, q), q) for q in (frames.so3_grid(600), frames.so3_grid(700))
+    )
+    q_cal = frames.so3_grid(900)
+    mag = _simulate(D, o, q_cal)
+    t = np.arange(len(q_cal)) * 0.01
+    session = session_from_arrays(t, np.zeros_like(mag), np.zeros_like(mag) + [0, 0, 9.8], mag)
+    case = real.Case("phone", {}, session, trials, DECLINATION_DEG)
+    got = real._on_other_recordings(case, (P, o), {"D": D.tolist(), "o": o.tolist()})
+    np.testing.assert_allclose(got["fit_rotation_deg"], misalignment_deg(D), atol=1e-6)
+    np.testing.assert_allclose(got["ml_rotation_deg"], misalignment_deg(D), atol=1e-9)
+    assert got["offset_change"] < 1e-6 * FIELD_UT
+    assert got["ml"] < 1e-6 and got["fit"] < 1e-6
+    # The plain fit turned by the scored recordings' rotation is the truth; without it, and
+    # ML without its rotation, miss by about the rotation's angle.
+    assert got["plain_with_fit_rotation"] < 1e-6
+    assert got["plain"] > 1.0 and got["ml_without_rotation"] == pytest.approx(got["plain"])
+    # A case scored on its own recording has its floor instead.
+    own = real.Case("own", {}, session, (_trial(mag, q_cal),), DECLINATION_DEG)
+    assert real._on_other_recordings(own, (P, o), {"D": D.tolist(), "o": o.tolist()}) is None

@@ -55,6 +55,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+import scipy.linalg
 import scipy.optimize
 from scipy.spatial.transform import Rotation, Slerp
 
@@ -99,6 +100,10 @@ ANY_METHOD_MAX_RATIO_TO_PLAIN = 2.0
 #: and the smallest gyroscope rotation over it that counts, rad.
 IMU_ALIGNMENT_WINDOW_S = 0.1
 IMU_ALIGNMENT_MIN_TURN_RAD = 0.05
+#: Span of the windows over which the gyroscope's rotation is compared with the reference's
+#: to read the gyroscope's bias, s: short enough that the integrated rate is the rotation
+#: vector at hand-held rates (a turn of a few degrees), and a few of the reference's frames.
+REFERENCE_BIAS_WINDOW_S = 0.03
 
 #: Known-attitude floor: the alternating least squares that start the Levenberg–Marquardt
 #: fit (each one cheap; a few bring it close).
@@ -487,6 +492,7 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
     for key, score in (
         ("at_magnetometer_time", _at_magnetometer_time),
         ("imu_frame", _in_imu_frame),
+        ("other_recordings", _on_other_recordings),
     ):
         out[key] = score(case, plain, ml_result)
         if out[key] is not None:
@@ -495,16 +501,16 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
     return out
 
 
-def imu_to_reference_rotation(case: Case) -> np.ndarray | None:
-    """(3, 3) C with ``v_reference = C v_imu``: how the IMU's axes sit in the reference's body
-    frame (markers, a rig), from the rotations over :data:`IMU_ALIGNMENT_WINDOW_S` windows:
-    the reference's (rotation vector of R(t)ᵀ R(t + T)) against the gyroscope's integrated
-    rate, by least squares (Wahba). None unless the case is scored on its own recording."""
+def _window_rotations(case: Case, window_s: float) -> tuple[np.ndarray, ...] | None:
+    """Over consecutive windows of ``window_s`` that have a reference at both ends: the
+    reference's rotation (rotation vector of R(t)ᵀ R(t + T), reference body axes), the
+    gyroscope's integrated rate (IMU axes), both (K, 3) rad, and the windows' spans (K,) s.
+    None unless the case is scored on its own recording."""
     if not scored_on_own_recording(case):
         return None
     trial, session = case.trials[0], case.session
     have = np.all(np.isfinite(trial.q_wb), axis=1)
-    step = max(1, int(round(IMU_ALIGNMENT_WINDOW_S / np.median(np.diff(session.t)))))
+    step = max(1, int(round(window_s / np.median(np.diff(session.t)))))
     q_xyzw = np.where(have[:, None], trial.q_wb, [1.0, 0.0, 0.0, 0.0])[:, [1, 2, 3, 0]]
     rotations = Rotation.from_quat(q_xyzw)
     rate_dt = session.gyr[:-1] * np.diff(session.t)[:, None]
@@ -513,11 +519,36 @@ def imu_to_reference_rotation(case: Case) -> np.ndarray | None:
     reference = (rotations[starts].inv() * rotations[starts + step]).as_rotvec()
     turned_by = np.vstack([np.zeros(3), np.cumsum(rate_dt, axis=0)])  # ∫ω dt from the start
     gyro = turned_by[starts + step] - turned_by[starts]
+    return reference, gyro, session.t[starts + step] - session.t[starts]
+
+
+def imu_to_reference_rotation(case: Case) -> np.ndarray | None:
+    """(3, 3) C with ``v_reference = C v_imu``: how the IMU's axes sit in the reference's body
+    frame (markers, a rig), from the rotations over :data:`IMU_ALIGNMENT_WINDOW_S` windows:
+    the reference's against the gyroscope's integrated rate, by least squares (Wahba). None
+    unless the case is scored on its own recording."""
+    windows = _window_rotations(case, IMU_ALIGNMENT_WINDOW_S)
+    if windows is None:
+        return None
+    reference, gyro, _ = windows
     turned = np.linalg.norm(gyro, axis=1) > IMU_ALIGNMENT_MIN_TURN_RAD
     if turned.sum() < 3:
         return None
     C, _ = Rotation.align_vectors(reference[turned], gyro[turned])
     return C.as_matrix()
+
+
+def reference_gyro_bias(case: Case, C: np.ndarray) -> np.ndarray | None:
+    """(3,) rad/s in the IMU's axes: the gyroscope's rate minus the reference's (turned to the
+    IMU's axes by ``C``, :func:`imu_to_reference_rotation`), median over
+    :data:`REFERENCE_BIAS_WINDOW_S` windows (robust to the reference's dropouts and
+    glitches): the bias an estimate can be checked against. None unless the case is scored
+    on its own recording."""
+    windows = _window_rotations(case, REFERENCE_BIAS_WINDOW_S)
+    if windows is None or len(windows[2]) == 0:
+        return None
+    reference, gyro, span = windows
+    return np.median((gyro - reference @ np.asarray(C)) / span[:, None], axis=0)
 
 
 def in_imu_frame(case: Case, C: np.ndarray) -> Case:
@@ -539,8 +570,10 @@ def _in_imu_frame(case: Case, plain, ml_run: dict) -> dict | None:
     imu = in_imu_frame(case, C)
     floor = case_floor(imu)
     north = None if floor is None else floor.heading_deg
+    bias = reference_gyro_bias(case, C)
     return {
         "rotation_deg": [float(x) for x in np.rad2deg(Rotation.from_matrix(C).as_rotvec())],
+        "reference_gyro_bias_deg_s": None if bias is None else [float(x) for x in np.rad2deg(bias)],
         "plain": None if plain is None else case_heading_deg(*plain, imu, north),
         "floor": None if floor is None else case_heading_deg(floor.D, floor.o, imu, north),
         "ml": case_heading_deg(np.array(ml_run["D"]), np.array(ml_run["o"]), imu, north),
@@ -555,13 +588,60 @@ def _at_magnetometer_time(case: Case, plain, ml_run: dict) -> dict | None:
         return None
     delay = float(ml_run["time_offset_s"])
     floor = case_floor(case, delay)
+    same_time = case_floor(case)
     return {
         "delay_s": delay,
+        # The rotation part of the floor's D, fitted at the same time and at t − τ: a
+        # magnetometer lag during steady turns looks like a fixed rotation to a fit without τ.
+        "floor_rotation_deg": None
+        if floor is None
+        else [[float(x) for x in misalignment_deg(f.D)] for f in (same_time, floor)],
         "plain": None if plain is None else case_heading_deg(*plain, case, delay_s=delay),
         "floor": None
         if floor is None
         else case_heading_deg(floor.D, floor.o, case, floor.heading_deg, delay),
         "ml": case_heading_deg(np.array(ml_run["D"]), np.array(ml_run["o"]), case, delay_s=delay),
+    }
+
+
+def scored_recordings_fit(case: Case) -> FloorFit:
+    """The known-attitude fit (:func:`known_attitude_floor`) on every scored sample of every
+    trial: the (D, o) that the scored recordings themselves show, which no calibration from
+    another recording can be given. For a case scored on its own recording it is the floor."""
+    scored = [
+        (tr.mag[keep], tr.q_wb[keep])
+        for tr in case.trials
+        for keep in [tr.valid & np.all(np.isfinite(tr.q_wb), axis=1)]
+    ]
+    return known_attitude_floor(
+        np.vstack([m for m, _ in scored]), np.vstack([q for _, q in scored])
+    )
+
+
+def _on_other_recordings(case: Case, plain, ml_run: dict) -> dict | None:
+    """For a case scored on other recordings: the fit on the scored recordings
+    (:func:`scored_recordings_fit`), its rotation and how far its offset is from ML's, and
+    the headings of ML without its rotation (the symmetric factor P of D = P U) and of the
+    plain fit turned by the scored recordings' own rotation. None for a case scored on its
+    own recording, or without an ML result."""
+    if scored_on_own_recording(case) or ml_run.get("D") is None:
+        return None
+    fit = scored_recordings_fit(case)
+    D_ml, o_ml = np.array(ml_run["D"]), np.array(ml_run["o"])
+    _, P_ml = scipy.linalg.polar(D_ml, side="left")  # D = P U: (U, P)
+    U_fit, _ = scipy.linalg.polar(fit.D, side="left")
+    return {
+        "fit": case_heading_deg(fit.D, fit.o, case),
+        "fit_rotation_deg": [float(x) for x in misalignment_deg(fit.D)],
+        "offset_change": float(np.linalg.norm(fit.o - o_ml)),
+        "field_norm": float(np.cbrt(abs(np.linalg.det(D_ml)))),
+        "ml": case_heading_deg(D_ml, o_ml, case),
+        "ml_rotation_deg": [float(x) for x in misalignment_deg(D_ml)],
+        "ml_without_rotation": case_heading_deg(P_ml, o_ml, case),
+        "plain": None if plain is None else case_heading_deg(*plain, case),
+        "plain_with_fit_rotation": None
+        if plain is None
+        else case_heading_deg(plain[0] @ U_fit, plain[1], case),
     }
 
 

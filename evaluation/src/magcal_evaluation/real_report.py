@@ -76,19 +76,16 @@ def _form(r: dict) -> str:
     return "sessions/ (single-rate)"
 
 
+def _vec(v, digits: int = 2) -> str:
+    """A 3-vector as "(+x, +y, +z)", or "–"."""
+    return "–" if v is None else "(" + ", ".join(f"{x:+.{digits}f}" for x in v) + ")"
+
+
 def _detail_row(r: dict, method: str, m: dict, forced: bool) -> str:
     bias = m.get("gyro_bias_deg_s")
-    bias_txt = (
-        "–"
-        if bias is None
-        else f"{np.linalg.norm(bias):.3f} ({', '.join(f'{b:+.3f}' for b in bias)})"
-    )
+    bias_txt = "–" if bias is None else f"{np.linalg.norm(bias):.3f} {_vec(bias, 3)}"
     mis = m.get("misalignment_vec_deg")
-    mis_txt = (
-        "–"
-        if mis is None
-        else f"{_f(m['misalignment_deg'], '{:.1f}')} ({', '.join(f'{x:+.1f}' for x in mis)})"
-    )
+    mis_txt = "–" if mis is None else f"{_f(m['misalignment_deg'], '{:.1f}')} {_vec(mis, 1)}"
     offset = m.get("time_offset_s")
     refused = m.get("refused")
     if refused:
@@ -169,20 +166,26 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "interpolated spherically; the floor refitted there): the heading error a fusion "
         "filter that knows the delay gets. Where the magnetometer lags, the table above "
         "charges every calibration for the lag, and the least-squares fits (plain, floor) "
-        "partly absorb it into D; the one with τ does not. Cases where ML kept no time offset "
-        "are left out.",
+        "partly absorb it into D; the one with τ does not. The last column is the rotation "
+        "part of the floor's D (as the estimates table gives ML's), fitted at the same time "
+        "and at `t − τ`: where the recording turns more one way than the other, the lag "
+        "looks like a fixed rotation to a fit without τ, and that rotation belongs to the "
+        "recording's motion, not to the sensor. Cases where ML kept no time offset are left "
+        "out.",
         "",
-        "| case | τ ms | plain | floor | ml |",
-        "|---|---:|---:|---:|---:|",
+        "| case | τ ms | plain | floor | ml | floor's rotation ° (at t → at t − τ) |",
+        "|---|---:|---:|---:|---:|---|",
     ]
     for r in good:
         a = r.get("at_magnetometer_time")
         if not a:
             continue
         ml = _rescored_ml_cell(a)
+        turns = a.get("floor_rotation_deg")
+        turn_txt = "–" if not turns else " → ".join(_vec(v) for v in turns)
         lines.append(
             f"| {r['case']} | {1e3 * a['delay_s']:.1f} | {_f(a['plain'])} | {_f(a['floor'])} "
-            f"| {ml} |"
+            f"| {ml} | {turn_txt} |"
         )
     lines += [
         "",
@@ -193,11 +196,14 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "by the rotation given here (from the gyroscope's rotations over 0.1 s against the "
         "reference's, least squares: `magcal_evaluation.real.imu_to_reference_rotation`). "
         "Here the reference is turned to the IMU's axes before scoring, the floor refitted "
-        "there, and all three share the floor's north. Cases scored on other recordings are "
-        "left out.",
+        "there, and all three share the floor's north. The gyroscope's bias as the reference "
+        "shows it (its rate minus the reference's over 30 ms, median: "
+        "`magcal_evaluation.real.reference_gyro_bias`) stands beside ML's estimate. Cases "
+        "scored on other recordings are left out.",
         "",
-        "| case | IMU in the reference frame, ° | plain | floor | ml |",
-        "|---|---|---:|---:|---:|",
+        "| case | IMU in the reference frame, ° | plain | floor | ml | gyro bias °/s: "
+        "reference | gyro bias °/s: ml |",
+        "|---|---|---:|---:|---:|---|---|",
     ]
     for r in good:
         a = r.get("imu_frame")
@@ -205,9 +211,44 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
             continue
         ml = _rescored_ml_cell(a)
         angle = float(np.linalg.norm(a["rotation_deg"]))
-        vec = ", ".join(f"{x:+.2f}" for x in a["rotation_deg"])
+        ml_run = r["methods"]["ml"].get("forced", r["methods"]["ml"])
         lines.append(
-            f"| {r['case']} | {angle:.2f} ({vec}) | {_f(a['plain'])} | {_f(a['floor'])} | {ml} |"
+            f"| {r['case']} | {angle:.2f} {_vec(a['rotation_deg'])} | {_f(a['plain'])} | "
+            f"{_f(a['floor'])} | {ml} | {_vec(a.get('reference_gyro_bias_deg_s'), 3)} | "
+            f"{_vec(ml_run.get('gyro_bias_deg_s'), 3)} |"
+        )
+    lines += [
+        "",
+        "## Scored on other recordings",
+        "",
+        "A phone's calibration recording is scored on its other recordings, made on other "
+        "days. *Fit there*: the known-attitude fit on those scored recordings themselves "
+        "(`magcal_evaluation.real.scored_recordings_fit`), which no calibration recording can "
+        "give; its rotation is the magnetometer's rotation as the scored recordings show it, "
+        "beside ML's (the rotation part of D, as in the estimates table). *Offset moved*: "
+        "that fit's offset minus ML's, as a fraction of the field. The last columns take the "
+        "rotation out of ML's D (its symmetric factor P of D = P U) and put the scored "
+        "recordings' own rotation into the plain fit's D: where the plain fit turned by the "
+        "right rotation scores worse than the plain fit, its missing rotation offsets its "
+        "other errors on those days (the offset moved), and a calibration that finds the "
+        "rotation loses there unless it also knows those days' offset, which its own "
+        "recording does not show.",
+        "",
+        "| case | fit there | its rotation ° | ml | ml's rotation ° | offset moved | "
+        "ml without its rotation | plain | plain with the fit's rotation |",
+        "|---|---:|---|---:|---|---:|---:|---:|---:|",
+    ]
+    for r in good:
+        a = r.get("other_recordings")
+        if not a:
+            continue
+        forced = " (forced)" if a.get("ml_forced") else ""
+        lines.append(
+            f"| {r['case']} | {_f(a['fit'])} | {_vec(a['fit_rotation_deg'])} | "
+            f"{_f(a['ml'])}{forced} | {_vec(a['ml_rotation_deg'])} | "
+            f"{100 * a['offset_change'] / a['field_norm']:.1f} % | "
+            f"{_f(a['ml_without_rotation'])} | {_f(a['plain'])} | "
+            f"{_f(a['plain_with_fit_rotation'])} |"
         )
     lines += [
         "",

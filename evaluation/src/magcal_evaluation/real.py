@@ -607,7 +607,7 @@ def _at_magnetometer_time(case: Case, plain, ml_run: dict) -> dict | None:
 def scored_recordings_fit(case: Case) -> FloorFit:
     """The known-attitude fit (:func:`known_attitude_floor`) on every scored sample of every
     trial: the (D, o) that the scored recordings themselves show, which no calibration from
-    another recording can be given. For a case scored on its own recording it is the floor."""
+    another recording can be given."""
     scored = [
         (tr.mag[keep], tr.q_wb[keep])
         for tr in case.trials

@@ -8,7 +8,7 @@ import pytest
 
 from magcal.calib import samples
 from magcal.calib.calibrate import calibrate
-from magcal.calib.diagnostics import quality
+from magcal.calib.diagnostics import quality, uncertainty
 from magcal.calib.initial.sensor_levels import measure_sensor_levels
 from magcal.io.session import session_from_arrays
 from magcal.sim import preset, simulate
@@ -146,6 +146,23 @@ def test_glitches_become_rows_without_magnetometer_and_are_counted():
     assert r.extra["magnetometer_samples"] == counts.as_dict()
     assert sum("isolated jumps" in w for w in r.warnings) == 1
     assert heading_rms_deg(truth, r) < 0.5
+
+
+def test_a_result_is_measured_on_the_samples_it_was_fitted_on():
+    # Uncertainty and replay set the cost up on the session they are given: with every
+    # reading sent twice, that must be the cost the estimate minimised (its minimum), not
+    # one that counts the re-sent values as samples.
+    s, _ = simulate(preset("mems", duration_s=20.0), 5)
+    mag = s.mag.copy()
+    mag[1::2] = mag[0:-1:2]
+    m = session_from_arrays(s.t, s.gyr, s.acc, mag, s.meta)
+    result = calibrate(m, "ml").result
+    on_resent = uncertainty.calibration_uncertainty(result, m)
+    on_cleaned = uncertainty.calibration_uncertainty(
+        result, samples.drop_magnetometer_glitches(m)[0]
+    )
+    assert on_resent.newton_step_sigma < 1.0
+    np.testing.assert_allclose(on_resent.theta_sigma, on_cleaned.theta_sigma, rtol=1e-12)
 
 
 # ---------------------------------------------------------------------------------------------

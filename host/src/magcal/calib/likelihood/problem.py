@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from magcal.calib import frames
+from magcal.calib import frames, samples
 from magcal.calib.initial.estimate import InitialEstimate
 from magcal.calib.initial.sensor_levels import SensorLevels, measure_sensor_levels
 from magcal.calib.likelihood import mekf, params
@@ -403,8 +403,11 @@ class LikelihoodProblem:
         noise prior centred on its measurement. Only the magnetometer normalisation differs
         (centred on ``p``'s o, divided by its ``|det D|^⅓``, instead of the initial
         estimate's): V changes by a constant and θ by an affine map, so gradients and
-        curvature carry over exactly.
+        curvature carry over exactly. The magnetometer's glitches are left out as the
+        calibration leaves them out (:func:`samples.drop_magnetometer_glitches`), so the
+        cost is the one the estimate minimised.
         """
+        session, _ = samples.drop_magnetometer_glitches(session)
         return cls._build(session, measure_sensor_levels(session), Normalisation.of(p), p, priors)
 
     @classmethod

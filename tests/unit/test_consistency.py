@@ -126,7 +126,7 @@ def test_the_turn_miss_of_a_rotation_the_gyroscope_measured_is_zero():
     rate = np.tile([0.3, -0.5, 0.8], (t.size, 1))
     R = frames.quat_to_matrix(frames.integrate_rates(rate[:-1], np.diff(t)))
     field = np.einsum("kji,j->ki", R, [0.4, 0.0, -0.9])  # Rᵀ m: the field in the body frame
-    miss, pairs = consistency.turn_miss_deg(t, rate, np.zeros(3), field)
+    (miss,), pairs = consistency.turn_misses_deg(t, rate, np.zeros(3), field)
     assert miss < 1e-6 and pairs == np.sum(t + consistency.TURN_WINDOW_S <= t[-1] + 1e-9)
 
 

@@ -168,26 +168,32 @@ def _dip_spread_deg(acc: np.ndarray, calibrated: np.ndarray) -> tuple[float, int
     return float(1.4826 * np.median(np.abs(dip - np.median(dip)))), int(dip.size)
 
 
-def turn_miss_deg(
-    t: np.ndarray, gyr: np.ndarray, gyro_bias: np.ndarray, calibrated: np.ndarray
-) -> tuple[float, int]:
-    """Median angle, degrees, between the corrected field's direction at t + :data:`TURN_WINDOW_S`
-    and its direction at t carried there by the gyroscope's rotation; and the pairs it is over.
+def turn_misses_deg(
+    t: np.ndarray, gyr: np.ndarray, gyro_bias: np.ndarray, *corrections: np.ndarray
+) -> tuple[list[float], int]:
+    """For each correction of the magnetometer (N, 3): the median angle, degrees, between the
+    corrected field's direction at t + :data:`TURN_WINDOW_S` and its direction at t carried
+    there by the gyroscope's rotation; and the pairs they are over. The rotation is
+    integrated once for all of them.
 
     gyr : (N, 3) rad/s, each row's rate held until the next row (the session's convention).
     """
     if t.size < 2:
-        return float("nan"), 0
-    q = frames.integrate_rates(gyr[:-1] - gyro_bias, np.diff(t))
-    u = calibrated / np.linalg.norm(calibrated, axis=1, keepdims=True)
-    # The field in the frame the gyroscope's integration starts from: constant if all agree.
-    w = np.einsum("kij,kj->ki", frames.quat_to_matrix(q), u)
+        return [float("nan")] * len(corrections), 0
     later = np.searchsorted(t, t + TURN_WINDOW_S)
     pairs = np.flatnonzero(later < t.size)
     if pairs.size == 0:
-        return float("nan"), 0
-    cosines = np.clip(np.sum(w[pairs] * w[later[pairs]], axis=1), -1.0, 1.0)
-    return float(np.rad2deg(np.median(np.arccos(cosines)))), int(pairs.size)
+        return [float("nan")] * len(corrections), 0
+    R = frames.quat_to_matrix(frames.integrate_rates(gyr[:-1] - gyro_bias, np.diff(t)))
+    misses = []
+    for calibrated in corrections:
+        u = calibrated / np.linalg.norm(calibrated, axis=1, keepdims=True)
+        # The field in the frame the gyroscope's integration starts from: constant if all
+        # agree.
+        w = np.einsum("kij,kj->ki", R, u)
+        cosines = np.clip(np.sum(w[pairs] * w[later[pairs]], axis=1), -1.0, 1.0)
+        misses.append(float(np.rad2deg(np.median(np.arccos(cosines)))))
+    return misses, int(pairs.size)
 
 
 def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]:
@@ -423,8 +429,7 @@ def check(
 
     if gyr is not None:
         bias = np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, dtype=float)
-        miss_plain, n_pairs = turn_miss_deg(t, gyr, bias, plain_cal)
-        miss_result, _ = turn_miss_deg(t, gyr, bias, calibrated)
+        (miss_plain, miss_result), n_pairs = turn_misses_deg(t, gyr, bias, plain_cal, calibrated)
         figures["turn_miss_deg"] = {
             "plain_fit": _finite(miss_plain),
             "result": _finite(miss_result),

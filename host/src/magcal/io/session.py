@@ -448,8 +448,10 @@ def _parse(
     return np.concatenate(parts)
 
 
-#: An empty cell (nothing or blanks between separators), for the version 2 fast path.
-_EMPTY_CELL = re.compile(r"(^|,)[ \t]*(?=,|$)", re.MULTILINE)
+#: An empty cell after a separator, for the version 2 fast path (the rows joined with a
+#: trailing newline). Blank cells and an empty first cell fail ``loadtxt`` and fall to the
+#: slow path, which judges them; a simple pattern keeps the fast path fast.
+_EMPTY_CELL = re.compile(r",(?=,|\n)")
 
 
 def _parse_fast(
@@ -472,7 +474,7 @@ def _parse_fast(
         # Spelled-out values (nan, inf) must not pass as empty cells: the slow path judges.
         if "n" in text or "N" in text:
             return None
-        rows = _EMPTY_CELL.sub(r"\1nan", text).split("\n")
+        rows = _EMPTY_CELL.sub(",nan", text + "\n")[:-1].split("\n")
     try:
         data = np.loadtxt(rows, delimiter=",", comments=None, usecols=usecols, ndmin=2)
     except ValueError:

@@ -494,7 +494,7 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
         ("imu_frame", _in_imu_frame),
         ("other_recordings", _on_other_recordings),
     ):
-        out[key] = score(case, plain, ml_result)
+        out[key] = score(case, plain, floor, ml_result)
         if out[key] is not None:
             out[key]["ml_forced"] = "forced" in ml
     out["seconds"] = time.perf_counter() - t0
@@ -560,15 +560,18 @@ def in_imu_frame(case: Case, C: np.ndarray) -> Case:
     return dataclasses.replace(case, trials=trials)
 
 
-def _in_imu_frame(case: Case, plain, ml_run: dict) -> dict | None:
+def _in_imu_frame(case: Case, plain, floor: FloorFit | None, ml_run: dict) -> dict | None:
     """The plain fit, the floor and ML (forced, if it refused) scored with the reference
     attitude turned to the IMU's axes (:func:`imu_to_reference_rotation`): the body frame an
-    inertial calibration aligns the magnetometer to (None where there is no such rotation)."""
+    inertial calibration aligns the magnetometer to (None where there is no such rotation).
+    The floor turns with the attitude: with R_imu = R_reference C its fit is D C, field and
+    offset unchanged, so it is not refitted."""
     C = imu_to_reference_rotation(case)
     if C is None or ml_run.get("D") is None:
         return None
     imu = in_imu_frame(case, C)
-    floor = case_floor(imu)
+    if floor is not None:
+        floor = dataclasses.replace(floor, D=floor.D @ C)
     north = None if floor is None else floor.heading_deg
     bias = reference_gyro_bias(case, C)
     return {
@@ -580,7 +583,9 @@ def _in_imu_frame(case: Case, plain, ml_run: dict) -> dict | None:
     }
 
 
-def _at_magnetometer_time(case: Case, plain, ml_run: dict) -> dict | None:
+def _at_magnetometer_time(
+    case: Case, plain, same_time: FloorFit | None, ml_run: dict
+) -> dict | None:
     """The plain fit, the floor and ML (forced, if it refused) scored against the reference
     at the times the magnetometer measured, by the ML's time offset: what a fusion filter
     that knows the delay gets from each calibration (None without an ML time offset)."""
@@ -588,7 +593,6 @@ def _at_magnetometer_time(case: Case, plain, ml_run: dict) -> dict | None:
         return None
     delay = float(ml_run["time_offset_s"])
     floor = case_floor(case, delay)
-    same_time = case_floor(case)
     return {
         "delay_s": delay,
         # The rotation part of the floor's D, fitted at the same time and at t − τ: a
@@ -618,12 +622,12 @@ def scored_recordings_fit(case: Case) -> FloorFit:
     )
 
 
-def _on_other_recordings(case: Case, plain, ml_run: dict) -> dict | None:
+def _on_other_recordings(case: Case, plain, _floor, ml_run: dict) -> dict | None:
     """For a case scored on other recordings: the fit on the scored recordings
     (:func:`scored_recordings_fit`), its rotation and how far its offset is from ML's, and
     the headings of ML without its rotation (the symmetric factor P of D = P U) and of the
     plain fit turned by the scored recordings' own rotation. None for a case scored on its
-    own recording, or without an ML result."""
+    own recording (it has the floor instead), or without an ML result."""
     if scored_on_own_recording(case) or ml_run.get("D") is None:
         return None
     fit = scored_recordings_fit(case)
@@ -635,10 +639,7 @@ def _on_other_recordings(case: Case, plain, ml_run: dict) -> dict | None:
         "fit_rotation_deg": [float(x) for x in misalignment_deg(fit.D)],
         "offset_change": float(np.linalg.norm(fit.o - o_ml)),
         "field_norm": float(np.cbrt(abs(np.linalg.det(D_ml)))),
-        "ml": case_heading_deg(D_ml, o_ml, case),
-        "ml_rotation_deg": [float(x) for x in misalignment_deg(D_ml)],
         "ml_without_rotation": case_heading_deg(P_ml, o_ml, case),
-        "plain": None if plain is None else case_heading_deg(*plain, case),
         "plain_with_fit_rotation": None
         if plain is None
         else case_heading_deg(plain[0] @ U_fit, plain[1], case),

@@ -195,8 +195,9 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "calibration aligns the magnetometer to the IMU's axes, which sit in that frame turned "
         "by the rotation given here (from the gyroscope's rotations over 0.1 s against the "
         "reference's, least squares: `magcal_evaluation.real.imu_to_reference_rotation`). "
-        "Here the reference is turned to the IMU's axes before scoring, the floor refitted "
-        "there, and all three share the floor's north. The gyroscope's bias as the reference "
+        "Here the reference is turned to the IMU's axes before scoring, the floor turned "
+        "with it (the same fit: its D times the rotation), and all three share the floor's "
+        "north. The gyroscope's bias as the reference "
         "shows it (its rate minus the reference's over 30 ms, median: "
         "`magcal_evaluation.real.reference_gyro_bias`) stands beside ML's estimate. Cases "
         "scored on other recordings are left out.",
@@ -242,12 +243,13 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         a = r.get("other_recordings")
         if not a:
             continue
+        ml_run = r["methods"]["ml"].get("forced", r["methods"]["ml"])
         forced = " (forced)" if a.get("ml_forced") else ""
         lines.append(
             f"| {r['case']} | {_f(a['fit'])} | {_vec(a['fit_rotation_deg'])} | "
-            f"{_f(a['ml'])}{forced} | {_vec(a['ml_rotation_deg'])} | "
+            f"{_f(ml_run['heading_deg'])}{forced} | {_vec(ml_run['misalignment_vec_deg'])} | "
             f"{100 * a['offset_change'] / a['field_norm']:.1f} % | "
-            f"{_f(a['ml_without_rotation'])} | {_f(a['plain'])} | "
+            f"{_f(a['ml_without_rotation'])} | {_f(r['plain'])} | "
             f"{_f(a['plain_with_fit_rotation'])} |"
         )
     lines += [

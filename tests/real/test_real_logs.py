@@ -104,7 +104,7 @@ def test_files_that_are_no_log_are_refused_in_one_paragraph(capfd, tmp_path):
     assert sniff_format(str(renamed)) == "tlog"
     code, text = _run(capfd, str(renamed), "-o", str(tmp_path / "a.csv"))
     _check_output(renamed, code, text)
-    assert "(ArduPilot tlog log)" not in text  # read as telemetry: nothing about DataFlash
+    assert "DataFlash" not in text  # read as telemetry: nothing about DataFlash
     noise = tmp_path / "noise.bin"
     noise.write_bytes(np.random.default_rng(0).integers(0, 256, 100_000, np.uint8).tobytes())
     code, text = _run(capfd, str(noise), "-o", str(tmp_path / "b.csv"))

@@ -81,14 +81,8 @@ def progress_printer(label: str, stream=None):
         log_line=lambda done, total: f"{label}: {done} %",
     )
 
-    shown = [-1]
-
     def show(fraction: float) -> None:
-        # never backwards: a reader may seek back (a ULog's appended data, its index)
-        pct = int(100 * min(max(fraction, 0.0), 1.0)) if fraction == fraction else 0
-        if pct > shown[0]:
-            shown[0] = pct
-            bar.update(pct)
+        bar.update(int(100 * min(max(fraction, 0.0), 1.0)) if fraction == fraction else 0)
 
     show.done = bar.close  # type: ignore[attr-defined]
     return show

@@ -34,11 +34,12 @@ ULOG_MAGIC = b"ULog\x01\x12\x35"
 DATAFLASH_MAGIC = b"\xa3\x95"
 #: The message type of FMT, with which every DataFlash log begins.
 DATAFLASH_FMT = b"\x80"
-#: Bytes read to recognise a format, and tlog frames that must parse in a row.
+#: Bytes read to recognise a format.
 SNIFF_BYTES = 4096
-SNIFF_FRAMES = 5
+#: tlog records that must parse in a row (one is enough in a file shorter than SNIFF_BYTES).
+SNIFF_FRAMES = 2
 #: MAVLink 1 and 2 start-of-frame bytes, after a tlog's 8-byte timestamp.
-MAVLINK_STX = (0xFE, 0xFD)
+MAVLINK1_STX, MAVLINK2_STX = 0xFE, 0xFD
 FORMATS = ("dataflash", "tlog", "ulog")
 
 
@@ -78,15 +79,15 @@ class ImportResult:
     notes: tuple[str, ...] = ()
 
 
-def _mavlink_frames(data: bytes, start: int) -> int:
+def _mavlink_frames(data: bytes) -> int:
     """How many consecutive tlog records (8-byte time, then a MAVLink 1 or 2 frame) parse
-    from ``start`` on, up to :data:`SNIFF_FRAMES`."""
-    n, i = 0, start
+    from the start of ``data``, up to :data:`SNIFF_FRAMES`."""
+    n = i = 0
     while n < SNIFF_FRAMES and i + 10 <= len(data):
         stx, length = data[i + 8], data[i + 9]
-        if stx == 0xFE:
+        if stx == MAVLINK1_STX:
             size = 6 + length + 2
-        elif stx == 0xFD:
+        elif stx == MAVLINK2_STX:
             signed = data[i + 10] & 0x01 if i + 10 < len(data) else 0
             size = 10 + length + 2 + (13 if signed else 0)
         else:
@@ -114,9 +115,8 @@ def sniff_format(path: str) -> str:
         return "ulog"
     if head.startswith(DATAFLASH_MAGIC + DATAFLASH_FMT):
         return "dataflash"
-    if _mavlink_frames(head, 0) >= min(SNIFF_FRAMES, 2) or (
-        len(head) < SNIFF_BYTES and _mavlink_frames(head, 0) >= 1
-    ):
+    frames = _mavlink_frames(head)
+    if frames >= SNIFF_FRAMES or (frames >= 1 and len(head) < SNIFF_BYTES):
         return "tlog"
     what = "it is empty" if not head else "its content is none of these"
     claimed = {".bin": "a DataFlash log", ".tlog": "a telemetry log", ".ulg": "a ULog"}.get(

@@ -174,7 +174,9 @@ def undo_ardupilot(
     required = ardupilot_required(state, naming)
     missing = [n for n in required if n not in params.names()]
     names = mapping.ap_param_names(state, naming)
-    soft_iron = [names[f"{k}_{a}"] for k in ("DIA", "ODI") for a in "XYZ"]
+    # the soft-iron parameters, each with the value correct_field acts as if it had when the
+    # firmware has none: diagonal 1, off-diagonal 0
+    soft_iron = {names[f"{k}_{a}"]: v for k, v in (("DIA", 1.0), ("ODI", 0.0)) for a in "XYZ"}
     identity = params_complete and bool(missing) and set(missing) <= set(soft_iron)
     if missing and not identity:
         raise LogImportError(
@@ -187,9 +189,7 @@ def undo_ardupilot(
             )
         )
     meta: dict[str, str] = {}
-    # no soft-iron parameters: diagonal 1, off-diagonal 0 (what correct_field then applies)
-    defaults = {names[f"{k}_{a}"]: v for k, v in (("DIA", 1.0), ("ODI", 0.0)) for a in "XYZ"}
-    defaults = {n: v for n, v in defaults.items() if n in missing}
+    defaults = {n: v for n, v in soft_iron.items() if n in missing}
     if identity:
         meta["onboard_soft_iron"] = (
             f"the firmware has no {', '.join(missing)} (its log holds every parameter and "

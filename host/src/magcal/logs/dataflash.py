@@ -36,19 +36,23 @@ without parsing the others, with its C indexer when built); the few types needed
 decoded with numpy from that index, not one Python object per message, so a 100 MB log
 takes seconds. DFReader's clock pass is skipped: it reads the whole log message by message,
 without progress, when no GPS has a fix (a calibration indoors), and magcal uses the
-messages' own times. What the C indexer prints about bytes that are no message is held back
-and counted: a file that is mostly such bytes is not a DataFlash log.
+messages' own times. What the C indexer prints about bytes that are no message is kept off
+the terminal, and the bytes are counted: a file that is mostly such bytes is not a DataFlash
+log.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
-from collections.abc import Callable
+import sys
+from collections.abc import Callable, Iterator
 
 import numpy as np
 from pymavlink import DFReader
 
 from magcal.autopilot import vehicle
+from magcal.logs.convert import IMU_GAP_FACTOR
 from magcal.logs.correction import ardupilot_frame, ardupilot_recorded, undo_ardupilot
 from magcal.logs.streams import (
     ImuStream,
@@ -58,7 +62,6 @@ from magcal.logs.streams import (
     ParamTimeline,
     StepSignal,
     instances_text,
-    quiet_native_output,
     strictly_increasing,
     untruncate,
 )
@@ -324,7 +327,7 @@ def _pauses(df: _Index, clock: _Clock, t_imu: np.ndarray) -> tuple[tuple[float, 
     dt = np.diff(t_imu)
     if dt.size == 0:
         return ()
-    long = np.flatnonzero(dt > max(PAUSE_MIN_S, 10.0 * float(np.median(dt))))
+    long = np.flatnonzero(dt > max(PAUSE_MIN_S, IMU_GAP_FACTOR * float(np.median(dt))))
     if long.size == 0:
         return ()
     others = []
@@ -344,10 +347,61 @@ def _pauses(df: _Index, clock: _Clock, t_imu: np.ndarray) -> tuple[tuple[float, 
     return tuple(out)
 
 
+def _flush_python_output() -> None:
+    # Python's buffered text must reach the file descriptor it was written for, before
+    # descriptors 1 and 2 are moved
+    for s in (sys.stdout, sys.stderr):
+        with contextlib.suppress(Exception):
+            s.flush()
+
+
+class _NativeOutput:
+    """Inside :func:`_quiet_native_output`: a way through for the progress bar."""
+
+    def __init__(self, saved: dict[int, int], null: int) -> None:
+        self._saved = saved
+        self._null = null
+
+    def through(self, fn: Callable[..., None]) -> Callable[..., None]:
+        """``fn`` with the real stdout and stderr back while it runs (a progress bar)."""
+
+        def call(*args) -> None:
+            _flush_python_output()
+            for fd, copy in self._saved.items():
+                os.dup2(copy, fd)
+            try:
+                fn(*args)
+                _flush_python_output()
+            finally:
+                for fd in self._saved:
+                    os.dup2(self._null, fd)
+
+        return call
+
+
+@contextlib.contextmanager
+def _quiet_native_output() -> Iterator[_NativeOutput]:
+    """Discard what native code prints on the process's stdout and stderr (file descriptors
+    1 and 2, which ``contextlib.redirect_stderr`` does not reach)."""
+    _flush_python_output()
+    saved = {fd: os.dup(fd) for fd in (1, 2)}
+    null = os.open(os.devnull, os.O_WRONLY)
+    try:
+        for fd in saved:
+            os.dup2(null, fd)
+        yield _NativeOutput(saved, null)
+    finally:
+        _flush_python_output()
+        for fd, copy in saved.items():
+            os.dup2(copy, fd)
+            os.close(copy)
+        os.close(null)
+
+
 def _open(path: str, progress: Progress | None) -> tuple[_Index, int]:
     """DFReader's index of the file, and how many of its bytes are not DataFlash messages
-    (what its C indexer prints about them is held back)."""
-    with quiet_native_output() as native:
+    (what its C indexer prints about them is discarded)."""
+    with _quiet_native_output() as native:
 
         def indexed(pct: float) -> None:
             if progress is not None:

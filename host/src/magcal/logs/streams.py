@@ -9,11 +9,6 @@ same for all of them. Times are the autopilot's own clock (seconds since boot), 
 
 from __future__ import annotations
 
-import contextlib
-import os
-import sys
-import tempfile
-from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -208,58 +203,3 @@ def untruncate(v: np.ndarray) -> np.ndarray:
 def instances_text(instances: list[int] | set[int]) -> str:
     """ "1, 2" or "none" for an error message."""
     return ", ".join(str(i) for i in sorted(instances)) or "none"
-
-
-class NativeOutput:
-    """What native code printed inside :func:`quiet_native_output`, and a way through."""
-
-    def __init__(self, saved: dict[int, int], target: int) -> None:
-        self._saved = saved
-        self._target = target
-        self.text = ""
-
-    def through(self, fn: Callable[..., None]) -> Callable[..., None]:
-        """``fn`` with the real stdout and stderr back while it runs (a progress bar)."""
-
-        def call(*args) -> None:
-            for s in (sys.stdout, sys.stderr):
-                with contextlib.suppress(Exception):
-                    s.flush()
-            for fd, copy in self._saved.items():
-                os.dup2(copy, fd)
-            try:
-                fn(*args)
-                for s in (sys.stdout, sys.stderr):
-                    with contextlib.suppress(Exception):
-                        s.flush()
-            finally:
-                for fd in self._saved:
-                    os.dup2(self._target, fd)
-
-        return call
-
-
-@contextlib.contextmanager
-def quiet_native_output() -> Iterator[NativeOutput]:
-    """Hold what native code prints on the process's stdout and stderr (file descriptors
-    1 and 2, which ``contextlib.redirect_stderr`` does not reach) instead of showing it; the
-    text is in the yielded object's ``text`` once the block has ended."""
-    for s in (sys.stdout, sys.stderr):
-        with contextlib.suppress(Exception):
-            s.flush()
-    saved = {fd: os.dup(fd) for fd in (1, 2)}
-    with tempfile.TemporaryFile(mode="w+b") as tmp:
-        held = NativeOutput(saved, tmp.fileno())
-        try:
-            for fd in saved:
-                os.dup2(tmp.fileno(), fd)
-            yield held
-        finally:
-            for s in (sys.stdout, sys.stderr):  # Python's own prints, buffered meanwhile
-                with contextlib.suppress(Exception):
-                    s.flush()
-            for fd, copy in saved.items():
-                os.dup2(copy, fd)
-                os.close(copy)
-            tmp.seek(0)
-            held.text = tmp.read().decode("utf-8", "replace")

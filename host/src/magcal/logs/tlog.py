@@ -96,9 +96,15 @@ def _param_value(m, autopilot: int) -> float:
     return float(m.param_value)
 
 
-def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str, list], str]:
-    """(autopilot, type → [(reception s, message)], parameter note) of the vehicle's
-    messages, whatever order they arrived in.
+def _is_vehicle(heartbeat) -> bool:
+    """Whether a HEARTBEAT comes from an autopilot: not a ground station's, and not
+    MAV_AUTOPILOT_INVALID (a camera, a gimbal)."""
+    return heartbeat.autopilot != MAV_AUTOPILOT_INVALID and heartbeat.type != MAV_TYPE_GCS
+
+
+def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str, list]]:
+    """(autopilot, type → [(reception s, message)]) of the vehicle's messages, whatever
+    order they arrived in.
 
     The vehicle is the source (system, component) whose HEARTBEAT is not a ground station's
     and not MAV_AUTOPILOT_INVALID (a camera, a gimbal); of several, the one that sent the
@@ -134,10 +140,7 @@ def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str,
     vehicles = [
         (sum(len(seen[k]) for k in ("HIGHRES_IMU", *IMU_MESSAGES)), src)
         for src, seen in by_source.items()
-        if any(
-            m.autopilot != MAV_AUTOPILOT_INVALID and m.type != MAV_TYPE_GCS
-            for _, m in seen["HEARTBEAT"]
-        )
+        if any(_is_vehicle(m) for _, m in seen["HEARTBEAT"])
     ]
     if not vehicles:
         raise LogImportError(
@@ -146,12 +149,8 @@ def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str,
         )
     src = max(vehicles)[1]
     seen = by_source[src]
-    autopilot = next(
-        m.autopilot
-        for _, m in seen["HEARTBEAT"]
-        if m.autopilot != MAV_AUTOPILOT_INVALID and m.type != MAV_TYPE_GCS
-    )
-    return autopilot, seen, _params_note(seen["PARAM_VALUE"])
+    autopilot = next(m.autopilot for _, m in seen["HEARTBEAT"] if _is_vehicle(m))
+    return autopilot, seen
 
 
 def _params_note(samples: list) -> str:
@@ -262,7 +261,7 @@ def _stale_note(count: int, msg_type: str) -> tuple[str, ...]:
 def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = None) -> LogStreams:
     """Read a MAVLink ``.tlog``; compass and imu are 1-based (see the module docstring)."""
     name = os.path.basename(path)
-    autopilot, seen, params_note = _read_messages(path, progress)
+    autopilot, seen = _read_messages(path, progress)
     offset = _clock_offset(seen)
     records = [
         (rx - offset, m.param_id, _param_value(m, autopilot)) for rx, m in seen["PARAM_VALUE"]
@@ -270,7 +269,7 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     params = ParamTimeline.from_records(records)
     armed, throttle = _armed_throttle(seen, offset)
     if autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
-        return _ardupilot(path, name, seen, params, params_note, compass, imu, armed, throttle)
+        return _ardupilot(path, name, seen, params, compass, imu, armed, throttle)
     if autopilot == MAV_AUTOPILOT_PX4:
         return _px4(path, name, seen, params, compass, imu, armed, throttle)
     raise LogImportError(
@@ -294,7 +293,7 @@ def _armed_throttle(seen: dict[str, list], offset: float) -> tuple[StepSignal | 
     return armed, throttle
 
 
-def _ardupilot(path, name, seen, params, params_note, compass, imu, armed, throttle) -> LogStreams:
+def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
     imu_type, mag_type = _imu_message(imu), _imu_message(compass)
     have_imu = [i for i in (1, 2, 3) if seen[_imu_message(i)]]
     have_mag = [i for i in (1, 2, 3) if _mag_samples(seen, _imu_message(i))]
@@ -318,6 +317,7 @@ def _ardupilot(path, name, seen, params, params_note, compass, imu, armed, throt
     t, field = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
     t, field, stale = _fresh(t, field)
     field = untruncate(field)
+    params_note = _params_note(seen["PARAM_VALUE"])
     undone = undo_ardupilot(
         name,
         t,

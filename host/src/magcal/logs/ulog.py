@@ -96,7 +96,8 @@ class _ProgressFile(io.RawIOBase):
         data = self._f.read(n)
         if self._progress is not None:
             pct = int(100 * self._f.tell() / self._size)
-            if pct != self._reported:
+            # pyulog seeks back (appended data, the index): the fraction read never shrinks
+            if pct > self._reported:
                 self._reported = pct
                 self._progress(pct / 100.0)
         return data
@@ -206,14 +207,15 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         found = ([1] if combined else []) + [i + 1 for i in vimu if i + 1 > 1]
         where = "sensor_combined" if imu == 1 else f"vehicle_imu instance {imu - 1}"
         missing.append(f"no {where} for IMU {imu} (found IMUs {instances_text(found)})")
-    mag_stream, notes, index = None, (), compass - 1
     try:
-        mag_stream, notes, index = _choose_mag(name, ulog, params, compass)
+        chosen = _choose_mag(name, ulog, params, compass)
     except _NoMag as exc:
+        chosen = None
         missing.append(str(exc))
     if missing:
         raise LogImportError(f"{name} has {' and '.join(missing)}; {NEEDS}")
-    assert imu_stream is not None and mag_stream is not None
+    assert imu_stream is not None and chosen is not None
+    mag_stream, notes, index = chosen
     return LogStreams(
         path=path,
         log_format="ULog",
@@ -270,6 +272,14 @@ def _calibrated(
     return t[fresh], v[fresh]
 
 
+def _device_slot(params: ParamTimeline, data: dict[str, np.ndarray]) -> int | None:
+    """The CAL_MAGn slot whose CAL_MAGn_ID is the device id a topic names, or None (it
+    names none, or no slot has it)."""
+    if "device_id" not in data or not len(data["device_id"]):
+        return None
+    return px4_calibration_index(params.initial, int(data["device_id"][0]))
+
+
 def _slots(params: ParamTimeline) -> list[int]:
     """CAL_MAGn slots that hold a magnetometer (CAL_MAGn_ID ≠ 0)."""
     return [n for n in range(8) if params.initial.get(f"CAL_MAG{n}_ID", 0) not in (0, None)]
@@ -311,9 +321,7 @@ def _slot_by_content(
     undone by the slot of that instance's device when sensor_mag is raw, as it is."""
     best = None
     for data in raws.values():
-        if "device_id" not in data or not len(data["device_id"]):
-            continue
-        n = px4_calibration_index(params.initial, int(data["device_id"][0]))
+        n = _device_slot(params, data)
         if n is None:
             continue
         raw = _raw_mag(data, 1)
@@ -346,12 +354,10 @@ def _choose_mag(
     i = compass - 1
     raw_is_raw = _sensor_mag_is_raw(ulog)
     raw = _raw_mag(raw_sets[i], compass) if i in raw_sets else None
-    calibrated = []  # (t, field, source, device id or None)
+    calibrated = []  # (t, field, source, CAL_MAGn slot of the device it names or None)
     if i in vmag_sets:
-        d = vmag_sets[i]
-        t, f = _calibrated(d, "magnetometer_ga", None)
-        dev = int(d["device_id"][0]) if "device_id" in d and len(d["device_id"]) else None
-        calibrated.append((t, f, f"vehicle_magnetometer[{i}]", dev))
+        t, f = _calibrated(vmag_sets[i], "magnetometer_ga", None)
+        calibrated.append((t, f, f"vehicle_magnetometer[{i}]", _device_slot(params, vmag_sets[i])))
     if compass == 1 and combined is not None and "magnetometer_ga[0]" in combined:
         t, f = _calibrated(combined, "magnetometer_ga", "magnetometer_timestamp_relative")
         calibrated.append((t, f, "sensor_combined.magnetometer_ga", None))
@@ -368,7 +374,9 @@ def _choose_mag(
     best = max(calibrated, key=lambda c: _rate_hz(c[0]), default=None)
     best_rate = _rate_hz(best[0]) if best is not None else 0.0
     if raw is not None and raw_rate >= RAW_RATE_SHARE * best_rate:
-        slot = _slot_of_device(params, raw_sets[i], compass)
+        slot = _device_slot(params, raw_sets[i])
+        if slot is None:  # no device named, or none in CAL_MAGn_ID: the instance's own
+            slot = i
         if raw_is_raw:
             return raw, (), slot
         return _undone(
@@ -385,9 +393,8 @@ def _choose_mag(
             ),
         )
     assert best is not None
-    t, field, source, device = best
+    t, field, source, slot = best
     notes: list[str] = []
-    slot = px4_calibration_index(params.initial, device) if device is not None else None
     if slot is None and raw_sets:
         slot = _slot_by_content(t, field, params, raw_sets, raw_is_raw)
         if slot is not None:
@@ -403,8 +410,9 @@ def _choose_mag(
                 f"{source} names no device; CAL_MAG_PRIME says the primary magnetometer, "
                 f"calibrated by CAL_MAG{slot}_*"
             )
-    if slot is None and len(_slots(params)) == 1:
-        slot = _slots(params)[0]
+    slots = _slots(params)
+    if slot is None and len(slots) == 1:
+        slot = slots[0]
     if slot is None:
         raise LogImportError(
             f"{name}: the magnetometer is logged fast only calibrated ({source}, "
@@ -440,15 +448,6 @@ def _undone(
         source=source,
     )
     return stream, notes + undone.notes, slot
-
-
-def _slot_of_device(params: ParamTimeline, data, compass: int) -> int:
-    """CAL_MAGn index of a sensor_mag instance: by device id when known, else compass − 1."""
-    if data is not None and "device_id" in data and len(data["device_id"]):
-        n = px4_calibration_index(params.initial, int(data["device_id"][0]))
-        if n is not None:
-            return n
-    return compass - 1
 
 
 def _dropouts(ulog) -> tuple[tuple[float, float, str], ...]:

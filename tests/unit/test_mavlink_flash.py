@@ -87,6 +87,24 @@ def test_a_custom_slot_in_use_elsewhere_is_not_taken():
     assert any("not represented" in n for n in plan.mapped.notes)
 
 
+def test_ardupilot_rotation_within_its_uncertainty_is_written_enumerated_without_a_warning():
+    from magcal.commands.flash.autopilot import LEFT_OUT_WARN_DEG, _left_out
+
+    rng = np.random.default_rng(6)
+    D, o = _calibration(rng, misalign_deg=2.0)
+    cp = _ap_in_force()
+    sigma = np.array([2.0, 2.0, 2.0])
+    plan = F.plan_flash(
+        np.linalg.inv(D), o, cp, FIELD, recorded=cp.values, rotation_sigma_deg=sigma
+    )
+    assert plan.mapped.snapped and any("within its uncertainty" in n for n in plan.mapped.notes)
+    new = {e.name: e.value for e in plan.writes + plan.unchanged}
+    assert new["COMPASS_ORIENT"] == 0 and not any(n.startswith("CUST_ROT") for n in new)
+    # costly enough that, were it not snapped, flash would exit 3 and ask for a custom rotation
+    assert plan.mapped.heading_rms_deg >= LEFT_OUT_WARN_DEG
+    assert _left_out(plan) == 0
+
+
 def _px4_in_force(rot=0, z_off=0.0, external=True):
     v = {f"CAL_MAG0_{a}OFF": 0.0 for a in "XYZ"} | {f"CAL_MAG0_{a}SCALE": 1.0 for a in "XYZ"}
     v |= {f"CAL_MAG0_{a}ODIAG": 0.0 for a in "XYZ"} | {

@@ -212,6 +212,16 @@ def _ardupilot_slot(cp: vehicle.CompassParams) -> tuple[int | None, bool]:
     return None, False
 
 
+def require_px4_custom_angles(cp: vehicle.CompassParams) -> None:
+    """Refuse a custom rotation on a PX4 without CAL_MAGn_ROLL/PITCH/YAW (older firmware)."""
+    index = vehicle.px4_index(cp.compass)
+    if not vehicle.px4_has_custom_angles(cp.values, index):
+        raise MagcalError(
+            f"flash: --px4-custom-rotation, but this PX4 has no CAL_MAG{index}_ROLL/PITCH/YAW "
+            "(older firmware): drop the option; nothing was written"
+        )
+
+
 def plan_flash(
     result_D_inv: np.ndarray,
     result_o: np.ndarray,
@@ -230,7 +240,8 @@ def plan_flash(
     recorded : the compass parameters in force when the session was recorded (ArduPilot:
         the rotation the session's y went through; needed for an external compass)
     allow_custom : ArduPilot: may write a custom rotation; PX4: may write CAL_MAGn_ROT = 100
-        with CAL_MAGn_ROLL/PITCH/YAW (only when the vehicle has those)
+        with CAL_MAGn_ROLL/PITCH/YAW (an external compass of a vehicle without those is
+        refused: :func:`require_px4_custom_angles`)
     rotation_sigma_deg : (3,) the result's misalignment σ, degrees (None: unknown): a rotation
         within it of an enumerated one is written as that one
         (:func:`magcal.autopilot.mapping.within_uncertainty`)."""
@@ -287,28 +298,22 @@ def plan_flash(
                 f"compass {cp.compass} already uses custom rotation {100 + slot}, whose matrix "
                 "ArduPilot rebuilds only at boot"
             )
-        mapped = mapping.AutopilotParams(
-            new, mapped.rotation, mapped.residual_angle_deg, mapped.heading_rms_deg, tuple(notes)
-        )
+        mapped = dataclasses.replace(mapped, params=new, notes=tuple(notes))
     else:
         index = vehicle.px4_index(cp.compass)
         board = None
         if not cp.external:
-            if "SENS_BOARD_ROT" not in cp.values:
+            if vehicle.PX4_BOARD_ROT not in cp.values:
                 raise MagcalError(
                     f"flash: PX4 compass {cp.compass} is internal (CAL_MAG{index}_ROT = -1): PX4 "
                     "turns it with the board rotation SENS_BOARD_ROT, which the vehicle did not "
                     "report; nothing was written"
                 )
             # PX4 ignores CAL_MAGn_ROT and CAL_MAGn_ROLL/PITCH/YAW for an internal compass
-            board = rotations.px4_matrix(int(cp.values["SENS_BOARD_ROT"]))
+            board = rotations.px4_matrix(int(cp.values[vehicle.PX4_BOARD_ROT]))
             allow_custom = False
-        has_custom = all(n in cp.values for n in vehicle.px4_custom_angles(index))
-        if allow_custom and not has_custom:
-            raise MagcalError(
-                f"flash: --px4-custom-rotation, but this PX4 has no CAL_MAG{index}_ROLL/PITCH/YAW "
-                "(older firmware): drop the option; nothing was written"
-            )
+        if allow_custom:
+            require_px4_custom_angles(cp)
         # PX4 applies Dcmf(Eulerf(SENS_BOARD_X/Y/Z_OFF)) to every magnetometer's rotation too
         L = rotations.euler_deg_to_matrix(
             cp.values["SENS_BOARD_X_OFF"],

@@ -226,6 +226,12 @@ def px4_custom_angles(index: int) -> list[str]:
     return [f"CAL_MAG{index}_{a}" for a in ("ROLL", "PITCH", "YAW")]
 
 
+def px4_has_custom_angles(values: dict[str, float], index: int) -> bool:
+    """Whether ``values`` hold CAL_MAGn_ROLL/PITCH/YAW: only firmware that has them takes a
+    custom rotation (CAL_MAGn_ROT = 100)."""
+    return all(n in values for n in px4_custom_angles(index))
+
+
 #: read(name, tries) → the decoded parameter; raises MavlinkTimeoutError when the vehicle
 #: never answered (tries None: the reader's default).
 ReadParam = Callable[[str, "int | None"], "params.ParamEntry"]
@@ -435,13 +441,15 @@ TIME_BASES = {
 #: A backward step that a counter wrap turns into a forward step of at most this much is a
 #: wrap; any other backward step is a restart of the vehicle's clock (a reboot), s.
 MAX_WRAP_STEP_S = 60.0
+#: A time step longer than this many nominal (median) steps is a gap: messages were lost.
+GAP_STEPS = 1.5
 
 
 @dataclass(frozen=True)
 class Timeline:
     """t : (N,) s from the first sample, strictly increasing over the kept samples (NaN for
     dropped ones); keep : (N,) bool (False: a repeated timestamp); wraps, resets : counts;
-    missing : samples missing by the time steps (steps over 1.5 median steps)."""
+    missing : samples missing by the time steps (steps over GAP_STEPS median steps)."""
 
     t: np.ndarray
     keep: np.ndarray
@@ -500,6 +508,6 @@ def unwrap_times(ticks: np.ndarray, base: TimeBase, host_s: np.ndarray) -> Timel
         steps = np.diff(kept)
         median = float(np.median(steps))
         if median > 0:
-            big = steps > 1.5 * median
+            big = steps > GAP_STEPS * median
             missing = int(np.sum(np.rint(steps[big] / median) - 1))
     return Timeline(t, keep, wraps, resets, missing)

@@ -201,14 +201,13 @@ def run(args) -> int:
         )
         allow_custom = not args.no_custom_rotation
         if ap.autopilot == vehicle.PX4:
+            # --px4-custom-rotation refuses older firmware even for an internal compass (whose
+            # rotation plan_flash never makes custom); without it the angles are used whenever
+            # the vehicle reports them
+            if args.px4_custom_rotation:
+                apflash.require_px4_custom_angles(cp)
             index = vehicle.px4_index(compass)
-            has_angles = all(n in cp.values for n in vehicle.px4_custom_angles(index))
-            if args.px4_custom_rotation and not has_angles:
-                raise MagcalError(
-                    f"flash: --px4-custom-rotation, but this PX4 has no CAL_MAG{index}_ROLL/"
-                    "PITCH/YAW (older firmware): drop the option; nothing was written"
-                )
-            allow_custom = allow_custom and has_angles
+            allow_custom = allow_custom and vehicle.px4_has_custom_angles(cp.values, index)
         plan = apflash.plan_flash(
             D_inv,
             o,

@@ -48,11 +48,10 @@ def inclination_deg() -> float:
 def wrong_calibration(sitl: ArduPilotSitl, seed: int) -> None:
     """A calibration in force that is off: offsets 20–60 mG away, no soft iron."""
     rng = np.random.default_rng(1000 + seed)
-    for i, a in enumerate("XYZ"):
+    for a in "XYZ":
         sitl.set(f"COMPASS_OFS_{a}", float(sitl.get(f"SIM_MAG1_OFS_{a}") + rng.uniform(20, 60)))
         sitl.set(f"COMPASS_DIA_{a}", 1.0)
         sitl.set(f"COMPASS_ODI_{a}", 0.0)
-        del i
 
 
 def written_params(sitl: ArduPilotSitl) -> dict[str, float]:

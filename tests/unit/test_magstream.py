@@ -9,9 +9,13 @@ target; a tumble does.
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import numpy as np
 
-from magcal.autopilot.magstream import MAX_TURN_RAD, MagnetometerScreen
+from magcal.autopilot.collect import _Recorder
+from magcal.autopilot.magstream import MagnetometerScreen
+from magcal.autopilot.rotations import rotation_vector_deg
 from magcal.calib.frames import rotvec_to_matrix
 from magcal.device.coverage import AttitudeCoverage, CoverageTracker
 
@@ -34,6 +38,22 @@ def _stream(rates: np.ndarray, glitch: dict[int, np.ndarray] | None = None):
         rows.append((i / RATE_HZ, w, held))
         R = R @ rotvec_to_matrix(w / RATE_HZ)
     return rows
+
+
+def _scaled_imu(t_ms: int, xmag: int) -> SimpleNamespace:
+    """A SCALED_IMU message of a still, level vehicle whose magnetometer x reads ``xmag``."""
+    return SimpleNamespace(
+        time_boot_ms=t_ms,
+        xacc=0,
+        yacc=0,
+        zacc=1000,
+        xgyro=0,
+        ygyro=0,
+        zgyro=0,
+        xmag=xmag,
+        ymag=0,
+        zmag=0,
+    )
 
 
 def _screen(rows) -> MagnetometerScreen:
@@ -64,13 +84,17 @@ def test_a_fast_flip_and_a_frozen_value_are_rejected_and_counted():
     c = s.counts()
     assert c.fast_turn == 1 and 205 not in s.rows  # the reading after the flip
     assert c.frozen == 1 and 200 not in s.rows  # the one held through it
-    # a value that stays while the vehicle turns by more than MAX_TURN_RAD
+    # a value that stays while the vehicle turns by more than MAX_TURN_RAD: held for 50 rows
+    # at 1 rad/s, it turns 1 rad
     rows = _stream(np.tile([0.0, 0.0, 1.0], (400, 1)))
     stuck = rows[100][2]
-    rows = [(t, w, stuck if 100 <= i < 150 else m) for i, (t, w, m) in enumerate(rows)]
-    s = _screen(rows)
+    held = [(t, w, stuck if 100 <= i < 150 else m) for i, (t, w, m) in enumerate(rows)]
+    s = _screen(held)
     assert s.counts().frozen == 1 and 100 not in s.rows
-    assert 50 * 1.0 / RATE_HZ > MAX_TURN_RAD  # the hold really turned that far
+    # held for 10 rows it turns 0.2 rad, within MAX_TURN_RAD: kept
+    held = [(t, w, stuck if 100 <= i < 110 else m) for i, (t, w, m) in enumerate(rows)]
+    s = _screen(held)
+    assert s.counts().frozen == 0 and 100 in s.rows
 
 
 def _coverage(rates: np.ndarray, noise: float, seed: int = 0) -> tuple[float, float]:
@@ -105,10 +129,6 @@ def test_a_still_or_yaw_only_vehicle_never_reaches_the_target_a_tumble_does():
 
 
 def test_a_jittering_millisecond_clock_is_no_gap_and_a_lost_stretch_is_counted():
-    from types import SimpleNamespace
-
-    from magcal.autopilot.collect import _Recorder
-
     rec = _Recorder("SCALED_IMU")
     rng = np.random.default_rng(0)
     t_ms = 1000
@@ -116,54 +136,20 @@ def test_a_jittering_millisecond_clock_is_no_gap_and_a_lost_stretch_is_counted()
         # 100 Hz with a millisecond stamp that jitters by a tick either way; at k = 300 five
         # messages are lost (a 60 ms step).
         t_ms += 60 if k == 300 else 10 + int(rng.integers(-1, 2))
-        rec.add(
-            SimpleNamespace(
-                time_boot_ms=t_ms,
-                xacc=0,
-                yacc=0,
-                zacc=1000,
-                xgyro=0,
-                ygyro=0,
-                zgyro=0,
-                xmag=k,
-                ymag=0,
-                zmag=0,
-            ),
-            host_s=t_ms / 1000.0,
-        )
+        rec.add(_scaled_imu(t_ms, k), host_s=t_ms / 1000.0)
     assert rec.gaps == 5
 
 
 def test_a_clock_restart_is_no_gap():
-    from types import SimpleNamespace
-
-    from magcal.autopilot.collect import _Recorder
-
     rec = _Recorder("SCALED_IMU")
     # 100 Hz from 100 s, the vehicle reboots at row 50 (its clock starts again near 1 s).
     for k in range(100):
         t_ms = 100_000 + 10 * k if k < 50 else 1_000 + 10 * k
-        rec.add(
-            SimpleNamespace(
-                time_boot_ms=t_ms,
-                xacc=0,
-                yacc=0,
-                zacc=1000,
-                xgyro=0,
-                ygyro=0,
-                zgyro=0,
-                xmag=k,
-                ymag=0,
-                zmag=0,
-            ),
-            host_s=k / 100.0,
-        )
+        rec.add(_scaled_imu(t_ms, k), host_s=k / 100.0)
     assert rec.gaps == 0
 
 
 def test_the_rotation_vector_of_a_half_turn_keeps_its_axis_signs():
-    from magcal.autopilot.rotations import rotation_vector_deg
-
     axis = np.array([1.0, -1.0, 0.0]) / np.sqrt(2.0)
     R = rotvec_to_matrix(np.pi * axis)
     np.testing.assert_allclose(rotation_vector_deg(R), 180.0 * axis, atol=1e-6)

@@ -107,8 +107,6 @@ def stop_stream(ap: Autopilot, message: str, how: str) -> None:
 
 #: Recent time steps whose median is a stream's nominal step.
 NOMINAL_STEP_WINDOW = 256
-#: A step longer than this many nominal steps is a gap (lost messages).
-GAP_STEPS = 1.5
 
 
 class _Recorder:
@@ -146,7 +144,7 @@ class _Recorder:
             if step > 0:
                 if self._steps:
                     nominal = float(np.median(self._steps))
-                    if step > GAP_STEPS * nominal:
+                    if step > vehicle.GAP_STEPS * nominal:
                         self.gaps += max(0, round(step / nominal) - 1)
                 self._steps.append(step)
             if step == 0:  # a repeated time stamp: dropped from the session, not screened
@@ -289,13 +287,14 @@ def _result(
     keep = timeline.keep
     repeated = int(np.count_nonzero(~keep))
     counts = rec.screen.counts()
-    rows = np.array([r for r in rec.screen.rows if keep[r]], dtype=np.int64)
+    rows = np.array(rec.screen.rows, dtype=np.int64)
+    # The recorder screens exactly the rows unwrap_times keeps (both drop a row whose
+    # vehicle.tick_step from the one before is 0), so the accepted rows need no filtering.
+    assert keep[rows].all()
     session = None
     if rows.size:
         mag = np.full((len(rec.ticks), 3), np.nan)
-        pairs = zip(rec.screen.rows, rec.mag, strict=True)
-        values = np.array([v for r, v in pairs if keep[r]], dtype=float)
-        mag[rows] = vehicle.session_mag(values, cp)
+        mag[rows] = vehicle.session_mag(np.array(rec.mag, dtype=float), cp)
         t = timeline.t[keep]
         meta = session_metadata(ap, cp, stream, firmware)
         meta.update(

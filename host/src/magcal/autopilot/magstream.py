@@ -101,10 +101,11 @@ class MagnetometerScreen:
             self._repeats += 1
             return
         self._changes += 1
-        turn_before = self._turn if self._last is not None else 0.0
+        # the turn since the previous value's row is that value's hold and this one's turn
+        # before (0 at the first row: nothing was integrated yet)
         self._decide(hold_turn=self._turn)
         self._last = value
-        self._pending = (row, value, self._R.copy(), turn_before)
+        self._pending = (row, value, self._R.copy(), self._turn)
         self._turn = 0.0
 
     def finish(self) -> None:

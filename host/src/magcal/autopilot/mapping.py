@@ -27,8 +27,8 @@ On-board corrections, as in the sources:
   [0, ROTATION_MAX) is reset to 0 and an internal one is −1 (board rotation). That commit has
   **no** custom rotation: ROT = 100 with ``CAL_MAGn_ROLL/PITCH/YAW`` (docs/autopilots.md) is not
   in that commit (an external ROT of 100 is reset to 0 there); newer releases have it, so
-  :func:`to_px4` writes it only when asked (``flash --px4-custom-rotation``, which checks
-  that the vehicle reports ``CAL_MAGn_ROLL``).
+  :func:`to_px4` writes it only with ``allow_custom``, which ``flash`` sets when the vehicle
+  reports ``CAL_MAGn_ROLL/PITCH/YAW`` (unless ``--no-custom-rotation``).
 - Limits: ArduPilot |OFS| < COMPASS_OFFS_MAX (default 1800 mG), DIA 0.2–5.0, |ODI| < 1
   (docs/autopilots.md, ArduPilot's own calibrator); SCALE used only in [0.85, 1.4]
   (CompassCalibrator.h COMPASS_MIN/MAX_SCALE_FACTOR). PX4 scales 0.1–3.0 (docs/autopilots.md);
@@ -349,7 +349,7 @@ def to_px4(
     D_inv : (3, 3) unit-field calibration, per gauss;  o : (3,) offset in gauss (y frame)
     field_gauss : F;  Rot0 : (3, 3) rotation already applied to y (default: y is raw)
     index : n in CAL_MAGn_*;  allow_custom : write ROT = 100 with CAL_MAGn_ROLL/PITCH/YAW
-    (unconfirmed in the sources read; off by default); rotation_sigma_deg : as for
+    (only for a vehicle that has those: newer releases); rotation_sigma_deg : as for
     :func:`to_ardupilot`; board_rotation : an internal compass (CAL_MAGn_ROT −1): the
     rotation PX4 turns it with (SENS_BOARD_ROT's), kept: CAL_MAGn_ROT is not written and a
     misalignment beyond it is left out (noted).

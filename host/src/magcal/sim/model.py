@@ -232,10 +232,14 @@ def ideal_measurements(
     # R_bn v = R_nbᵀ v, batched: out[k, i] = Σ_j R_nb[k, j, i] v[k, j].
     f_n = acc_n - frames.gravity_n()
     acc = np.einsum("kji,kj->ki", R_nb, f_n)
-    m_b = np.einsum("kji,j->ki", R_nb, sensor.m_n)
-    mag = m_b @ sensor.D.T + sensor.o
+    mag = ideal_magnetometer(sensor, R_nb)
     gyr = omega_b + sensor.gyro_bias
     return gyr, acc, mag
+
+
+def ideal_magnetometer(sensor: SensorTruth, R_nb: np.ndarray) -> np.ndarray:
+    """(N, 3) noise-free magnetometer readings, mag units, at the attitudes R_nb (N, 3, 3)."""
+    return np.einsum("kji,j->ki", R_nb, sensor.m_n) @ sensor.D.T + sensor.o
 
 
 def measure(

@@ -22,6 +22,7 @@ from magcal.io.session import Session, session_from_arrays
 from magcal.sim.model import (
     DIP_LINKOPING_DEG,
     SensorTruth,
+    ideal_magnetometer,
     measure,
     sample_handheld_magnet,
     sample_mems,
@@ -195,12 +196,6 @@ def sample_sensor(scenario: ScenarioConfig, rng: np.random.Generator) -> SensorT
     return sensor
 
 
-def field_at(sensor: SensorTruth, q_nb: np.ndarray) -> np.ndarray:
-    """(N, 3) noise-free magnetometer readings at attitudes ``q_nb`` (N, 4)."""
-    R_nb = frames.quat_to_matrix(q_nb)
-    return np.einsum("kji,j->ki", R_nb, sensor.m_n) @ sensor.D.T + sensor.o
-
-
 def attitude_at(t: np.ndarray, q_nb: np.ndarray, when: np.ndarray) -> np.ndarray:
     """(K, 4) the attitude at times ``when`` (K,), spherically interpolated between the
     samples (t, q_nb); held at the ends."""
@@ -263,8 +258,10 @@ def simulate(scenario: ScenarioConfig, seed: int) -> tuple[Session, SimTruth]:
         # The same noise, on the field seen at t − lag.
         mag = (
             mag
-            - field_at(sensor, traj.q_nb)
-            + field_at(sensor, attitude_at(traj.t, traj.q_nb, traj.t - lag))
+            - ideal_magnetometer(sensor, frames.quat_to_matrix(traj.q_nb))
+            + ideal_magnetometer(
+                sensor, frames.quat_to_matrix(attitude_at(traj.t, traj.q_nb, traj.t - lag))
+            )
         )
     if scenario.mag_rate_hz is not None:
         mag[~magnetometer_rows(traj.t, scenario.rate_hz, float(scenario.mag_rate_hz))] = np.nan

@@ -232,9 +232,9 @@ def test_a_result_without_noise_covariances_gets_a_page_without_sigma(files, cap
     assert len(parse(text).images) == 3  # no innovation histogram
 
 
-def test_an_init_result_gets_no_sigma_where_the_ml_cost_curves_down(files, capsys, tmp_path):
-    """The initial estimate's noise levels are far from the ML ones: the cost curves down
-    there (measured on every seed tried), and the page says why it shows no σ."""
+def test_an_init_result_far_from_the_ml_minimum_gets_no_sigma(files, capsys, tmp_path):
+    """The initial estimate is many standard deviations from the ML minimum: the page shows
+    no σ for it, and says why."""
     init = calibrate(read_session(files / "fit.csv"), "init")
     write_result(tmp_path / "init.json", init.result)
     code, _, _ = run(capsys, tmp_path / "init.json", files / "fit.csv", "-o", tmp_path / "i.html")
@@ -257,6 +257,15 @@ def test_a_result_far_from_the_ml_minimum_with_negative_curvature_gets_no_sigma(
     assert "no uncertainty: the result (method &#x27;two-step&#x27;) is not a minimum" in text
     assert "negative curvature along" in text and "bias_y" in text
     assert not re.search(r"\d ± \d", text) and "NOT identifiable" not in text
+
+
+def test_another_methods_result_at_the_ml_minimum_keeps_its_sigma(files, capsys, tmp_path):
+    r = read_result(files / "result.json")
+    write_result(tmp_path / "same.json", dataclasses.replace(r, method="two-step"))
+    code, _, _ = run(capsys, tmp_path / "same.json", files / "fit.csv", "-o", tmp_path / "s.html")
+    text = (tmp_path / "s.html").read_text(encoding="utf-8")
+    assert code == 0
+    assert "is not a minimum" not in text and re.search(r"\d ± \d", text)
 
 
 def test_a_non_identifiable_direction_is_flagged_on_the_page(files):

@@ -335,21 +335,21 @@ def build_report(
         notes.append(f"no uncertainty and no innovations: {exc}")
     except CalibrationError as exc:  # the filter breaks down at or next to the result
         notes.append(f"no uncertainty: {exc}")
-    if (
-        unc is not None
-        and result.method != "ml"
-        and unc.negative_curvature
-        and unc.newton_step_sigma > uncertainty.AT_MINIMUM_NEWTON_STEP_SIGMA
-    ):
-        # Another method's estimate away from the ML minimum: a Hessian that curves down
-        # there is the cost's shape at that point, not a statement about what the data
-        # determine, so no σ rather than misleading ones. (An ML result is meant to be the
-        # minimum: its non-positive-definite Hessian is reported as not identifiable.)
+    if unc is not None and result.method != "ml" and not unc.at_minimum:
+        # Another method's estimate away from the ML minimum: the cost's curvature there is
+        # its shape at that point, not the spread of that estimate, whose error is the
+        # step to the minimum, so no σ rather than misleading ones. (An ML result is meant
+        # to be the minimum: its non-positive-definite Hessian is reported as not
+        # identifiable.)
+        curving_down = (
+            f", with negative curvature along {'; '.join(unc.null_directions)}"
+            if unc.negative_curvature
+            else ""
+        )
         notes.append(
             f"no uncertainty: the result (method {result.method!r}) is not a minimum of the ML "
             f"cost on this session (a Newton step of {unc.newton_step_sigma:.3g} standard "
-            "deviations away, with negative curvature along "
-            f"{'; '.join(unc.null_directions)}), so its curvature says nothing about the "
+            f"deviations away{curving_down}), so its curvature says nothing about the "
             "estimate's spread; calibrate with --method ml for standard deviations"
         )
         unc = None

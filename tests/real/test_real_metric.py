@@ -252,6 +252,13 @@ def test_the_rotation_the_scored_recordings_show():
     assert got["plain_with_fit_rotation"] < 1e-6
     plain = real.case_heading_deg(P, o, case)
     assert plain > 1.0 and got["ml_without_rotation"] == pytest.approx(plain)
+    # Given the scored recordings' offset, a calibration whose offset is off (a day when the
+    # hard iron moved) scores as its D does: exact for the true D, the plain fit's miss.
+    shifted = {"D": D.tolist(), "o": (o + [0.1 * FIELD_UT, 0.0, 0.0]).tolist()}
+    moved = real._on_other_recordings(case, (P, o + [0.1 * FIELD_UT, 0.0, 0.0]), None, shifted)
+    assert real.case_heading_deg(D, np.array(shifted["o"]), case) > 1.0
+    assert moved["ml_with_fit_offset"] < 1e-6
+    assert moved["plain_with_fit_offset"] == pytest.approx(plain)
     # A case scored on its own recording has its floor instead.
     own = real.Case("own", {}, session, (_trial(mag, q_cal),), DECLINATION_DEG)
     assert real._on_other_recordings(own, (P, o), None, ml_run) is None

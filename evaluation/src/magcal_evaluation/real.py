@@ -625,8 +625,9 @@ def scored_recordings_fit(case: Case) -> FloorFit:
 def _on_other_recordings(case: Case, plain, _floor, ml_run: dict) -> dict | None:
     """For a case scored on other recordings: the fit on the scored recordings
     (:func:`scored_recordings_fit`), its rotation and how far its offset is from ML's, and
-    the headings of ML without its rotation (the symmetric factor P of D = P U) and of the
-    plain fit turned by the scored recordings' own rotation. None for a case scored on its
+    the headings of ML without its rotation (the symmetric factor P of D = P U), of the
+    plain fit turned by the scored recordings' own rotation, and of ML's D and the plain
+    fit's D each given the scored recordings' own offset. None for a case scored on its
     own recording (it has the floor instead), or without an ML result."""
     if scored_on_own_recording(case) or ml_run.get("D") is None:
         return None
@@ -643,6 +644,8 @@ def _on_other_recordings(case: Case, plain, _floor, ml_run: dict) -> dict | None
         "plain_with_fit_rotation": None
         if plain is None
         else case_heading_deg(plain[0] @ U_fit, plain[1], case),
+        "ml_with_fit_offset": case_heading_deg(D_ml, fit.o, case),
+        "plain_with_fit_offset": None if plain is None else case_heading_deg(plain[0], fit.o, case),
     }
 
 

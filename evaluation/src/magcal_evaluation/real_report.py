@@ -233,11 +233,13 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "right rotation scores worse than the plain fit, its missing rotation offsets its "
         "other errors on those days (the offset moved), and a calibration that finds the "
         "rotation loses there unless it also knows those days' offset, which its own "
-        "recording does not show.",
+        "recording does not show. The last two columns give ML's D and the plain fit's D "
+        "those days' own offset (the fit's): what each D is worth once the offset is right.",
         "",
         "| case | fit there | its rotation ° | ml | ml's rotation ° | offset moved | "
-        "ml without its rotation | plain | plain with the fit's rotation |",
-        "|---|---:|---|---:|---|---:|---:|---:|---:|",
+        "ml without its rotation | plain | plain with the fit's rotation | "
+        "ml's D, the fit's offset | plain's D, the fit's offset |",
+        "|---|---:|---|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
     for r in good:
         a = r.get("other_recordings")
@@ -250,7 +252,8 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
             f"{_f(ml_run['heading_deg'])}{forced} | {_vec(ml_run['misalignment_vec_deg'])} | "
             f"{100 * a['offset_change'] / a['field_norm']:.1f} % | "
             f"{_f(a['ml_without_rotation'])} | {_f(r['plain'])} | "
-            f"{_f(a['plain_with_fit_rotation'])} |"
+            f"{_f(a['plain_with_fit_rotation'])} | {_f(a['ml_with_fit_offset'])} | "
+            f"{_f(a['plain_with_fit_offset'])} |"
         )
     lines += [
         "",

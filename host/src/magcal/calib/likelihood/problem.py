@@ -60,7 +60,8 @@ from magcal.io.session import Session
 #: rather explain as gyroscope noise about the axis the hand turns most, since a random
 #: walk of the attitude fits slow, correlated errors better than white magnetometer noise
 #: does. Measured on the real recordings of ``make real`` with 0.1: one axis's σ_ω went
-#: up 20–70× (a filter that follows the magnetometer about that axis), with a gyroscope
+#: up 27–270× on BROAD and FIUMARGDB, 2–4× on the phones (a filter that follows the
+#: magnetometer about that axis), with a gyroscope
 #: bias 10× what the optical reference shows (broad36: −2.1 against −0.2 °/s); with 0.03
 #: it stays put, the bias there is −0.8 °/s, the fits take about half the iterations and
 #: the heading errors move from 6.06, 7.37, 9.32, 9.50 and 4.11° to 6.09, 7.20, 9.58, 9.32
@@ -68,9 +69,8 @@ from magcal.io.session import Session
 #: the floor moved by ≤ 3 %; 0.2 there let the likelihood pull σ_ω up 1.7× on
 #: accelerated sessions (2.4× the floor instead of 1.6×).
 GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.03
-#: Smallest width when a stationary stretch measured it: the same as during motion, as a
-#: gyroscope's noise at rest and in motion differ by a few per cent (vibration,
-#: quantisation) however long the stretch.
+#: Smallest width when a stationary stretch measured it (a long stretch measures σ_ω more
+#: closely than this): the same as from motion, for the reason given there.
 GYRO_NOISE_PRIOR_WIDTH_MIN = 0.03
 
 # Forward differences have truncation error O(h) and rounding error O(ε|V|/h); h ∝ √ε

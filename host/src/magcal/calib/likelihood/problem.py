@@ -32,8 +32,7 @@ Numerical choices, each a fix for a way the plain problem fails:
   attitude biases the misalignment (without a prior: 6× the known-attitude floor on
   hand-moved sessions with 0.3 m/s² accelerations). The gyroscope's white noise can be
   measured, at rest or from second differences during motion; the prior is that
-  measurement, held to a few per cent (:data:`GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION` says
-  why).
+  measurement with its uncertainty.
 """
 
 from __future__ import annotations
@@ -53,25 +52,14 @@ from magcal.io.session import Session
 
 #: 1-σ width of the prior on log σ_ω when a stationary stretch did not measure it: the
 #: initial value then comes from second differences of the gyroscope during motion
-#: (``rest.gyro_noise_from_differences``), good to a few per cent for white noise. Same
-#: width, centred on 0, for the unit lower-triangular entries of its Cholesky factor.
-#: Narrow on purpose: whatever else the model lacks (the room's field changing over
-#: position, a magnetometer's lag, translational accelerations) the likelihood would
-#: rather explain as gyroscope noise about the axis the hand turns most, since a random
-#: walk of the attitude fits slow, correlated errors better than white magnetometer noise
-#: does. Measured on the real recordings of ``make real`` with 0.1: one axis's σ_ω went
-#: up 27–270× on BROAD and FIUMARGDB, 2–4× on the phones (a filter that follows the
-#: magnetometer about that axis), with a gyroscope
-#: bias 10× what the optical reference shows (broad36: −2.1 against −0.2 °/s); with 0.03
-#: it stays put, the bias there is −0.8 °/s, the fits take about half the iterations and
-#: the heading errors move from 6.06, 7.37, 9.32, 9.50 and 4.11° to 6.09, 7.20, 9.58, 9.32
-#: and 2.64° (BROAD, FIUMARGDB). On simulated sessions (``make accuracy``) the ratios to
-#: the floor moved by ≤ 3 %; 0.2 there let the likelihood pull σ_ω up 1.7× on
-#: accelerated sessions (2.4× the floor instead of 1.6×).
-GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.03
-#: Smallest width when a stationary stretch measured it (a long stretch measures σ_ω more
-#: closely than this): the same as from motion, for the reason given there.
-GYRO_NOISE_PRIOR_WIDTH_MIN = 0.03
+#: (``rest.gyro_noise_from_differences``), good to a few per cent for white noise,
+#: so it gets the same ±10 % as a stationary measurement (measured: 0.2 let the likelihood
+#: pull σ_ω up 1.7× on accelerated sessions, 2.4× the floor instead of 1.6×). Same width,
+#: centred on 0, for the unit lower-triangular entries of its Cholesky factor.
+GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.1
+#: Smallest width when a stationary stretch measured it: a gyroscope's noise at rest and in
+#: motion differ by about this much (vibration, quantisation), however long the stretch.
+GYRO_NOISE_PRIOR_WIDTH_MIN = 0.1
 
 # Forward differences have truncation error O(h) and rounding error O(ε|V|/h); h ∝ √ε
 # balances them. Central differences: O(h²) against O(ε|V|/h), so h ∝ ∛ε.
@@ -455,20 +443,15 @@ class LikelihoodProblem:
         if priors.time_offset_s is not None:
             prior_mean[params.INDEX_TIME_OFFSET] = 0.0
             prior_precision[params.INDEX_TIME_OFFSET] = 1.0 / priors.time_offset_s**2
-        scales = parameter_scales(
-            p_norm,
-            int(data.has_mag.sum()),
-            float(np.sqrt(np.mean(np.sum(session.gyr**2, axis=1)))),
-        )
-        # A parameter is never less certain than its prior says: BFGS's first steps would
-        # otherwise overshoot along a direction the prior holds tight.
-        held = prior_precision > 0.0
-        scales[held] = np.minimum(scales[held], 1.0 / np.sqrt(prior_precision[held]))
         return cls(
             data=data,
             norm=norm,
             theta0=params.pack(p_norm),
-            scales=scales,
+            scales=parameter_scales(
+                p_norm,
+                int(data.has_mag.sum()),
+                float(np.sqrt(np.mean(np.sum(session.gyr**2, axis=1)))),
+            ),
             prior_mean=prior_mean,
             prior_precision=prior_precision,
             misalignment_reference=frames.nearest_axis_permutation(frames.nearest_rotation(p.D)),

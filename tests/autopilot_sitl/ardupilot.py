@@ -41,12 +41,7 @@ STAND_STOP_PWM = 1000
 
 def available() -> str | None:
     """None when SITL can run here, else why not (the skip message)."""
-    if not BINARY.exists():
-        return (
-            f"ArduPilot SITL not found at {BINARY} (set MAGCAL_SITL_DIR or put it beside the "
-            "checkout)"
-        )
-    return None
+    return processes.missing(BINARY, "ArduPilot SITL", "MAGCAL_SITL_DIR")
 
 
 @dataclass(frozen=True)

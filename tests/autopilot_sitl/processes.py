@@ -8,8 +8,16 @@ import os
 import signal
 import subprocess
 import time
+from pathlib import Path
 
 _running: set[int] = set()
+
+
+def missing(path: Path, what: str, env_var: str) -> str | None:
+    """None when the simulator at ``path`` is there, else why not (a test's skip message)."""
+    if path.exists():
+        return None
+    return f"{what} not found at {path} (set {env_var} or put it beside the checkout)"
 
 
 def start(*args, **kwargs) -> subprocess.Popen:

@@ -77,12 +77,7 @@ def quat_to_matrix(q) -> np.ndarray:
 
 def available() -> str | None:
     """None when PX4 SITL can run here, else why not (the skip message)."""
-    if not TARBALL.exists():
-        return (
-            f"PX4 SITL not found at {TARBALL} (set MAGCAL_PX4SITL_DIR or put it beside the "
-            "checkout)"
-        )
-    return None
+    return processes.missing(TARBALL, "PX4 SITL", "MAGCAL_PX4SITL_DIR")
 
 
 class Px4Sitl:

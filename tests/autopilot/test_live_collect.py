@@ -17,7 +17,7 @@ from magcal.autopilot.collect import collect
 from magcal.autopilot.connection import open_autopilot
 from magcal.calib.norm_only import live as live_mod
 from magcal.io.session import read_session
-from tests.autopilot.test_mavlink_end_to_end import SPEEDUP
+from tests.autopilot.test_mavlink_end_to_end import MAX_SAMPLES, SPEEDUP
 from tests.autopilot_emulator import AutopilotEmulator
 
 #: Wide enough that no progress line is cut here (cutting: tests/unit/test_ui.py).
@@ -45,7 +45,8 @@ def test_ardupilot_cli_progress_shows_the_norm_spread_then_ok_to_stop(
     monkeypatch.setenv("TERM", "xterm-256color")
     out = tmp_path / "live.csv"
     with AutopilotEmulator(personality="ardupilot", seed=0, speedup=SPEEDUP) as emu:
-        assert cli.main(["collect", "--mavlink", emu.url, "-o", str(out)]) == 0
+        argv = ["collect", "--mavlink", emu.url, "-o", str(out), "--max-samples", MAX_SAMPLES]
+        assert cli.main(argv) == 0
     # each update redraws the line in place: control sequences removed, one update a line
     text = re.sub(r"\x1b\[[0-9;?]*[a-zA-Z]", "", terminal.getvalue())
     updates = [u for u in re.split(r"[\r\n]", text) if u]
@@ -77,7 +78,14 @@ def test_px4_collect_reports_the_live_state_and_records_it(tmp_path):
     with AutopilotEmulator(personality="px4", seed=1, speedup=SPEEDUP) as emu:
         with open_autopilot(emu.url) as ap:
             cp = vehicle.read_compass_params(ap.read, ap.autopilot, 1)
-            r = collect(ap, cp, coverage_target=0.9, min_samples=500, progress=progress.append)
+            r = collect(
+                ap,
+                cp,
+                coverage_target=0.9,
+                min_samples=500,
+                max_samples=int(MAX_SAMPLES),
+                progress=progress.append,
+            )
     assert r.stopped == "coverage" and r.session.meta["mag_unit"] == "gauss"
     last = progress[-1]
     assert last.live is r.live and r.live.started and r.live.converged and r.live.ok_to_stop

@@ -20,9 +20,15 @@ from magcal.autopilot import params as ap_params
 from magcal.io.result import CalibrationResult, write_result
 from magcal.io.session import read_session
 from tests.autopilot_emulator import AutopilotEmulator
+from tests.autopilot_emulator.world import PATH_S
 
 #: Simulated seconds per wall-clock second: a 90 % coverage session takes a few seconds.
 SPEEDUP = 20.0
+#: A bound on every collection here, samples (IMU messages at 100 Hz): twice the emulated
+#: path, after which the vehicle holds still and coverage can only creep up by gyroscope
+#: drift. A collection that misses its coverage target then ends, and the test goes on (or
+#: fails) instead of waiting for ever.
+MAX_SAMPLES = str(int(2 * PATH_S * 100))
 HEADING_BOUND_DEG = 0.5
 UNIT = {"ardupilot": "mG", "px4": "gauss"}
 
@@ -34,7 +40,8 @@ def _field_arg(emu: AutopilotEmulator) -> str:
 def _collect_and_calibrate(emu, tmp_path):
     session = tmp_path / f"{emu.personality}.csv"
     result = tmp_path / f"{emu.personality}.json"
-    assert cli.main(["collect", "--mavlink", emu.url, "-o", str(session)]) == 0
+    argv = ["collect", "--mavlink", emu.url, "-o", str(session), "--max-samples", MAX_SAMPLES]
+    assert cli.main(argv) == 0
     assert cli.main(["calibrate", str(session), "-o", str(result), "--method", "ml"]) == 0
     return session, result
 
@@ -219,7 +226,8 @@ def test_ctrl_c_during_collect_writes_the_partial_session(tmp_path, monkeypatch)
     monkeypatch.setattr(collect_command, "progress_printer", interrupting_printer)
     out = tmp_path / "partial.csv"
     with AutopilotEmulator(personality="px4", seed=4, speedup=SPEEDUP) as emu:
-        assert cli.main(["collect", "--mavlink", emu.url, "-o", str(out)]) == cli.EXIT_INTERRUPTED
+        argv = ["collect", "--mavlink", emu.url, "-o", str(out), "--max-samples", MAX_SAMPLES]
+        assert cli.main(argv) == cli.EXIT_INTERRUPTED
     session = read_session(out)
     assert len(session) >= 300 and session.meta["stopped"] == "interrupted"
     assert np.all(np.diff(session.t) > 0)

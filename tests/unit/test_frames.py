@@ -30,6 +30,21 @@ def test_integration_convention_body_rate():
     assert frames.heading_of(x_n) == pytest.approx(0.3)
 
 
+def test_scalar_gyroscope_step_matches_the_vectorised_integration():
+    rng = np.random.default_rng(3)
+    rates = rng.normal(0.0, 2.0, (300, 3))
+    rates[:5] = 1e-12  # the small-angle branch
+    dt = np.full(300, 0.01)
+    q = (1.0, 0.0, 0.0, 0.0)
+    for phi in rates * dt[:, None]:
+        q = frames.quat_step(q, tuple(phi))
+    expected = frames.integrate_rates(rates, dt)[-1]
+    np.testing.assert_allclose(
+        frames.quat_to_matrix(np.array(q)), frames.quat_to_matrix(expected), atol=1e-12
+    )
+    assert abs(np.linalg.norm(q) - 1.0) < 1e-15
+
+
 def test_triad_recovers_attitude():
     m_n = frames.field_direction(np.deg2rad(65))
     for q in frames.so3_grid(7):

@@ -72,7 +72,7 @@ def test_only_changes_are_samples_at_their_first_row():
     assert c.fast_turn == c.frozen == 0
     assert s.rows == list(range(0, 500, MAG_EVERY))
     # the attitude at each sample turns the body-frame reading back into the world field
-    for R, y in zip(s.rotations, s.values, strict=True):
+    for R, y in zip(s.rotations(), s.values, strict=True):
         assert np.linalg.norm(R @ np.array(y) - FIELD) < 2.0
 
 

@@ -134,10 +134,6 @@ class _Recorder:
     def mag(self) -> list[tuple[float, float, float]]:
         return self.screen.values
 
-    @property
-    def rotations(self) -> list[np.ndarray]:
-        return self.screen.rotations
-
     def add(self, msg, host_s: float) -> None:
         tick = int(getattr(msg, self.base.field))
         if self.ticks:
@@ -156,8 +152,10 @@ class _Recorder:
             # a reset or a long pause: no propagation across it
             self._t += dt if 0 < dt <= vehicle.MAX_WRAP_STEP_S else 2 * MAX_PROPAGATION_STEP_S
         self._append(msg, tick, host_s)
-        gyr = vehicle.gyro_mrad_to_si(np.array(self.gyr[-1], dtype=float))
-        self.screen.add(len(self.ticks) - 1, self._t, gyr, self.wire_mag[-1])
+        gx, gy, gz = self.gyr[-1]  # mrad/s (vehicle.gyro_mrad_to_si, without numpy per row)
+        self.screen.add(
+            len(self.ticks) - 1, self._t, (gx / 1e3, gy / 1e3, gz / 1e3), self.wire_mag[-1]
+        )
 
     def _append(self, msg, tick: int, host_s: float) -> None:
         self.ticks.append(tick)
@@ -183,7 +181,7 @@ class _AttitudeMonitor(CollectMonitor):
     def feed(self, mag, force: bool = False) -> CoverageState:
         if len(mag) > self._fed:
             readings = self._to_session_units(np.array(mag[self._fed :], dtype=float))
-            rotations = np.array(self._rec.rotations[self._fed : len(mag)])
+            rotations = self._rec.screen.rotations(self._fed, len(mag))
             self.tracker.add(readings, rotations)
             self.live.add(readings)
             self._fed = len(mag)

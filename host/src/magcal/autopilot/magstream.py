@@ -26,6 +26,8 @@ really took (:class:`magcal.device.coverage.AttitudeCoverage`).
 
 from __future__ import annotations
 
+import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -67,33 +69,36 @@ class MagnetometerScreen:
 
     Call :meth:`add` for every row in order (``row``: the caller's index of it), :meth:`finish`
     after the last. Accepted samples appear in ``rows`` (their row indices), ``values`` (as
-    received) and ``rotations`` (R_start_body at the row) once decided: a value is decided
-    when the next new value arrives (its hold is then known) or at :meth:`finish`.
+    received) and ``attitudes`` (q_start_body at the row, :meth:`rotations` as matrices) once
+    decided: a value is decided when the next new value arrives (its hold is then known) or
+    at :meth:`finish`. A row costs a few microseconds (plain floats, no numpy), so that a
+    live stream of thousands of messages a second keeps up.
     """
 
     def __init__(self, max_turn_rad: float = MAX_TURN_RAD) -> None:
         self.max_turn = float(max_turn_rad)
         self.rows: list[int] = []
         self.values: list[tuple[float, float, float]] = []
-        self.rotations: list[np.ndarray] = []
+        self.attitudes: list[tuple[float, float, float, float]] = []
         self._n = 0  # rows seen
-        self._R = np.eye(3)
+        self._q = (1.0, 0.0, 0.0, 0.0)
         self._t_prev: float | None = None
-        self._w_prev = np.zeros(3)
+        self._w_prev = (0.0, 0.0, 0.0)
         self._last: tuple | None = None
-        self._pending: tuple[int, tuple, np.ndarray, float] | None = None
+        self._pending: tuple[int, tuple, tuple, float] | None = None
         self._turn = 0.0  # turn since the last new value's row, rad
         self._changes = self._repeats = self._fast = self._frozen = 0
 
-    def add(self, row: int, t_s: float, gyr_rad_s: np.ndarray, value: tuple) -> None:
+    def add(self, row: int, t_s: float, gyr_rad_s: Sequence[float], value: tuple) -> None:
         """One row: its index, time (s, any origin, increasing; a step over
-        MAX_PROPAGATION_STEP_S is a gap), gyroscope (rad/s) and magnetometer value."""
-        w = np.asarray(gyr_rad_s, dtype=float)
+        MAX_PROPAGATION_STEP_S is a gap), gyroscope (3, rad/s) and magnetometer value."""
+        w = (float(gyr_rad_s[0]), float(gyr_rad_s[1]), float(gyr_rad_s[2]))
         if self._t_prev is not None:
             dt = t_s - self._t_prev
             if 0.0 < dt <= MAX_PROPAGATION_STEP_S:
-                self._R = self._R @ frames.rotvec_to_matrix(self._w_prev * dt)
-                self._turn += float(np.linalg.norm(self._w_prev)) * dt
+                wx, wy, wz = self._w_prev
+                self._q = frames.quat_step(self._q, (wx * dt, wy * dt, wz * dt))
+                self._turn += math.sqrt(wx * wx + wy * wy + wz * wz) * dt
         self._t_prev, self._w_prev = t_s, w
         self._n += 1
         value = tuple(value)
@@ -105,7 +110,7 @@ class MagnetometerScreen:
         # before (0 at the first row: nothing was integrated yet)
         self._decide(hold_turn=self._turn)
         self._last = value
-        self._pending = (row, value, self._R.copy(), self._turn)
+        self._pending = (row, value, self._q, self._turn)
         self._turn = 0.0
 
     def finish(self) -> None:
@@ -115,7 +120,7 @@ class MagnetometerScreen:
     def _decide(self, hold_turn: float) -> None:
         if self._pending is None:
             return
-        row, value, R, turn_before = self._pending
+        row, value, q, turn_before = self._pending
         self._pending = None
         if turn_before > self.max_turn:
             self._fast += 1
@@ -124,7 +129,12 @@ class MagnetometerScreen:
         else:
             self.rows.append(row)
             self.values.append(value)
-            self.rotations.append(R)
+            self.attitudes.append(q)
+
+    def rotations(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """(k, 3, 3) R_start_body of the accepted samples start..stop."""
+        q = np.array(self.attitudes[start:stop], dtype=float).reshape(-1, 4)
+        return frames.quat_to_matrix(q)
 
     def counts(self) -> ScreenCounts:
         return ScreenCounts(

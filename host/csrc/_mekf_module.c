@@ -122,6 +122,7 @@ enum {
     B_OUT2, /* cost: normalised               */
     B_HAS_ACC,
     B_HAS_MAG,
+    B_TURN_VAR,
     B_COUNT
 };
 
@@ -135,8 +136,8 @@ static void release_all(buffers_t *bufs)
 }
 
 /* The inputs shared by both entry points. `dt` sets the number of samples n; acc_extra_var
- * (in[5]) and the masks has_acc, has_mag (in[8], in[9]) may be None (no inflation; present
- * at every sample). Returns 0 with an exception set. */
+ * (in[5]), the masks has_acc, has_mag (in[8], in[9]) and turn_var (in[10]) may be None (no
+ * inflation; present at every sample). Returns 0 with an exception set. */
 static int prepare(PyObject *const *in, double g, int use_mag, buffers_t *bufs,
                    mc_mekf_model_t *model, mc_mekf_data_t *data)
 {
@@ -172,6 +173,10 @@ static int prepare(PyObject *const *in, double g, int use_mag, buffers_t *bufs,
         return 0;
     if (in[9] != Py_None && !(data->has_mag = get_mask(in[9], &bufs->b[B_HAS_MAG], n, "has_mag")))
         return 0;
+    data->turn_var = NULL;
+    if (in[10] != Py_None &&
+        !(data->turn_var = get_float64(in[10], &bufs->b[B_TURN_VAR], n, 0, "turn_var")))
+        return 0;
     data->g = g;
     data->use_mag = use_mag;
     return 1;
@@ -190,13 +195,13 @@ static double *optional_output(PyObject *obj, Py_buffer *buf, Py_ssize_t count, 
 static PyObject *py_cost(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *in[10], *q_obj, *innov_obj, *norm_obj;
+    PyObject *in[11], *q_obj, *innov_obj, *norm_obj;
     double g;
     int use_mag;
-    in[8] = in[9] = Py_None;
-    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOOO|OO", &in[0], &in[1], &in[2], &in[3], &in[4],
+    in[8] = in[9] = in[10] = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOOO|OOO", &in[0], &in[1], &in[2], &in[3], &in[4],
                           &in[5], &g, &in[6], &in[7], &use_mag, &q_obj, &innov_obj, &norm_obj,
-                          &in[8], &in[9]))
+                          &in[8], &in[9], &in[10]))
         return NULL;
     buffers_t bufs;
     memset(&bufs, 0, sizeof bufs);
@@ -223,13 +228,13 @@ static PyObject *py_cost(PyObject *self, PyObject *args)
 static PyObject *py_cost_grad(PyObject *self, PyObject *args)
 {
     (void)self;
-    PyObject *in[10], *tape_obj, *grad_obj;
+    PyObject *in[11], *tape_obj, *grad_obj;
     double g;
     int use_mag;
-    in[8] = in[9] = Py_None;
-    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOO|OO", &in[0], &in[1], &in[2], &in[3], &in[4],
+    in[8] = in[9] = in[10] = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOO|OOO", &in[0], &in[1], &in[2], &in[3], &in[4],
                           &in[5], &g, &in[6], &in[7], &use_mag, &tape_obj, &grad_obj, &in[8],
-                          &in[9]))
+                          &in[9], &in[10]))
         return NULL;
     buffers_t bufs;
     memset(&bufs, 0, sizeof bufs);
@@ -257,13 +262,14 @@ static PyObject *py_cost_grad(PyObject *self, PyObject *args)
 static PyMethodDef methods[] = {
     {"cost", py_cost, METH_VARARGS,
      "cost(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, q_out, innov_out, "
-     "norm_out[, has_acc, has_mag]) -> cost\n\nArrays: C-contiguous float64; acc_extra_var "
-     "and the outputs may be None. has_acc, has_mag: (n) bool or uint8, which measurements "
-     "each sample has; None (the default) means all."},
+     "norm_out[, has_acc, has_mag, turn_var]) -> cost\n\nArrays: C-contiguous float64; "
+     "acc_extra_var, turn_var and the outputs may be None. has_acc, has_mag: (n) bool or "
+     "uint8, which measurements each sample has; None (the default) means all."},
     {"cost_grad", py_cost_grad, METH_VARARGS,
      "cost_grad(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, tape, grad_out"
-     "[, has_acc, has_mag]) -> cost\n\nArrays: C-contiguous float64; tape holds "
-     "TAPE_DOUBLES_PER_SAMPLE * n and grad_out MODEL_DOUBLES values; the masks as in cost."},
+     "[, has_acc, has_mag, turn_var]) -> cost\n\nArrays: C-contiguous float64; tape holds "
+     "TAPE_DOUBLES_PER_SAMPLE * n and grad_out MODEL_DOUBLES values; the masks and turn_var "
+     "as in cost."},
     {NULL, NULL, 0, NULL},
 };
 

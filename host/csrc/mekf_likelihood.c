@@ -479,6 +479,11 @@ static ALWAYS_INLINE int step_forward(const pass_t *p, size_t k, int ha, int hm,
         mat_mul(s->R, p->Sw, RS);
         sym_mul_nt(RS, s->R, Q); /* R Σω Rᵀ */
         for (int i = 0; i < 9; ++i) s->Pp[i] = P[i] + dt2 * Q[i];
+        if (d->turn_var) { /* data only: nothing of it reaches the gradient */
+            s->Pp[0] += d->turn_var[k];
+            s->Pp[4] += d->turn_var[k];
+            s->Pp[8] += d->turn_var[k];
+        }
     } else {
         memcpy(s->q1, q, sizeof s->q1);
         quat_to_mat(s->q1, s->R);

@@ -52,6 +52,10 @@ typedef struct {
     const double *mag;           /* (n, 3); not read (may be NULL) when use_mag is 0    */
     const double *acc_extra_var; /* (n) (m/s²)², c_t added to the diagonal of Sa; NULL
                                   * means all zeros                                     */
+    const double *turn_var;      /* (n) rad², added to the diagonal of the predicted
+                                  * covariance in the step to sample k: how uncertain the
+                                  * turn is that the held rate integrates (the rate changed
+                                  * within the step); NULL means all zeros              */
     const unsigned char *has_acc; /* (n) 0/1: accelerometer present at sample k; NULL:
                                    * at every sample                                    */
     const unsigned char *has_mag; /* (n) 0/1: magnetometer present at sample k; NULL: at

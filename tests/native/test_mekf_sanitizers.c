@@ -46,7 +46,7 @@ static void check(int ok, const char *what, int line)
 
 /* ------------------------------------------------------------ synthetic session */
 
-static double dt[N], gyr[3 * N], acc[3 * N], mag[3 * N], extra[N], zeros[N];
+static double dt[N], gyr[3 * N], acc[3 * N], mag[3 * N], extra[N], turn[N], zeros[N];
 static double tape[MC_MEKF_TAPE_DOUBLES * N];
 static double q_filt[4 * N], innov[6 * N], normalised[6 * N];
 static unsigned char ones[N], nothing[N], has_acc[N], has_mag[N];
@@ -142,6 +142,8 @@ static void make_problem(mc_mekf_model_t *truth, mc_mekf_model_t *model, mc_mekf
                              truth->o[i] + 0.01 * noise();
         dt[k] = k == 0 ? 0.0 : T;
         extra[k] = k % 7 == 3 ? 0.01 * (1.0 + (double)(k % 5)) : 0.0; /* one in seven inflated */
+        /* one in five: the size of T² Σω, as a rate change of ~0.05 rad/s within a step gives */
+        turn[k] = k % 5 == 2 ? 2e-9 * (1.0 + (double)(k % 3)) : 0.0;
         zeros[k] = 0.0;
         double half[3], dq[4], qn1[4];
         for (int i = 0; i < 3; ++i) half[i] = 0.5 * T * w[i];
@@ -157,6 +159,7 @@ static void make_problem(mc_mekf_model_t *truth, mc_mekf_model_t *model, mc_mekf
     data->acc = acc;
     data->mag = mag;
     data->acc_extra_var = extra;
+    data->turn_var = turn;
     data->g = GRAVITY;
     const double err[3] = {0.05, -0.03, 0.1}; /* prior a few degrees off */
     double e[4];
@@ -426,6 +429,9 @@ int main(void)
     make_problem(&truth, &model, &data);
 
     test_costs_agree(&model, data);
+    mc_mekf_data_t unturned = data; /* the turn's variance is not ignored */
+    unturned.turn_var = NULL;
+    CHECK(mc_mekf_cost(&model, &unturned, NULL) != mc_mekf_cost(&model, &data, NULL));
 
     /* Steps: about 1e-4 of each quantity's scale. Off-diagonal covariance entries are moved
      * alone: the kernel symmetrises, and its gradient is w.r.t. the raw entries. */

@@ -9,11 +9,19 @@ from magcal.calib import frames
 from magcal.calib.likelihood import mekf
 
 
+@pytest.mark.parametrize("turned", [False, True])
 @pytest.mark.parametrize("time_offset_s", [0.0, 0.03])
 @pytest.mark.parametrize("use_mag", [True, False])
-def test_native_filter_matches_reference(filter_problem, use_mag, time_offset_s):
+def test_native_filter_matches_reference(filter_problem, use_mag, time_offset_s, turned):
     p, data, _ = filter_problem
     p = dataclasses.replace(p, time_offset_s=time_offset_s)
+    if turned:  # the turn's variance on one step in three (a few 0.01°)
+        turn = np.where(np.arange(len(data)) % 3 == 1, 1e-7, 0.0)
+        data = dataclasses.replace(data, turn_var=turn)
+        assert mekf.run_filter(p, data, use_mag).cost != pytest.approx(
+            mekf.run_filter(p, dataclasses.replace(data, turn_var=None), use_mag).cost,
+            rel=1e-9,
+        )
     ref = mekf.run_filter_reference(p, data, use_mag)
     nat = mekf.run_filter(p, data, use_mag)
     assert nat.cost == pytest.approx(ref.cost, rel=1e-12)

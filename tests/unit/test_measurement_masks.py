@@ -70,7 +70,7 @@ def test_kernel_matches_reference_with_random_masks(seed, inflation, use_mag):
     if not use_mag:
         assert np.all(nat.innovations[:, 3:] == 0.0)
     # The cost and gradient kernel agrees with the forward pass.
-    c, _ = kernel_cost_grad(p, data, use_mag, mekf._mask_args(data))
+    c, _ = kernel_cost_grad(p, data, use_mag, mekf._optional_args(data))
     assert c == pytest.approx(nat.cost, rel=1e-14)
 
 

@@ -79,3 +79,20 @@ def test_updates_are_spaced_by_the_correlation_time():
     gaps = np.diff(t[used])
     assert gaps.min() >= 0.1 - 0.5 * np.median(np.diff(t)) - 1e-12
     assert gaps.max() < 0.1 + 0.015
+
+
+def test_turn_variance_is_a_random_time_rate_change_and_sums_over_a_multi_rate_step():
+    t = np.arange(6) * 0.01
+    gyr = np.zeros((6, 3))
+    gyr[3:] = [0.3, 0.0, -0.4]  # the rate changes by 0.5 rad/s between samples 2 and 3
+    v = sensor_levels.turn_variance(t, gyr)
+    # Held over (t_2, t_3], sample 2 misses a change of 0.5 rad/s at an unknown time there
+    np.testing.assert_allclose(v, [0, 0, 0, 0.5**2 * 0.01**2 / 12, 0, 0])
+    # The same IMU with a magnetometer's rows in between: that step's variance is shared by
+    # the rows within it in proportion to their steps, and sums to the IMU's
+    rows = np.sort(np.concatenate([t, [0.0225, 0.0275]]))
+    spread = sensor_levels._turn_variance_at_rows(rows, t, v)
+    within = (rows > t[2]) & (rows <= t[3])
+    assert within.sum() == 3 and spread[~within].sum() == 0.0
+    np.testing.assert_allclose(spread[within], v[3] * np.array([0.25, 0.5, 0.25]))
+    np.testing.assert_allclose(spread.sum(), v.sum())

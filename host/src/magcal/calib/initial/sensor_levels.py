@@ -9,6 +9,8 @@ One function, :func:`measure_sensor_levels`, computes them for every step that n
   scale error or local gravity does not bias the inclination;
 * the sample rate;
 * the accelerometer bump inflation ``c_t`` (:func:`accelerometer_extra_variance`);
+* how uncertain each step's integrated turn is, the rate having changed within the step
+  (:func:`turn_variance`);
 * the time over which the accelerometer's errors stay correlated, and from it the samples
   whose accelerometer reading the likelihood uses (:func:`accelerometer_updates`);
 * Σ_a for the ML step: the accelerometer noise plus the motion's acceleration.
@@ -121,6 +123,48 @@ def accelerometer_extra_variance(
     return BUMP_GAIN * windows.max(axis=1) ** 2
 
 
+def turn_variance(t: np.ndarray, gyr: np.ndarray) -> np.ndarray:
+    """Data-only uncertainty (N,) rad² of the turn that each step integrates.
+
+    The filter holds each gyroscope sample over the step that follows it: ``gyr[k−1]`` from
+    t_{k−1} to t_k. The rate it stands for changed within that step, by about
+    ``Δω_k = gyr[k] − gyr[k−1]``, at a time within it that no sample tells. A change at a
+    uniformly random time turns the body by ``½ Δω_k T_k`` on average (a constant half-step
+    delay, which the magnetometer's time offset takes up) with a variance of
+    ``|Δω_k|² T_k² / 12``: that variance, on every axis. The gyroscope's noise Σ_ω does not
+    cover it: measured at rest, where the rate does not change, it is often at the
+    quantisation level, while fast turns of a vehicle or a hand change the rate by tenths of
+    rad/s from one sample to the next. Without it the likelihood raised one axis's σ_ω 27
+    to 270 times on real hand-held recordings, and ArduPilot SITL's calibration-stand flips
+    needed the same (``bench/real.md``; tests/autopilot_sitl).
+
+    t : (N,) s; gyr : (N, 3) rad/s. Returns (N,) rad² (0 at the first sample, whose step is
+    not taken).
+    """
+    v = np.zeros(len(t))
+    if len(t) > 1:
+        v[1:] = np.sum(np.diff(gyr, axis=0) ** 2, axis=1) * np.diff(t) ** 2 / 12.0
+    return v
+
+
+def _turn_variance_at_rows(row_t: np.ndarray, imu_t: np.ndarray, v_imu: np.ndarray) -> np.ndarray:
+    """:func:`turn_variance` of the IMU's samples (``v_imu`` at times ``imu_t``) spread over
+    a multi-rate session's rows (``row_t``): the rows between two IMU samples share that
+    step's variance in proportion to their own steps (a random walk), so that it sums to
+    the IMU's whatever other streams' rows fall in between."""
+    out = np.zeros(len(row_t))
+    if len(row_t) < 2 or len(imu_t) < 2:
+        return out
+    step = np.diff(row_t)
+    i = np.searchsorted(imu_t, row_t[1:], side="left")  # the IMU sample ending each row's step
+    inside = (i > 0) & (i < len(imu_t))
+    i = i[inside]
+    span = imu_t[i] - imu_t[i - 1]
+    share = np.divide(step[inside], span, out=np.zeros_like(span), where=span > 0)
+    out[1:][inside] = v_imu[i] * share
+    return out
+
+
 @dataclass(frozen=True)
 class SensorLevels:
     """The data-only levels of one session.
@@ -130,6 +174,8 @@ class SensorLevels:
     g             : gravity magnitude, m/s² (median accelerometer norm)
     rate_hz       : mean sample rate, Hz (the IMU's rows in a multi-rate session)
     acc_extra_var : (N,) (m/s²)², the bump inflation c_t of Σ_a
+    turn_var      : (N,) rad², how uncertain each step's integrated turn is
+                    (:func:`turn_variance`)
     acc_correlation_s : s, the accelerometer errors' integral time scale
                     (:func:`acceleration_correlation_time_s`)
     acc_used      : (N,) bool, the samples whose accelerometer reading the likelihood uses
@@ -142,6 +188,7 @@ class SensorLevels:
     g: float
     rate_hz: float
     acc_extra_var: np.ndarray
+    turn_var: np.ndarray
     acc_correlation_s: float
     acc_used: np.ndarray
     Sigma_acc: np.ndarray
@@ -193,6 +240,7 @@ def measure_sensor_levels(session: Session) -> SensorLevels:
         levels,
         noise=noise,
         acc_extra_var=spread(levels.acc_extra_var, 0.0),
+        turn_var=_turn_variance_at_rows(session.t, t, levels.turn_var),
         acc_used=spread(levels.acc_used, False),
     )
 
@@ -218,6 +266,7 @@ def _measure(t: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -
         g=g,
         rate_hz=rate_hz,
         acc_extra_var=acc_extra_var,
+        turn_var=turn_variance(t, gyr),
         acc_correlation_s=acc_correlation_s,
         acc_used=accelerometer_updates(t, acc_correlation_s),
         Sigma_acc=Sigma_acc,

@@ -4,7 +4,9 @@ State: ``q̃_nb`` plus a navigation-frame orientation error ``η`` with covarian
 (rad², 3×3); ``q_nb = exp_q(½ η) ⊙ q̃_nb``.
 
 * Time update with the gyroscope as input, sample ``t−1`` → ``t``:
-  ``q̃ ← q̃ ⊙ exp_q(½ T (y_ω − δ_ω))``, ``P ← P + T² R Σ_ω Rᵀ`` with ``R = R(q̃)``.
+  ``q̃ ← q̃ ⊙ exp_q(½ T (y_ω − δ_ω))``, ``P ← P + T² R Σ_ω Rᵀ + v_t I`` with ``R = R(q̃)``
+  and ``v_t`` rad² a data-only uncertainty of the turn, the rate having changed within the
+  step (``initial/sensor_levels.turn_variance``).
 * Measurement ``y = (y_a, y_m)``: ``ŷ = (−R_bn g_n, D E R_bn m_n + o)``,
   ``H = (−R_bn [g_n×], D E R_bn [m_n×])``, ``S = H P Hᵀ + blockdiag(Σ_a,t, Σ_m)``.
   ``E = Exp(τ (y_ω,t−1 − δ_ω))`` carries the magnetometer's delay τ (``time_offset_s``): its
@@ -70,6 +72,8 @@ class FilterData:
     P0            : (3, 3) rad², prior covariance of the orientation error
     has_acc       : (N,) bool, the accelerometer measured at sample t
     has_mag       : (N,) bool, the magnetometer measured at sample t
+    turn_var      : (N,) rad², data-only uncertainty of the turn integrated in the step to
+                    sample t, added to P's diagonal there (None: none)
 
     Where a measurement is absent its values (``acc[t]`` and ``acc_extra_var[t]``;
     ``mag[t]``) are not read and may be NaN.
@@ -85,6 +89,7 @@ class FilterData:
     P0: np.ndarray
     has_acc: np.ndarray
     has_mag: np.ndarray
+    turn_var: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.dt.shape[0])
@@ -125,11 +130,13 @@ def make_filter_data(
     prior_sigma_rad: float = INITIAL_ATTITUDE_SIGMA_RAD,
     has_acc: np.ndarray | None = None,
     has_mag: np.ndarray | None = None,
+    turn_var: np.ndarray | None = None,
 ) -> FilterData:
     """Assemble :class:`FilterData`; ``g`` defaults to the median accelerometer norm (over
     the samples with the accelerometer), so a small accelerometer scale error or local
     gravity does not bias the inclination. ``has_acc``, ``has_mag`` ((N,) bool) say which
-    samples have each measurement; the default is every sample."""
+    samples have each measurement; the default is every sample. ``turn_var`` (N,) rad²:
+    :attr:`FilterData.turn_var` (default none)."""
     t = np.asarray(t, dtype=float)
     dt = np.empty_like(t)
     dt[0] = 0.0
@@ -152,6 +159,7 @@ def make_filter_data(
         P0=np.eye(3) * prior_sigma_rad**2,
         has_acc=has_acc,
         has_mag=has_mag,
+        turn_var=None if turn_var is None else np.ascontiguousarray(turn_var, dtype=float),
     )
 
 
@@ -237,7 +245,8 @@ def _model_buffer(p: ModelParams) -> np.ndarray:
 
 
 def _data_args(data: FilterData) -> tuple:
-    """The kernel's data arguments, in its order (the masks go separately: _mask_args)."""
+    """The kernel's data arguments, in its order (the masks and turn_var go separately:
+    :func:`_optional_args`)."""
     return (
         np.ascontiguousarray(data.dt, dtype=float),
         np.ascontiguousarray(data.gyr, dtype=float),
@@ -250,13 +259,15 @@ def _data_args(data: FilterData) -> tuple:
     )
 
 
-def _mask_args(data: FilterData) -> tuple:
-    """The kernel's (has_acc, has_mag): None for a mask that is all True, which the kernel
-    reads as present at every sample without loading a mask per sample."""
-    return tuple(
+def _optional_args(data: FilterData) -> tuple:
+    """The kernel's (has_acc, has_mag, turn_var): None for a mask that is all True, which the
+    kernel reads as present at every sample without loading a mask per sample."""
+    masks = tuple(
         None if mask.all() else np.ascontiguousarray(mask, dtype=bool)
         for mask in (data.has_acc, data.has_mag)
     )
+    turn = None if data.turn_var is None else np.ascontiguousarray(data.turn_var, dtype=float)
+    return (*masks, turn)
 
 
 def filter_pass(
@@ -275,7 +286,7 @@ def filter_pass(
         q_filt,
         innov,
         normalised,
-        *_mask_args(data),
+        *_optional_args(data),
     )
 
 
@@ -304,7 +315,9 @@ def cost_and_model_gradient(
     else:
         _check_tape(tape, n)
     grad = np.empty(MODEL_DOUBLES)
-    cost = _mekf.cost_grad(_model_buffer(p), *_data_args(data), True, tape, grad, *_mask_args(data))
+    cost = _mekf.cost_grad(
+        _model_buffer(p), *_data_args(data), True, tape, grad, *_optional_args(data)
+    )
     return cost, ModelGradient(
         **{name: grad[_MODEL_SLICES[name]].reshape(shape) for name, shape in _MODEL_FIELDS}
     )
@@ -333,6 +346,8 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
             q = frames.quat_multiply(q, frames.quat_exp(0.5 * dt * (data.gyr[t - 1] - p.gyro_bias)))
             R = frames.quat_to_matrix(q)
             P = P + dt * dt * R @ p.Sigma_gyr @ R.T
+            if data.turn_var is not None:
+                P = P + data.turn_var[t] * np.eye(3)
         else:
             R = frames.quat_to_matrix(q)
         # The rows of y = (y_a, y_m) measured at t; absent ones are NaN in the outputs.

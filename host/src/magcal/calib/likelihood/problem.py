@@ -52,14 +52,21 @@ from magcal.io.session import Session
 
 #: 1-σ width of the prior on log σ_ω when a stationary stretch did not measure it: the
 #: initial value then comes from second differences of the gyroscope during motion
-#: (``rest.gyro_noise_from_differences``), good to a few per cent for white noise,
-#: so it gets the same ±10 % as a stationary measurement (measured: 0.2 let the likelihood
-#: pull σ_ω up 1.7× on accelerated sessions, 2.4× the floor instead of 1.6×). Same width,
-#: centred on 0, for the unit lower-triangular entries of its Cholesky factor.
-GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.1
-#: Smallest width when a stationary stretch measured it: a gyroscope's noise at rest and in
-#: motion differ by about this much (vibration, quantisation), however long the stretch.
-GYRO_NOISE_PRIOR_WIDTH_MIN = 0.1
+#: (``rest.gyro_noise_from_differences``), good to a few per cent for white noise. Same
+#: width, centred on 0, for the unit lower-triangular entries of its Cholesky factor.
+#: Narrow on purpose: what the held rate misses within a step is the turn variance
+#: (``sensor_levels.turn_variance``), and whatever else the model lacks (the room's field
+#: changing over position, translational accelerations) the likelihood would rather explain
+#: as gyroscope noise about one axis, since a random walk of the attitude fits slow,
+#: correlated errors better than white magnetometer noise does. With ±10 % on the real
+#: recordings of ``make real`` one axis's σ_ω went up 27–270× and the gyroscope bias
+#: strayed to 10× the optical reference's; with ±3 % and the turn variance σ_ω stays put
+#: and ArduPilot SITL's aligned compasses are calibrated to 0.04–0.05° (was 0.07–0.09°).
+GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.03
+#: Smallest width when a stationary stretch measured it: the same as during motion, as a
+#: gyroscope's noise at rest and in motion differ by a few per cent (vibration,
+#: quantisation) however long the stretch.
+GYRO_NOISE_PRIOR_WIDTH_MIN = 0.03
 
 # Forward differences have truncation error O(h) and rounding error O(ε|V|/h); h ∝ √ε
 # balances them. Central differences: O(h²) against O(ε|V|/h), so h ∝ ∛ε.
@@ -433,6 +440,7 @@ class LikelihoodProblem:
             # measured (levels.acc_used is False where the row has no accelerometer).
             has_acc=levels.acc_used,
             has_mag=session.has_mag,
+            turn_var=levels.turn_var,
         )
         prior_mean, prior_precision = gyro_noise_prior(
             levels.noise.Sigma_gyr, levels.stationary_samples

@@ -81,18 +81,32 @@ def test_updates_are_spaced_by_the_correlation_time():
     assert gaps.max() < 0.1 + 0.015
 
 
-def test_turn_variance_is_a_random_time_rate_change_and_sums_over_a_multi_rate_step():
-    t = np.arange(6) * 0.01
-    gyr = np.zeros((6, 3))
-    gyr[3:] = [0.3, 0.0, -0.4]  # the rate changes by 0.5 rad/s between samples 2 and 3
-    v = sensor_levels.turn_variance(t, gyr)
-    # Held over (t_2, t_3], sample 2 misses a change of 0.5 rad/s at an unknown time there
-    np.testing.assert_allclose(v, [0, 0, 0, 0.5**2 * 0.01**2 / 12, 0, 0])
-    # The same IMU with a magnetometer's rows in between: that step's variance is shared by
-    # the rows within it in proportion to their steps, and sums to the IMU's
-    rows = np.sort(np.concatenate([t, [0.0225, 0.0275]]))
+def test_turn_variance_sees_a_rate_jump_not_a_ramp_nor_the_noise_and_sums_over_rows():
+    t = np.arange(8) * 0.01
+    no_noise = np.zeros((3, 3))
+    # A ramp: the held rate is a constant half step behind, which the time offset takes up
+    ramp = np.outer(np.arange(8), [0.1, -0.2, 0.05])
+    np.testing.assert_allclose(sensor_levels.turn_variance(t, ramp, no_noise), 0.0, atol=1e-30)
+    # A jump of 0.5 rad/s between samples 3 and 4: uncertain within (t_3, t_4], and half as
+    # much in the steps on either side, whose ends see it too
+    gyr = np.zeros((8, 3))
+    gyr[4:] = [0.3, 0.0, -0.4]
+    v = sensor_levels.turn_variance(t, gyr, no_noise)
+    jump = 0.5**2 * 0.01**2 / 12
+    np.testing.assert_allclose(v, jump * np.array([0, 0, 0, 0.5, 1, 0.5, 0, 0]))
+    # White noise alone is the gyroscope noise's business: its expected share is taken off
+    # (what stays is the part of its fluctuations above that expectation)
+    rng = np.random.default_rng(1)
+    sigma = 0.01
+    noisy = sensor_levels.turn_variance(
+        np.arange(20000) * 0.01, sigma * rng.standard_normal((20000, 3)), sigma**2 * np.eye(3)
+    )
+    assert noisy.mean() < 0.5 * (18 * sigma**2) * 0.01**2 / 12
+    # With a magnetometer's rows in between, the step's variance is shared by the rows
+    # within it in proportion to their steps, and sums to the IMU's
+    rows = np.sort(np.concatenate([t, [0.0325, 0.0375]]))
     spread = sensor_levels._turn_variance_at_rows(rows, t, v)
-    within = (rows > t[2]) & (rows <= t[3])
-    assert within.sum() == 3 and spread[~within].sum() == 0.0
-    np.testing.assert_allclose(spread[within], v[3] * np.array([0.25, 0.5, 0.25]))
+    within = (rows > t[3]) & (rows <= t[4])
+    assert within.sum() == 3
+    np.testing.assert_allclose(spread[within], v[4] * np.array([0.25, 0.5, 0.25]))
     np.testing.assert_allclose(spread.sum(), v.sum())

@@ -9,8 +9,8 @@ One function, :func:`measure_sensor_levels`, computes them for every step that n
   scale error or local gravity does not bias the inclination;
 * the sample rate;
 * the accelerometer bump inflation ``c_t`` (:func:`accelerometer_extra_variance`);
-* how uncertain each step's integrated turn is, the rate having changed within the step
-  (:func:`turn_variance`);
+* how uncertain each step's integrated turn is, the rate having left a straight line
+  within the step (:func:`turn_variance`);
 * the time over which the accelerometer's errors stay correlated, and from it the samples
   whose accelerometer reading the likelihood uses (:func:`accelerometer_updates`);
 * Σ_a for the ML step: the accelerometer noise plus the motion's acceleration.
@@ -123,27 +123,35 @@ def accelerometer_extra_variance(
     return BUMP_GAIN * windows.max(axis=1) ** 2
 
 
-def turn_variance(t: np.ndarray, gyr: np.ndarray) -> np.ndarray:
+def turn_variance(t: np.ndarray, gyr: np.ndarray, Sigma_gyr: np.ndarray) -> np.ndarray:
     """Data-only uncertainty (N,) rad² of the turn that each step integrates.
 
     The filter holds each gyroscope sample over the step that follows it: ``gyr[k−1]`` from
-    t_{k−1} to t_k. The rate it stands for changed within that step, by about
-    ``Δω_k = gyr[k] − gyr[k−1]``, at a time within it that no sample tells. A change at a
-    uniformly random time turns the body by ``½ Δω_k T_k`` on average (a constant half-step
-    delay, which the magnetometer's time offset takes up) with a variance of
-    ``|Δω_k|² T_k² / 12``: that variance, on every axis. The gyroscope's noise Σ_ω does not
-    cover it: measured at rest, where the rate does not change, it is often at the
-    quantisation level, while fast turns of a vehicle or a hand change the rate by tenths of
-    rad/s from one sample to the next. Without it the likelihood raised one axis's σ_ω 27
-    to 270 times on real hand-held recordings, and ArduPilot SITL's calibration-stand flips
-    needed the same (``bench/real.md``; tests/autopilot_sitl).
+    t_{k−1} to t_k. A rate that changes along a straight line across the samples makes that
+    turn short by ``½ Δω T`` at every step: a constant half-step delay, which the
+    magnetometer's time offset takes up. What no sample tells is how the rate left that
+    line within the step. A rate that jumps by Δω at a random time within it (the start of
+    a flip, a knock) leaves the turn uncertain by a variance ``|Δω|² T² / 12``, and shows
+    as second differences ``gyr[j+1] − 2 gyr[j] + gyr[j−1]`` of size |Δω| at the step's two
+    ends. So the step to sample k gets ``T_k² / 12`` times the mean of the squared second
+    differences at its two ends, less what the gyroscope's white noise makes of them on
+    its own (``6 tr Σ_ω``, already in the model), never below 0: 0 for smooth motion.
 
-    t : (N,) s; gyr : (N, 3) rad/s. Returns (N,) rad² (0 at the first sample, whose step is
-    not taken).
+    The gyroscope's noise Σ_ω cannot stand in for it: measured at rest, where the rate does
+    not change, it can be the quantisation alone. Without this term the likelihood raised
+    one axis's σ_ω 27 to 270 times on real hand-held recordings, and ArduPilot SITL's
+    calibration-stand flips needed the same (``bench/real.md``; tests/autopilot_sitl).
+
+    t : (N,) s; gyr : (N, 3) rad/s; Sigma_gyr : (3, 3) (rad/s)², the gyroscope's white
+    noise. Returns (N,) rad² (0 at the first sample, whose step is not taken).
     """
     v = np.zeros(len(t))
-    if len(t) > 1:
-        v[1:] = np.sum(np.diff(gyr, axis=0) ** 2, axis=1) * np.diff(t) ** 2 / 12.0
+    if len(t) < 3:
+        return v
+    bend = np.zeros(len(t))  # |second difference|² beyond the noise's share, per sample
+    bend[1:-1] = np.sum((gyr[2:] - 2.0 * gyr[1:-1] + gyr[:-2]) ** 2, axis=1)
+    bend = np.maximum(bend - 6.0 * float(np.trace(Sigma_gyr)), 0.0)
+    v[1:] = 0.5 * (bend[1:] + bend[:-1]) * np.diff(t) ** 2 / 12.0
     return v
 
 
@@ -266,7 +274,7 @@ def _measure(t: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -
         g=g,
         rate_hz=rate_hz,
         acc_extra_var=acc_extra_var,
-        turn_var=turn_variance(t, gyr),
+        turn_var=turn_variance(t, gyr, noise.Sigma_gyr),
         acc_correlation_s=acc_correlation_s,
         acc_used=accelerometer_updates(t, acc_correlation_s),
         Sigma_acc=Sigma_acc,

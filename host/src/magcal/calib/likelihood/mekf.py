@@ -5,8 +5,8 @@ State: ``q̃_nb`` plus a navigation-frame orientation error ``η`` with covarian
 
 * Time update with the gyroscope as input, sample ``t−1`` → ``t``:
   ``q̃ ← q̃ ⊙ exp_q(½ T (y_ω − δ_ω))``, ``P ← P + T² R Σ_ω Rᵀ + v_t I`` with ``R = R(q̃)``
-  and ``v_t`` rad² a data-only uncertainty of the turn, the rate having changed within the
-  step (``initial/sensor_levels.turn_variance``).
+  and ``v_t`` rad² a data-only uncertainty of the turn, the rate having left a straight
+  line within the step (``initial/sensor_levels.turn_variance``).
 * Measurement ``y = (y_a, y_m)``: ``ŷ = (−R_bn g_n, D E R_bn m_n + o)``,
   ``H = (−R_bn [g_n×], D E R_bn [m_n×])``, ``S = H P Hᵀ + blockdiag(Σ_a,t, Σ_m)``.
   ``E = Exp(τ (y_ω,t−1 − δ_ω))`` carries the magnetometer's delay τ (``time_offset_s``): its

@@ -61,7 +61,7 @@ from magcal.io.session import Session
 #: correlated errors better than white magnetometer noise does. With ±10 % on the real
 #: recordings of ``make real`` one axis's σ_ω went up 27–270× and the gyroscope bias
 #: strayed to 10× the optical reference's; with ±3 % and the turn variance σ_ω stays put
-#: and ArduPilot SITL's aligned compasses are calibrated to 0.04–0.05° (was 0.07–0.09°).
+#: and ArduPilot SITL's aligned compasses are calibrated to 0.05–0.07° (was 0.07–0.09°).
 GYRO_NOISE_PRIOR_WIDTH_FROM_MOTION = 0.03
 #: Smallest width when a stationary stretch measured it: the same as during motion, as a
 #: gyroscope's noise at rest and in motion differ by a few per cent (vibration,

@@ -54,8 +54,8 @@ typedef struct {
                                   * means all zeros                                     */
     const double *turn_var;      /* (n) rad², added to the diagonal of the predicted
                                   * covariance in the step to sample k: how uncertain the
-                                  * turn is that the held rate integrates (the rate changed
-                                  * within the step); NULL means all zeros              */
+                                  * turn is that the held rate integrates (the rate left
+                                  * a straight line within the step); NULL: all zeros   */
     const unsigned char *has_acc; /* (n) 0/1: accelerometer present at sample k; NULL:
                                    * at every sample                                    */
     const unsigned char *has_mag; /* (n) 0/1: magnetometer present at sample k; NULL: at

@@ -129,7 +129,7 @@ def per_sample_costs(
             P[:, 3:, 3:] = F_acc @ P[:, 3:, 3:] @ F_acc.T + Q_acc
             P[:, :3, :3] += dt * dt * R @ Sw @ np.swapaxes(R, 1, 2)
             if data.turn_var is not None:  # as the calibration filter (mekf.py)
-                P[:, :3, :3] += data.turn_var[t] * np.eye(3)
+                P[:, :3, :3] += data.turn_var[t] * eye3
             x_acc = x_acc @ F_acc.T
         else:
             R = frames.quat_to_matrix(q)

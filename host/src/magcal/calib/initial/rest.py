@@ -137,13 +137,17 @@ def _moving_mean_var(x: np.ndarray, w: int) -> tuple[np.ndarray, np.ndarray]:
     return mean, np.clip(var, 0.0, None)
 
 
-def _white_noise_std(x: np.ndarray) -> float:
-    """Per-axis RMS of the white-noise standard deviation from second differences, robustly:
-    ``Δ²x`` has variance ``6σ²`` for white noise, while smooth motion barely contributes."""
+def white_noise_std(x: np.ndarray) -> float:
+    """White-noise standard deviation of consecutive samples x (N, 3), their unit, RMS over
+    the axes (0.0 for N < 3). Second differences (:func:`second_differences`) cancel an
+    offset and any motion that is smooth at the sample rate (1 rad/s at 100 Hz leaves 1e-4
+    of a magnetometer's field) and keep white noise of variance 6σ²; the robust spread
+    (1.4826 × median |·|) ignores the rare jumps."""
+    x = np.asarray(x, dtype=float)
     if x.shape[0] < 3:
         return 0.0
-    d2 = x[2:] - 2.0 * x[1:-1] + x[:-2]
-    sigma = 1.4826 * np.median(np.abs(d2), axis=0) / np.sqrt(6.0)
+    d2 = second_differences(x)
+    sigma = 1.4826 * np.median(np.abs(d2), axis=0) / np.sqrt(SECOND_DIFFERENCE_NOISE_GAIN)
     return float(np.sqrt(np.mean(sigma * sigma)))
 
 
@@ -151,7 +155,7 @@ def _threshold(std: np.ndarray, x: np.ndarray, lo: float, hi: float) -> float:
     """Quiet-window threshold: NOISE_FLOOR_FACTOR × the quietest windows' level, at least
     ``lo``, at most ``hi`` (raised for a sensor whose white noise alone exceeds it)."""
     floor = float(np.quantile(std, NOISE_FLOOR_QUANTILE))
-    hi = max(hi, NOISE_FLOOR_FACTOR * _white_noise_std(x))
+    hi = max(hi, NOISE_FLOOR_FACTOR * white_noise_std(x))
     return float(np.clip(NOISE_FLOOR_FACTOR * floor, lo, hi))
 
 
@@ -338,19 +342,32 @@ def _mag_scale(mag: np.ndarray) -> float:
     return s if s > 0.0 else 1.0
 
 
+#: The variance of a second difference of white noise of variance σ²: 6σ².
+SECOND_DIFFERENCE_NOISE_GAIN = 6.0
+
+
+def second_differences(x: np.ndarray) -> np.ndarray:
+    """``x[t+1] − 2 x[t] + x[t−1]`` (N − 2, ...) of samples x (N, ...): they cancel an offset
+    and any motion that is smooth at the sample rate, and leave white noise of variance
+    :data:`SECOND_DIFFERENCE_NOISE_GAIN` σ²."""
+    return x[2:] - 2.0 * x[1:-1] + x[:-2]
+
+
 def gyro_noise_from_differences(gyr: np.ndarray, floor_std: np.ndarray | float = 0.0) -> np.ndarray:
     """Gyroscope white-noise covariance (3, 3), (rad/s)², measured during motion.
 
-    Second differences ``ω_{t+1} − 2ω_t + ω_{t−1}`` cancel the bias and any motion that is
+    Second differences (:func:`second_differences`) cancel the bias and any motion that is
     smooth at the sample rate (at 100 Hz a hand's angular jerk leaves ~1e-3 rad/s there)
     and leave white noise of variance 6σ². A robust spread (1.4826 × median absolute
     deviation) ignores the rare jerks of knocks. Axes are taken as uncorrelated.
 
     gyr : (N, 3) rad/s, N ≥ 3; floor_std : lowest σ per axis, rad/s (quantisation).
     """
-    d2 = gyr[2:] - 2.0 * gyr[1:-1] + gyr[:-2]
+    d2 = second_differences(gyr)
     mad = np.median(np.abs(d2 - np.median(d2, axis=0)), axis=0)
-    std = np.maximum(1.4826 * mad / np.sqrt(6.0), np.maximum(floor_std, 1e-6))
+    std = np.maximum(
+        1.4826 * mad / np.sqrt(SECOND_DIFFERENCE_NOISE_GAIN), np.maximum(floor_std, 1e-6)
+    )
     return np.diag(std**2)
 
 

@@ -132,7 +132,7 @@ def turn_variance(t: np.ndarray, gyr: np.ndarray, Sigma_gyr: np.ndarray) -> np.n
     magnetometer's time offset takes up. What no sample tells is how the rate left that
     line within the step. A rate that jumps by Δω at a random time within it (the start of
     a flip, a knock) leaves the turn uncertain by a variance ``|Δω|² T² / 12``, and shows
-    as second differences ``gyr[j+1] − 2 gyr[j] + gyr[j−1]`` of size |Δω| at the step's two
+    as second differences (``rest.second_differences``) of size |Δω| at the step's two
     ends. So the step to sample k gets ``T_k² / 12`` times the mean of the squared second
     differences at its two ends, less what the gyroscope's white noise makes of them on
     its own (``6 tr Σ_ω``, already in the model), never below 0: 0 for smooth motion.
@@ -149,8 +149,9 @@ def turn_variance(t: np.ndarray, gyr: np.ndarray, Sigma_gyr: np.ndarray) -> np.n
     if len(t) < 3:
         return v
     bend = np.zeros(len(t))  # |second difference|² beyond the noise's share, per sample
-    bend[1:-1] = np.sum((gyr[2:] - 2.0 * gyr[1:-1] + gyr[:-2]) ** 2, axis=1)
-    bend = np.maximum(bend - 6.0 * float(np.trace(Sigma_gyr)), 0.0)
+    bend[1:-1] = np.sum(rest.second_differences(gyr) ** 2, axis=1)
+    noise_share = rest.SECOND_DIFFERENCE_NOISE_GAIN * float(np.trace(Sigma_gyr))
+    bend = np.maximum(bend - noise_share, 0.0)
     v[1:] = 0.5 * (bend[1:] + bend[:-1]) * np.diff(t) ** 2 / 12.0
     return v
 

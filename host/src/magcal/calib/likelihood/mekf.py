@@ -261,7 +261,8 @@ def _data_args(data: FilterData) -> tuple:
 
 def _optional_args(data: FilterData) -> tuple:
     """The kernel's (has_acc, has_mag, turn_var): None for a mask that is all True, which the
-    kernel reads as present at every sample without loading a mask per sample."""
+    kernel reads as present at every sample without loading a mask per sample, and for
+    data without a turn variance."""
     masks = tuple(
         None if mask.all() else np.ascontiguousarray(mask, dtype=bool)
         for mask in (data.has_acc, data.has_mag)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magcal.calib.initial import ellipsoid
+from magcal.calib.initial import ellipsoid, rest
 from magcal.calib.initial.ellipsoid import EllipsoidFit
 from magcal.errors import CalibrationError, InsufficientDataError
 
@@ -64,21 +64,12 @@ def planarity_problem(mag: np.ndarray, who: str) -> str | None:
 
 
 def noise_std_from_differences(mag: np.ndarray) -> float:
-    """White-noise standard deviation of the readings (raw units), RMS over the axes.
+    """White-noise standard deviation of the readings (raw units), RMS over the axes, from
+    their second differences (:func:`magcal.calib.initial.rest.white_noise_std`).
 
     mag : (N, 3) float, raw units, consecutive samples (N ≥ 3; 0.0 otherwise).
-
-    Second differences ``y_{t+1} − 2 y_t + y_{t−1}`` cancel the offset and any motion that is
-    smooth at the sample rate (1 rad/s at 100 Hz leaves 1e-4 of the field) and keep white
-    noise of variance ``6σ²``; the robust spread (1.4826 × median |·|) ignores the rare
-    jumps. The same estimator as the gyroscope's in ``stationary.py``.
     """
-    mag = np.asarray(mag, dtype=float)
-    if mag.shape[0] < 3:
-        return 0.0
-    d2 = mag[2:] - 2.0 * mag[1:-1] + mag[:-2]
-    sigma = 1.4826 * np.median(np.abs(d2), axis=0) / np.sqrt(6.0)
-    return float(np.sqrt(np.mean(sigma * sigma)))
+    return rest.white_noise_std(mag)
 
 
 def symmetric_root(A: np.ndarray) -> tuple[np.ndarray, bool]:

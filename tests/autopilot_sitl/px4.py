@@ -48,6 +48,9 @@ HIGHRES_IMU_ID = 105
 MOTOR_PAIRS = ((1, 3), (2, 4), (1, 2), (3, 4), (1, 4), (2, 3))
 #: Samples of the corrected field are compared with the true attitude below this rate, rad/s.
 SLOW_RAD_S = 0.1
+#: Slow samples a comparison of PX4's corrected field with the true attitude needs: 70 of
+#: SIH's 20–30 mG noise resolve an offset to 5–10 mG (test_px4_sitl.COMPARISON_BOUND_G).
+MIN_SLOW_SAMPLES = 70
 
 
 def _udp_free(port: int) -> bool:
@@ -224,7 +227,9 @@ class Px4Sitl:
         """PX4's corrected field (HIGHRES_IMU, gauss, body frame) beside the true R_nb
         (HIL_STATE_QUATERNION, the latest before it) while bursts every ``period_s`` turn the
         vehicle, kept where the vehicle turns slower than SLOW_RAD_S (so that the pairing of
-        the two streams costs nothing). Returns fields (N, 3), R_nb (N, 3, 3)."""
+        the two streams costs nothing), for ``seconds`` and on until MIN_SLOW_SAMPLES are
+        kept (at most three times as long: a vehicle that keeps spinning after a burst gives
+        few). Returns fields (N, 3), R_nb (N, 3, 3)."""
         rng = np.random.default_rng(seed)
         self.stream(HIGHRES_IMU_ID, 50)
         self.stream(HIL_STATE_QUATERNION_ID, 50)
@@ -233,7 +238,9 @@ class Px4Sitl:
         state = None
         t0 = time.monotonic()
         next_burst = t0
-        while time.monotonic() - t0 < seconds:
+        while (elapsed := time.monotonic() - t0) < seconds or (
+            len(fields) < MIN_SLOW_SAMPLES and elapsed < 3 * seconds
+        ):
             if time.monotonic() >= next_burst:
                 self.burst(MOTOR_PAIRS[rng.integers(len(MOTOR_PAIRS))], seconds=burst_s)
                 next_burst += period_s

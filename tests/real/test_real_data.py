@@ -81,6 +81,10 @@ def test_report_writes_markdown_and_exits_1_on_a_failed_criterion(tmp_path, exce
     )
     text = out.read_text(encoding="utf-8")
     assert "| case | plain | floor | ml | init | ckf | two-step |" in text
+    own = [r for r in excerpt_results.values() if r.get("reference_delay")]
+    assert own, "the excerpt has cases scored on their own recording"
+    for r in own:
+        assert f"| {r['case']} | {1e3 * r['reference_delay']['delay_s']:.1f} |" in text
     for name in excerpt_results:
         assert f"| {name} |" in text
     verdicts = real.criteria(list(excerpt_results.values()))

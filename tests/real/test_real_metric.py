@@ -3,6 +3,7 @@ known attitude (:mod:`magcal_evaluation.real`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -188,19 +189,30 @@ def test_a_lagging_magnetometer_is_scored_at_its_own_time():
     assert not ok[: int(round(delay / 0.005))].any() and ok[int(round(delay / 0.005)) :].all()
 
 
-def _rig(gyro_bias_deg_s=(0.0, 0.0, 0.0)):
+def _rig(gyro_bias_deg_s=(0.0, 0.0, 0.0), mag_delay_s=0.0, gyro_delay_s=0.0):
     """A case scored on its own recording whose reference body frame is the IMU's turned by a
-    known rotation C (v_ref = C v_imu); the gyroscope measures in the IMU's axes, with a bias.
-    Returns the case, C and the IMU's own attitudes."""
+    known rotation C (v_ref = C v_imu); the gyroscope measures in the IMU's axes, with a bias;
+    the magnetometer and the gyroscope show the motion late by their delays. Returns the case,
+    C and the IMU's own attitudes."""
     t = np.arange(0.0, 20.0, 0.01)
-    rate_imu = np.column_stack([np.sin(0.7 * t), np.cos(0.4 * t), 0.5 * np.sin(1.1 * t + 1.0)])
-    q_imu = frames.integrate_rates(rate_imu[:-1], np.diff(t))
+
+    def rate_imu(at):
+        return np.column_stack([np.sin(0.7 * at), np.cos(0.4 * at), 0.5 * np.sin(1.1 * at + 1.0)])
+
+    # Attitudes on a fine grid, so that a delay of a fraction of a step can be looked up.
+    fine = np.arange(-0.2, 20.2, 0.001)
+    q_fine = frames.integrate_rates(rate_imu(fine[:-1] + 0.0005), np.diff(fine))
     C = frames.quat_to_matrix(frames.rotvec_to_quat(np.deg2rad([1.0, -2.0, 3.0])))
     # R_imu = R_ref C, so R_ref = R_imu Cᵀ.
-    q_ref = frames.quat_multiply(q_imu, frames.quat_conjugate(frames.matrix_to_quat(C)))
+    q_ref_fine = frames.quat_multiply(q_fine, frames.quat_conjugate(frames.matrix_to_quat(C)))
+
+    def at(times):
+        return q_ref_fine[np.rint((times - fine[0]) / 0.001).astype(int)]
+
+    q_ref, q_imu = at(t), frames.quat_multiply(at(t), frames.matrix_to_quat(C))
     D, o = _distortion(4, symmetric=False)
-    mag = _simulate(D, o, q_ref)
-    gyr = rate_imu + np.deg2rad(gyro_bias_deg_s)
+    mag = _simulate(D, o, at(t - mag_delay_s))
+    gyr = rate_imu(t - gyro_delay_s) + np.deg2rad(gyro_bias_deg_s)
     session = session_from_arrays(t, gyr, np.zeros_like(mag) + [0, 0, 9.8], mag)
     case = real.Case(
         "rig", {}, session, (real.Trial("rig", t, mag, q_ref, np.ones(t.size, bool)),), 0.0
@@ -262,3 +274,53 @@ def test_the_rotation_the_scored_recordings_show():
     # A case scored on its own recording has its floor instead.
     own = real.Case("own", {}, session, (_trial(mag, q_cal),), DECLINATION_DEG)
     assert real._on_other_recordings(own, (P, o), None, ml_run) is None
+
+
+@pytest.mark.parametrize("mag_delay_ms, gyro_delay_ms", [(0.0, 0.0), (23.0, 7.0), (-12.0, 3.0)])
+def test_the_delays_are_read_against_the_reference(mag_delay_ms, gyro_delay_ms):
+    case, C, _ = _rig((0.5, -1.0, 2.0), mag_delay_ms * 1e-3, gyro_delay_ms * 1e-3)
+    assert 1e3 * real.reference_delay(case.trials[0]) == pytest.approx(mag_delay_ms, abs=0.3)
+    assert 1e3 * real.gyroscope_delay(case, C) == pytest.approx(gyro_delay_ms, abs=0.3)
+
+
+def test_a_delay_beyond_the_search_is_not_reported():
+    case, _, _ = _rig(mag_delay_s=1.5 * real.REFERENCE_DELAY_MAX_S)
+    assert real.reference_delay(case.trials[0]) is None
+
+
+def test_the_fit_at_the_magnetometers_delay_is_the_magnetometer_as_it_is():
+    case, _, _ = _rig(mag_delay_s=0.03)
+    floor = real.case_floor(case)
+    D, o = _distortion(4, symmetric=False)
+    got = real._at_reference_delay(case, None, floor, {"D": D.tolist(), "o": o.tolist()})
+    assert got["delay_s"] == pytest.approx(0.03, abs=3e-4)
+    # The fit there has D's own rotation and no error at its own time; scored at t it is
+    # charged for the lag as the true D is, while the floor takes part of the lag into D.
+    np.testing.assert_allclose(got["fit_rotation_deg"], misalignment_deg(D), atol=0.05)
+    assert got["fit_at_delay"] < 0.02
+    assert got["fit"] == pytest.approx(got["ml"], rel=0.02) and got["ml"] > 1.0
+    assert got["floor"] < got["fit"]
+    assert np.linalg.norm(np.subtract(got["floor_rotation_deg"], misalignment_deg(D))) > 0.2
+    assert got["plain"] is None
+    # Without a floor (a case scored on other recordings) there is nothing to compare.
+    assert real._at_reference_delay(case, None, None, {"D": D.tolist(), "o": o.tolist()}) is None
+
+
+def test_trial_by_trial_pairs_each_recording():
+    P, o = _distortion(8, symmetric=True)
+    U = frames.quat_to_matrix(frames.rotvec_to_quat(np.deg2rad([0.5, -2.0, 1.0])))
+    D = P @ U
+    qs = (frames.so3_grid(600), frames.so3_grid(700), _level_attitudes(300))
+    trials = tuple(_trial(_simulate(D, o, q, noise_ut=0.5, seed=k), q) for k, q in enumerate(qs))
+    session = session_from_arrays(
+        np.arange(10) * 0.01, np.zeros((10, 3)), np.zeros((10, 3)), np.ones((10, 3))
+    )
+    case = real.Case("phone", {}, session, trials, DECLINATION_DEG)
+    got = real._trial_by_trial(case, (P, o), None, {"D": D.tolist(), "o": o.tolist()})
+    assert got["names"] == ["synthetic"] * 3
+    for k, tr in enumerate(trials):
+        assert got["ml"][k] == pytest.approx(real.trial_heading_deg(D, o, tr, DECLINATION_DEG))
+        assert got["plain"][k] == pytest.approx(real.trial_heading_deg(P, o, tr, DECLINATION_DEG))
+    assert max(got["ml"]) < min(got["plain"])  # the plain fit misses the rotation
+    one = dataclasses.replace(case, trials=trials[:1])
+    assert real._trial_by_trial(one, (P, o), None, {"D": D.tolist(), "o": o.tolist()}) is None

@@ -105,6 +105,12 @@ IMU_ALIGNMENT_MIN_TURN_RAD = 0.05
 #: vector at hand-held rates (a turn of a few degrees), and a few of the reference's frames.
 REFERENCE_BIAS_WINDOW_S = 0.03
 
+#: The magnetometer's delay behind the reference (:func:`reference_delay`) is looked for
+#: on this grid of delays, s, up to this far either way (hand-held recordings show tens of
+#: ms), the best refined by a parabola through its neighbours.
+REFERENCE_DELAY_STEP_S = 0.002
+REFERENCE_DELAY_MAX_S = 0.1
+
 #: Known-attitude floor: the alternating least squares that start the Levenberg–Marquardt
 #: fit (each one cheap; a few bring it close).
 FLOOR_ALTERNATIONS = 5
@@ -397,6 +403,86 @@ def known_attitude_floor(mag: np.ndarray, q_wb: np.ndarray) -> FloorFit:
     )
 
 
+def _bilinear_residual(mag: np.ndarray, q_wb: np.ndarray) -> float:
+    """RMS residual of ``mag`` (N, 3) on the known-attitude model with ``D ⊗ m`` as 27 free
+    coefficients (:func:`known_attitude_floor`'s start): linear, so cheap to scan."""
+    n = mag.shape[0]
+    R_bw = np.transpose(frames.quat_to_matrix(q_wb), (0, 2, 1))
+    X = np.hstack([R_bw.reshape(n, 9), np.ones((n, 1))])
+    coef, *_ = np.linalg.lstsq(X, mag, rcond=None)
+    return float(np.sqrt(np.mean(np.sum((X @ coef - mag) ** 2, axis=1))))
+
+
+def _best_delay(residual_at) -> float | None:
+    """s: the delay on the grid of :data:`REFERENCE_DELAY_STEP_S` within
+    ±:data:`REFERENCE_DELAY_MAX_S` where ``residual_at(delay)`` is smallest, refined by a
+    parabola through its neighbours; None when that is at the grid's edge."""
+    k_max = int(round(REFERENCE_DELAY_MAX_S / REFERENCE_DELAY_STEP_S))
+    delays = REFERENCE_DELAY_STEP_S * np.arange(-k_max, k_max + 1)
+    residuals = [residual_at(float(d)) for d in delays]
+    k = int(np.argmin(residuals))
+    if k in (0, len(delays) - 1):
+        return None
+    a, b, c = residuals[k - 1 : k + 2]
+    curvature = a - 2.0 * b + c
+    shift = 0.5 * (a - c) / curvature if curvature > 0.0 else 0.0
+    return float(delays[k] + REFERENCE_DELAY_STEP_S * shift)
+
+
+def reference_delay(trial: Trial) -> float | None:
+    """s: the magnetometer's delay behind the reference attitude, as the reference itself
+    shows it: the delay at which the known-attitude model explains the magnetometer best
+    (smallest residual against the reference at ``t − delay``, :func:`reference_at`;
+    :func:`_best_delay`). It is independent of any calibration, and it measures the
+    magnetometer against the reference's clock, not the gyroscope's. None when no delay
+    within the grid is best."""
+    have = np.all(np.isfinite(trial.q_wb), axis=1)
+    # The same samples at every delay, so that the residuals compare.
+    keep = have & _within(trial.t, trial.t[have], REFERENCE_DELAY_MAX_S)
+
+    def residual_at(delay: float) -> float:
+        q, _ = reference_at(trial, delay)
+        return _bilinear_residual(trial.mag[keep], q[keep])
+
+    return _best_delay(residual_at)
+
+
+def gyroscope_delay(case: Case, C: np.ndarray) -> float | None:
+    """s: the gyroscope's delay behind the reference attitude: the delay at which the
+    reference's rate (from consecutive attitudes, turned to the IMU's axes by ``C``,
+    :func:`imu_to_reference_rotation`) matches the gyroscope's best (the median of
+    ``|ω_gyro − ω_reference|`` after the median difference, the bias, is taken out;
+    :func:`_best_delay`). With :func:`reference_delay` it gives the magnetometer's delay
+    behind the gyroscope, which ML's time offset estimates. None unless the case is scored on
+    its own recording, or when no delay within the grid is best."""
+    if not scored_on_own_recording(case):
+        return None
+    trial, session = case.trials[0], case.session
+    have = np.all(np.isfinite(trial.q_wb), axis=1)
+    keep = have & _within(trial.t, trial.t[have], REFERENCE_DELAY_MAX_S)
+    pairs = keep[:-1] & keep[1:]
+    # The gyroscope's mean over a step against the reference's rotation over it.
+    gyro = 0.5 * (session.gyr[:-1] + session.gyr[1:])[pairs]
+    dt = np.diff(trial.t)[pairs]
+
+    def residual_at(delay: float) -> float:
+        q, _ = reference_at(trial, delay)
+        R = Rotation.from_quat(q[:, [1, 2, 3, 0]][keep])
+        steps = np.flatnonzero(keep[:-1] & keep[1:])
+        index = np.cumsum(keep) - 1
+        turn = (R[index[steps]].inv() * R[index[steps + 1]]).as_rotvec()
+        diff = gyro - (turn / dt[:, None]) @ np.asarray(C)
+        diff -= np.median(diff, axis=0)
+        return float(np.median(np.linalg.norm(diff, axis=1)))
+
+    return _best_delay(residual_at)
+
+
+def _within(t: np.ndarray, t_reference: np.ndarray, margin_s: float) -> np.ndarray:
+    """(N,) bool: the times at least ``margin_s`` inside the reference's span."""
+    return (t >= t_reference[0] + margin_s) & (t <= t_reference[-1] - margin_s)
+
+
 def case_floor(case: Case, delay_s: float = 0.0) -> FloorFit | None:
     """The floor of a case scored on its own recording (fitted on the samples that have a
     reference attitude; with ``delay_s``, the reference at the magnetometer's times), else
@@ -493,6 +579,8 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
         ("at_magnetometer_time", _at_magnetometer_time),
         ("imu_frame", _in_imu_frame),
         ("other_recordings", _on_other_recordings),
+        ("reference_delay", _at_reference_delay),
+        ("trial_by_trial", _trial_by_trial),
     ):
         out[key] = score(case, plain, floor, ml_result)
         if out[key] is not None:
@@ -513,7 +601,8 @@ def _window_rotations(case: Case, window_s: float) -> tuple[np.ndarray, ...] | N
     step = max(1, int(round(window_s / np.median(np.diff(session.t)))))
     q_xyzw = np.where(have[:, None], trial.q_wb, [1.0, 0.0, 0.0, 0.0])[:, [1, 2, 3, 0]]
     rotations = Rotation.from_quat(q_xyzw)
-    rate_dt = session.gyr[:-1] * np.diff(session.t)[:, None]
+    # Trapezoids: a gyroscope sample is the rate at its time, not over the step after it.
+    rate_dt = 0.5 * (session.gyr[:-1] + session.gyr[1:]) * np.diff(session.t)[:, None]
     starts = np.arange(0, len(session.t) - step, step)
     starts = starts[have[starts] & have[starts + step]]
     reference = (rotations[starts].inv() * rotations[starts + step]).as_rotvec()
@@ -605,6 +694,51 @@ def _at_magnetometer_time(
         if floor is None
         else case_heading_deg(floor.D, floor.o, case, floor.heading_deg, delay),
         "ml": case_heading_deg(np.array(ml_run["D"]), np.array(ml_run["o"]), case, delay_s=delay),
+    }
+
+
+def _at_reference_delay(case: Case, plain, floor: FloorFit | None, ml_run: dict) -> dict | None:
+    """For a case scored on its own recording: the magnetometer's delay behind the reference
+    (:func:`reference_delay`) and the known-attitude fit there, the calibration of the
+    magnetometer as it is, with the lag left out of D. Scored as every method is (at t, the
+    case's declination), it is the floor of a calibration that carries the lag in a time
+    offset instead of in D; scored at its own time and north, what such a calibration gives
+    a fusion filter that knows the delay. None without a floor, a delay or an ML result."""
+    if floor is None or ml_run.get("D") is None:
+        return None
+    delay = reference_delay(case.trials[0])
+    if delay is None:
+        return None
+    fit = case_floor(case, delay)
+    C = imu_to_reference_rotation(case)
+    gyro_delay = None if C is None else gyroscope_delay(case, C)
+    D_ml, o_ml = np.array(ml_run["D"]), np.array(ml_run["o"])
+    return {
+        "delay_s": delay,
+        "gyroscope_delay_s": gyro_delay,
+        "fit": case_heading_deg(fit.D, fit.o, case),
+        "fit_at_delay": case_heading_deg(fit.D, fit.o, case, fit.heading_deg, delay),
+        "fit_rotation_deg": [float(x) for x in misalignment_deg(fit.D)],
+        "floor_rotation_deg": [float(x) for x in misalignment_deg(floor.D)],
+        "ml": case_heading_deg(D_ml, o_ml, case),
+        "plain": None if plain is None else case_heading_deg(*plain, case),
+        "floor": case_heading_deg(floor.D, floor.o, case, floor.heading_deg),
+    }
+
+
+def _trial_by_trial(case: Case, plain, _floor, ml_run: dict) -> dict | None:
+    """For a case scored on several recordings: ML's and the plain fit's heading on each
+    (degrees, in the trials' order). The case's figure is the median over trials of each
+    method on its own; where the trials fall into groups of easy and hard recordings, the
+    two medians can come from different trials, and the pairs say how the two compare
+    recording by recording. None for a single trial, no plain fit or no ML result."""
+    if len(case.trials) < 2 or plain is None or ml_run.get("D") is None:
+        return None
+    D_ml, o_ml = np.array(ml_run["D"]), np.array(ml_run["o"])
+    return {
+        "names": [tr.name for tr in case.trials],
+        "ml": [trial_heading_deg(D_ml, o_ml, tr, case.declination_deg) for tr in case.trials],
+        "plain": [trial_heading_deg(*plain, tr, case.declination_deg) for tr in case.trials],
     }
 
 

@@ -189,6 +189,49 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         )
     lines += [
         "",
+        "## The magnetometer's delay as the reference shows it",
+        "",
+        "The reference measures the magnetometer's delay too, independently of any "
+        "calibration: the delay behind the reference's clock at which the known-attitude "
+        "model explains the magnetometer best (`magcal_evaluation.real.reference_delay`), "
+        "and the gyroscope's, where the reference's rate matches the gyroscope's best "
+        "(`magcal_evaluation.real.gyroscope_delay`). Their difference is the magnetometer's "
+        "delay behind the gyroscope, which ML's time offset τ estimates; ML holds each "
+        "gyroscope sample over the step that follows it, which puts its attitude half a "
+        "step late, so τ comes out about half a step shorter than that difference. "
+        "*Fit at the delay*: the known-attitude fit at the magnetometer's delay, "
+        "the magnetometer as it is, with no lag in D; its rotation stands beside the "
+        "floor's, which takes the lag in as a rotation. Scored as every method is (at t, the "
+        "case's declination), it is the best a calibration can do that carries the lag in a "
+        "time offset rather than in D, and ML's ratio to it (×d) says how close ML comes; "
+        "scored at its own time and north it is what a fusion filter that knows the delay "
+        "could get. Cases scored on other recordings are left out.",
+        "",
+        "| case | magnetometer's delay ms | gyroscope's delay ms | ML's τ ms | floor | fit at "
+        "the delay | ml | fit at the delay, at its own time | its rotation ° | floor's "
+        "rotation ° |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
+    ]
+    for r in good:
+        a = r.get("reference_delay")
+        if not a:
+            continue
+        ml_run = r["methods"]["ml"].get("forced", r["methods"]["ml"])
+        tau = ml_run.get("time_offset_s")
+        gyro = a.get("gyroscope_delay_s")
+        ml = f"{_f(a['ml'])} ({a['ml'] / a['fit']:.2f}×d, {a['ml'] / a['floor']:.2f}×f)"
+        if a.get("ml_forced"):
+            ml = f"refused (forced {ml})"
+        lines.append(
+            f"| {r['case']} | {1e3 * a['delay_s']:.1f} | "
+            f"{'–' if gyro is None else f'{1e3 * gyro:.1f}'} | "
+            f"{'–' if tau is None else f'{1e3 * tau:.1f}'} | {_f(a['floor'])} | "
+            f"{_f(a['fit'])} ({a['fit'] / a['floor']:.2f}×f) | {ml} | "
+            f"{_f(a['fit_at_delay'])} | {_vec(a['fit_rotation_deg'])} | "
+            f"{_vec(a['floor_rotation_deg'])} |"
+        )
+    lines += [
+        "",
         "## Scored in the IMU's frame",
         "",
         "The reference attitude is that of the optical markers' body frame. An inertial "
@@ -254,6 +297,31 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
             f"{_f(a['ml_without_rotation'])} | {_f(r['plain'])} | "
             f"{_f(a['plain_with_fit_rotation'])} | {_f(a['ml_with_fit_offset'])} | "
             f"{_f(a['plain_with_fit_offset'])} |"
+        )
+    lines += [
+        "",
+        "## Trial by trial",
+        "",
+        "A case scored on several recordings takes each method's median over them; the "
+        "ratios above divide one median by the other. Where a case's recordings fall into "
+        "easy and hard groups, the two medians can come from different recordings. Here ML "
+        "and the plain fit are compared recording by recording: on how many ML's heading "
+        "error is the smaller, and the ratio ML/plain per recording (median, and the range).",
+        "",
+        "| case | recordings | ML better on | ML/plain per recording: median (range) | "
+        "median ml | median plain | ratio of the medians |",
+        "|---|---:|---:|---|---:|---:|---:|",
+    ]
+    for r in good:
+        a = r.get("trial_by_trial")
+        if not a:
+            continue
+        ml, plain = np.array(a["ml"]), np.array(a["plain"])
+        q = ml / plain
+        lines.append(
+            f"| {r['case']} | {len(q)} | {int((q < 1.0).sum())} | {np.median(q):.2f} "
+            f"({q.min():.2f}–{q.max():.2f}) | {np.median(ml):.2f} | {np.median(plain):.2f} | "
+            f"{np.median(ml) / np.median(plain):.2f} |"
         )
     lines += [
         "",

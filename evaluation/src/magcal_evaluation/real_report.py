@@ -108,6 +108,15 @@ def _rescored_ml_cell(a: dict) -> str:
     return f"refused (forced {cell})" if a.get("ml_forced") else cell
 
 
+def _section_rows(results: list[dict], key: str):
+    """(case result, its ``key`` section, ML's run: the forced one where ML refused) for
+    every case that has the section."""
+    for r in results:
+        section = r.get(key)
+        if section:
+            yield r, section, r["methods"]["ml"].get("forced", r["methods"]["ml"])
+
+
 def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: dict) -> str:
     lines = [
         "# magcal on real recordings",
@@ -176,10 +185,7 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "| case | τ ms | plain | floor | ml | floor's rotation ° (at t → at t − τ) |",
         "|---|---:|---:|---:|---:|---|",
     ]
-    for r in good:
-        a = r.get("at_magnetometer_time")
-        if not a:
-            continue
+    for r, a, _ in _section_rows(good, "at_magnetometer_time"):
         ml = _rescored_ml_cell(a)
         turns = a.get("floor_rotation_deg")
         turn_txt = "–" if not turns else " → ".join(_vec(v) for v in turns)
@@ -212,11 +218,7 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "rotation ° |",
         "|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
     ]
-    for r in good:
-        a = r.get("reference_delay")
-        if not a:
-            continue
-        ml_run = r["methods"]["ml"].get("forced", r["methods"]["ml"])
+    for r, a, ml_run in _section_rows(good, "reference_delay"):
         tau = ml_run.get("time_offset_s")
         gyro = a.get("gyroscope_delay_s")
         ml = f"{_f(a['ml'])} ({a['ml'] / a['fit']:.2f}×d, {a['ml'] / a['floor']:.2f}×f)"
@@ -249,13 +251,9 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "reference | gyro bias °/s: ml |",
         "|---|---|---:|---:|---:|---|---|",
     ]
-    for r in good:
-        a = r.get("imu_frame")
-        if not a:
-            continue
+    for r, a, ml_run in _section_rows(good, "imu_frame"):
         ml = _rescored_ml_cell(a)
         angle = float(np.linalg.norm(a["rotation_deg"]))
-        ml_run = r["methods"]["ml"].get("forced", r["methods"]["ml"])
         lines.append(
             f"| {r['case']} | {angle:.2f} {_vec(a['rotation_deg'])} | {_f(a['plain'])} | "
             f"{_f(a['floor'])} | {ml} | {_vec(a.get('reference_gyro_bias_deg_s'), 3)} | "
@@ -284,11 +282,7 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "ml's D, the fit's offset | plain's D, the fit's offset |",
         "|---|---:|---|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
-    for r in good:
-        a = r.get("other_recordings")
-        if not a:
-            continue
-        ml_run = r["methods"]["ml"].get("forced", r["methods"]["ml"])
+    for r, a, ml_run in _section_rows(good, "other_recordings"):
         forced = " (forced)" if a.get("ml_forced") else ""
         lines.append(
             f"| {r['case']} | {_f(a['fit'])} | {_vec(a['fit_rotation_deg'])} | "
@@ -312,10 +306,7 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "median ml | median plain | ratio of the medians |",
         "|---|---:|---:|---|---:|---:|---:|",
     ]
-    for r in good:
-        a = r.get("trial_by_trial")
-        if not a:
-            continue
+    for r, a, _ in _section_rows(good, "trial_by_trial"):
         ml, plain = np.array(a["ml"]), np.array(a["plain"])
         q = ml / plain
         lines.append(

@@ -272,6 +272,11 @@ def heading_errors_rad(
     return frames.wrap_angle(np.arctan2(m_w[:, 0], m_w[:, 1]) - math.radians(declination_deg))
 
 
+def _rotations(q_wb: np.ndarray) -> Rotation:
+    """scipy rotations of scalar-first quaternions (N, 4)."""
+    return Rotation.from_quat(q_wb[:, [1, 2, 3, 0]])
+
+
 def reference_at(trial: Trial, delay_s: float) -> tuple[np.ndarray, np.ndarray]:
     """The reference attitude at the times the magnetometer measured, t − delay_s (s; the
     magnetometer lags by delay_s), by spherical interpolation: (N, 4) and the (N,) mask of
@@ -280,7 +285,7 @@ def reference_at(trial: Trial, delay_s: float) -> tuple[np.ndarray, np.ndarray]:
         return trial.q_wb, np.all(np.isfinite(trial.q_wb), axis=1)
     have = np.all(np.isfinite(trial.q_wb), axis=1)
     t = trial.t[have]
-    slerp = Slerp(t, Rotation.from_quat(trial.q_wb[have][:, [1, 2, 3, 0]]))
+    slerp = Slerp(t, _rotations(trial.q_wb[have]))
     at = trial.t - delay_s
     ok = have & (at >= t[0]) & (at <= t[-1])
     q = np.full_like(trial.q_wb, np.nan)
@@ -460,17 +465,14 @@ def gyroscope_delay(case: Case, C: np.ndarray) -> float | None:
     trial, session = case.trials[0], case.session
     have = np.all(np.isfinite(trial.q_wb), axis=1)
     keep = have & _within(trial.t, trial.t[have], REFERENCE_DELAY_MAX_S)
-    pairs = keep[:-1] & keep[1:]
+    steps = np.flatnonzero(keep[:-1] & keep[1:])
     # The gyroscope's mean over a step against the reference's rotation over it.
-    gyro = 0.5 * (session.gyr[:-1] + session.gyr[1:])[pairs]
-    dt = np.diff(trial.t)[pairs]
+    gyro = 0.5 * (session.gyr[steps] + session.gyr[steps + 1])
+    dt = trial.t[steps + 1] - trial.t[steps]
 
     def residual_at(delay: float) -> float:
         q, _ = reference_at(trial, delay)
-        R = Rotation.from_quat(q[:, [1, 2, 3, 0]][keep])
-        steps = np.flatnonzero(keep[:-1] & keep[1:])
-        index = np.cumsum(keep) - 1
-        turn = (R[index[steps]].inv() * R[index[steps + 1]]).as_rotvec()
+        turn = (_rotations(q[steps]).inv() * _rotations(q[steps + 1])).as_rotvec()
         diff = gyro - (turn / dt[:, None]) @ np.asarray(C)
         diff -= np.median(diff, axis=0)
         return float(np.median(np.linalg.norm(diff, axis=1)))
@@ -599,8 +601,7 @@ def _window_rotations(case: Case, window_s: float) -> tuple[np.ndarray, ...] | N
     trial, session = case.trials[0], case.session
     have = np.all(np.isfinite(trial.q_wb), axis=1)
     step = max(1, int(round(window_s / np.median(np.diff(session.t)))))
-    q_xyzw = np.where(have[:, None], trial.q_wb, [1.0, 0.0, 0.0, 0.0])[:, [1, 2, 3, 0]]
-    rotations = Rotation.from_quat(q_xyzw)
+    rotations = _rotations(np.where(have[:, None], trial.q_wb, [1.0, 0.0, 0.0, 0.0]))
     # Trapezoids: a gyroscope sample is the rate at its time, not over the step after it.
     rate_dt = 0.5 * (session.gyr[:-1] + session.gyr[1:]) * np.diff(session.t)[:, None]
     starts = np.arange(0, len(session.t) - step, step)
@@ -697,7 +698,7 @@ def _at_magnetometer_time(
     }
 
 
-def _at_reference_delay(case: Case, plain, floor: FloorFit | None, ml_run: dict) -> dict | None:
+def _at_reference_delay(case: Case, _plain, floor: FloorFit | None, ml_run: dict) -> dict | None:
     """For a case scored on its own recording: the magnetometer's delay behind the reference
     (:func:`reference_delay`) and the known-attitude fit there, the calibration of the
     magnetometer as it is, with the lag left out of D. Scored as every method is (at t, the
@@ -721,7 +722,6 @@ def _at_reference_delay(case: Case, plain, floor: FloorFit | None, ml_run: dict)
         "fit_rotation_deg": [float(x) for x in misalignment_deg(fit.D)],
         "floor_rotation_deg": [float(x) for x in misalignment_deg(floor.D)],
         "ml": case_heading_deg(D_ml, o_ml, case),
-        "plain": None if plain is None else case_heading_deg(*plain, case),
         "floor": case_heading_deg(floor.D, floor.o, case, floor.heading_deg),
     }
 

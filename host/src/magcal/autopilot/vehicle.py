@@ -364,9 +364,13 @@ def acc_mg_to_si(a_mg: np.ndarray) -> np.ndarray:
     return np.asarray(a_mg, dtype=float) * (STANDARD_GRAVITY / 1000.0)
 
 
+#: The stream's gyroscope unit: mrad/s per rad/s.
+GYRO_MRAD_PER_RAD = 1000.0
+
+
 def gyro_mrad_to_si(w_mrad: np.ndarray) -> np.ndarray:
     """Gyroscope mrad/s → rad/s."""
-    return np.asarray(w_mrad, dtype=float) / 1000.0
+    return np.asarray(w_mrad, dtype=float) / GYRO_MRAD_PER_RAD
 
 
 def mag_wire_to_unit(m_mG: np.ndarray, autopilot: str) -> np.ndarray:

@@ -59,7 +59,7 @@ Filter (eq. 15–18): cubature points ``x̂ ± √n S e_j`` (n = 9, 2n = 18 poin
   (an ellipsoid or a sphere, and the noise) starts the filter at once. For a whole session
   that ends before the start, :func:`run_ckf` runs the filter in a pseudo-random order.
 * **Noise level.** ``σ`` is estimated from second differences of the samples seen before the
-  start (:func:`~magcal.calib.norm_only.norm_ellipsoid.noise_std_from_differences`) unless
+  start (:func:`~magcal.calib.initial.rest.white_noise_std`) unless
   given, floored at :data:`MIN_NOISE_FRACTION` of the field (noise-free data).
 
 At the end, ``T = Q √Σ Qᵀ`` from ``A = Q Σ Qᵀ`` (eq. 19–20): ``D_sym = T⁻¹``, ``o = b``.
@@ -78,6 +78,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.linalg.lapack import dpotrf as _potrf
 
+from magcal.calib.initial import rest
 from magcal.calib.initial.ellipsoid import EllipsoidFit
 from magcal.calib.norm_only import norm_ellipsoid
 from magcal.errors import InsufficientDataError
@@ -170,7 +171,7 @@ class CkfPrior:
         they span three dimensions, else their mean and RMS distance from it; the noise from
         second differences. mag : (N, 3) raw units."""
         mag = norm_ellipsoid.check_readings(mag, "ckf")
-        sigma = norm_ellipsoid.noise_std_from_differences(mag)
+        sigma = rest.white_noise_std(mag)
         ellipsoid = algebraic_ellipsoid(mag)
         if ellipsoid is not None:
             return cls(ellipsoid[0], ellipsoid[1], sigma)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from magcal.calib.initial import ellipsoid, rest
+from magcal.calib.initial import ellipsoid
 from magcal.calib.initial.ellipsoid import EllipsoidFit
 from magcal.errors import CalibrationError, InsufficientDataError
 
@@ -61,15 +61,6 @@ def planarity_problem(mag: np.ndarray, who: str) -> str | None:
         "equally well: the sensor was rotated too little; rotate it through all orientations "
         "(tilt it nose up/down and roll it over, not only yaw)"
     )
-
-
-def noise_std_from_differences(mag: np.ndarray) -> float:
-    """White-noise standard deviation of the readings (raw units), RMS over the axes, from
-    their second differences (:func:`magcal.calib.initial.rest.white_noise_std`).
-
-    mag : (N, 3) float, raw units, consecutive samples (N ≥ 3; 0.0 otherwise).
-    """
-    return rest.white_noise_std(mag)
 
 
 def symmetric_root(A: np.ndarray) -> tuple[np.ndarray, bool]:

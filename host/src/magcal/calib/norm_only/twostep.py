@@ -41,7 +41,7 @@ magcal's choices:
   ``B = (y − ȳ)/s``, ``s`` the readings' RMS distance from their mean: the problem is O(1)
   whatever the unit, and exactly invariant to the data's scale and offset.
 * ``Σ = σ² I`` with σ from second differences of the readings
-  (:func:`~magcal.calib.norm_only.norm_ellipsoid.noise_std_from_differences`), unless given.
+  (:func:`~magcal.calib.initial.rest.white_noise_std`), unless given.
 * The weights ``σ_k²`` depend on ``D`` and ``b``. They are evaluated at the a-priori
   ``D = 0, b = 0`` for a first centred estimate, then once more at that estimate for the
   final centred estimate (with a field of constant norm they become nearly equal, as they
@@ -57,6 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from magcal.calib.initial import rest
 from magcal.calib.initial.ellipsoid import EllipsoidFit
 from magcal.calib.norm_only import norm_ellipsoid
 from magcal.errors import InsufficientDataError
@@ -259,7 +260,7 @@ def two_step(mag: np.ndarray, *, noise_std: float | None = None, force: bool = F
             "working and rotate the sensor through all orientations"
         )
     B = (mag - centre) / scale
-    sigma = norm_ellipsoid.noise_std_from_differences(mag) if noise_std is None else noise_std
+    sigma = rest.white_noise_std(mag) if noise_std is None else noise_std
     sigma = max(float(sigma), MIN_NOISE_FRACTION * scale)
     sigma2 = (sigma / scale) ** 2
     L = _design(B)

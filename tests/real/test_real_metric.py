@@ -220,17 +220,28 @@ def _rig(gyro_bias_deg_s=(0.0, 0.0, 0.0), mag_delay_s=0.0, gyro_delay_s=0.0):
     return case, C, q_imu
 
 
+def _angle_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.rad2deg(np.linalg.norm(frames.quat_to_rotvec(frames.matrix_to_quat(A.T @ B)))))
+
+
 def test_the_imu_axes_are_found_in_the_reference_frame():
     case, C, q_imu = _rig()
-    found = real.imu_to_reference_rotation(case)
-    assert (
-        np.rad2deg(np.linalg.norm(frames.quat_to_rotvec(frames.matrix_to_quat(found.T @ C)))) < 0.05
-    )
+    found = real.imu_axes(case).C
+    assert _angle_deg(found, C) < 0.05
     # In the IMU's frame the attitudes are the IMU's own.
     turned = real.in_imu_frame(case, found)
     np.testing.assert_allclose(
         frames.quat_to_matrix(turned.trials[0].q_wb), frames.quat_to_matrix(q_imu), atol=1e-3
     )
+
+
+def test_the_imu_axes_are_found_past_the_gyroscopes_delay():
+    # The windows compared at the same times would turn C by the rig's delayed motion.
+    case, C, _ = _rig(gyro_delay_s=0.02)
+    assert _angle_deg(real._aligned_windows(case, 0.0), C) > 0.1
+    axes = real.imu_axes(case)
+    assert _angle_deg(axes.C, C) < 0.05
+    assert 1e3 * axes.gyro_delay_s == pytest.approx(20.0, abs=0.3)
 
 
 def test_the_gyroscope_bias_is_read_against_the_reference():
@@ -301,6 +312,13 @@ def test_the_fit_at_the_magnetometers_delay_is_the_magnetometer_as_it_is():
     assert got["fit"] == pytest.approx(got["ml"], rel=0.02) and got["ml"] > 1.0
     assert got["floor"] < got["fit"]
     assert np.linalg.norm(np.subtract(got["floor_rotation_deg"], misalignment_deg(D))) > 0.2
+    # In the IMU's axes (the reference's turned by C) the fit is the magnetometer against the
+    # IMU, D C, which ML would find, scored in the reference's axes as ML's result is: C's
+    # 3.7° move its score away from the fit's.
+    C = real.imu_axes(case).C
+    np.testing.assert_allclose(got["imu_fit_rotation_deg"], misalignment_deg(D @ C), atol=0.05)
+    assert got["imu_fit"] == pytest.approx(real.case_heading_deg(D @ C, o, case), rel=0.01)
+    assert abs(got["imu_fit"] - got["fit"]) > 1.0
     # Without a floor (a case scored on other recordings) there is nothing to compare.
     assert real._at_reference_delay(case, None, None, {"D": D.tolist(), "o": o.tolist()}) is None
 

@@ -47,6 +47,7 @@ metric never needs, since it compares headings in the world frame.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import math
 import re
@@ -455,7 +456,7 @@ def reference_delay(trial: Trial) -> float | None:
 def gyroscope_delay(case: Case, C: np.ndarray) -> float | None:
     """s: the gyroscope's delay behind the reference attitude: the delay at which the
     reference's rate (from consecutive attitudes, turned to the IMU's axes by ``C``,
-    :func:`imu_to_reference_rotation`) matches the gyroscope's best (the median of
+    :class:`ImuAxes`) matches the gyroscope's best (the median of
     ``|ω_gyro − ω_reference|`` after the median difference, the bias, is taken out;
     :func:`_best_delay`). With :func:`reference_delay` it gives the magnetometer's delay
     behind the gyroscope, which ML's time offset estimates. None unless the case is scored on
@@ -577,11 +578,12 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
         out["methods"][method] = entry
     ml = out["methods"].get("ml", {})
     ml_result = ml.get("forced", ml)
+    axes = imu_axes(case)  # once for the two sections that use it: two delay scans
     for key, score in (
         ("at_magnetometer_time", _at_magnetometer_time),
-        ("imu_frame", _in_imu_frame),
+        ("imu_frame", functools.partial(_in_imu_frame, axes=axes)),
         ("other_recordings", _on_other_recordings),
-        ("reference_delay", _at_reference_delay),
+        ("reference_delay", functools.partial(_at_reference_delay, axes=axes)),
         ("trial_by_trial", _trial_by_trial),
     ):
         out[key] = score(case, plain, floor, ml_result)
@@ -591,17 +593,20 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
     return out
 
 
-def _window_rotations(case: Case, window_s: float) -> tuple[np.ndarray, ...] | None:
+def _window_rotations(
+    case: Case, window_s: float, gyro_delay_s: float = 0.0
+) -> tuple[np.ndarray, ...] | None:
     """Over consecutive windows of ``window_s`` that have a reference at both ends: the
-    reference's rotation (rotation vector of R(t)ᵀ R(t + T), reference body axes), the
+    reference's rotation (rotation vector of R(t)ᵀ R(t + T), reference body axes, with the
+    reference at ``t − gyro_delay_s``: the motion the gyroscope's samples measured), the
     gyroscope's integrated rate (IMU axes), both (K, 3) rad, and the windows' spans (K,) s.
     None unless the case is scored on its own recording."""
     if not scored_on_own_recording(case):
         return None
     trial, session = case.trials[0], case.session
-    have = np.all(np.isfinite(trial.q_wb), axis=1)
+    q_wb, have = reference_at(trial, gyro_delay_s)
     step = max(1, int(round(window_s / np.median(np.diff(session.t)))))
-    rotations = _rotations(np.where(have[:, None], trial.q_wb, [1.0, 0.0, 0.0, 0.0]))
+    rotations = _rotations(np.where(have[:, None], q_wb, [1.0, 0.0, 0.0, 0.0]))
     # Trapezoids: a gyroscope sample is the rate at its time, not over the step after it.
     rate_dt = 0.5 * (session.gyr[:-1] + session.gyr[1:]) * np.diff(session.t)[:, None]
     starts = np.arange(0, len(session.t) - step, step)
@@ -612,12 +617,42 @@ def _window_rotations(case: Case, window_s: float) -> tuple[np.ndarray, ...] | N
     return reference, gyro, session.t[starts + step] - session.t[starts]
 
 
-def imu_to_reference_rotation(case: Case) -> np.ndarray | None:
-    """(3, 3) C with ``v_reference = C v_imu``: how the IMU's axes sit in the reference's body
-    frame (markers, a rig), from the rotations over :data:`IMU_ALIGNMENT_WINDOW_S` windows:
-    the reference's against the gyroscope's integrated rate, by least squares (Wahba). None
-    unless the case is scored on its own recording."""
-    windows = _window_rotations(case, IMU_ALIGNMENT_WINDOW_S)
+@dataclass(frozen=True)
+class ImuAxes:
+    """How the IMU sits against the reference (:func:`imu_axes`).
+
+    C            : (3, 3), ``v_reference = C v_imu``: the IMU's axes in the reference's body
+                   frame (markers, a rig)
+    gyro_delay_s : s, the gyroscope's delay behind the reference's clock
+                   (:func:`gyroscope_delay`; None where no delay within the grid is best)
+    """
+
+    C: np.ndarray
+    gyro_delay_s: float | None
+
+
+def imu_axes(case: Case) -> ImuAxes | None:
+    """The IMU's axes in the reference's body frame, from the rotations over
+    :data:`IMU_ALIGNMENT_WINDOW_S` windows: the reference's against the gyroscope's
+    integrated rate, by least squares (Wahba), with the reference at the gyroscope's delay;
+    and that delay. Where the motion turns more one way than another, a delay of a few ms
+    left in turns C by tenths of a degree (BROAD: 0.4–0.7°), so C is read twice: at no
+    delay, which gives the delay, then at the delay, which gives C and the delay again.
+    None unless the case is scored on its own recording."""
+    C = _aligned_windows(case, 0.0)
+    if C is None:
+        return None
+    delay = gyroscope_delay(case, C)
+    at_delay = _aligned_windows(case, delay) if delay else None
+    if at_delay is None:
+        return ImuAxes(C, delay)
+    return ImuAxes(at_delay, gyroscope_delay(case, at_delay))
+
+
+def _aligned_windows(case: Case, gyro_delay_s: float) -> np.ndarray | None:
+    """:attr:`ImuAxes.C` from the windows with the reference at ``gyro_delay_s`` (None
+    without three windows that turn)."""
+    windows = _window_rotations(case, IMU_ALIGNMENT_WINDOW_S, gyro_delay_s)
     if windows is None:
         return None
     reference, gyro, _ = windows
@@ -628,13 +663,13 @@ def imu_to_reference_rotation(case: Case) -> np.ndarray | None:
     return C.as_matrix()
 
 
-def reference_gyro_bias(case: Case, C: np.ndarray) -> np.ndarray | None:
+def reference_gyro_bias(case: Case, C: np.ndarray, gyro_delay_s: float = 0.0) -> np.ndarray | None:
     """(3,) rad/s in the IMU's axes: the gyroscope's rate minus the reference's (turned to the
-    IMU's axes by ``C``, :func:`imu_to_reference_rotation`), median over
-    :data:`REFERENCE_BIAS_WINDOW_S` windows (robust to the reference's dropouts and
-    glitches): the bias an estimate can be checked against. None unless the case is scored
-    on its own recording."""
-    windows = _window_rotations(case, REFERENCE_BIAS_WINDOW_S)
+    IMU's axes by ``C``, at the gyroscope's delay ``gyro_delay_s``: :class:`ImuAxes`),
+    median over :data:`REFERENCE_BIAS_WINDOW_S` windows (robust to the reference's dropouts
+    and glitches): the bias an estimate can be checked against. None unless the case is
+    scored on its own recording."""
+    windows = _window_rotations(case, REFERENCE_BIAS_WINDOW_S, gyro_delay_s)
     if windows is None or len(windows[2]) == 0:
         return None
     reference, gyro, span = windows
@@ -650,20 +685,23 @@ def in_imu_frame(case: Case, C: np.ndarray) -> Case:
     return dataclasses.replace(case, trials=trials)
 
 
-def _in_imu_frame(case: Case, plain, floor: FloorFit | None, ml_run: dict) -> dict | None:
+def _in_imu_frame(
+    case: Case, plain, floor: FloorFit | None, ml_run: dict, axes: ImuAxes | None = None
+) -> dict | None:
     """The plain fit, the floor and ML (forced, if it refused) scored with the reference
-    attitude turned to the IMU's axes (:func:`imu_to_reference_rotation`): the body frame an
+    attitude turned to the IMU's axes (``axes``, default :func:`imu_axes`): the body frame an
     inertial calibration aligns the magnetometer to (None where there is no such rotation).
     The floor turns with the attitude: with R_imu = R_reference C its fit is D C, field and
     offset unchanged, so it is not refitted."""
-    C = imu_to_reference_rotation(case)
-    if C is None or ml_run.get("D") is None:
+    axes = axes or imu_axes(case)
+    if axes is None or ml_run.get("D") is None:
         return None
+    C = axes.C
     imu = in_imu_frame(case, C)
     if floor is not None:
         floor = dataclasses.replace(floor, D=floor.D @ C)
     north = None if floor is None else floor.heading_deg
-    bias = reference_gyro_bias(case, C)
+    bias = reference_gyro_bias(case, C, axes.gyro_delay_s or 0.0)
     return {
         "rotation_deg": [float(x) for x in np.rad2deg(Rotation.from_matrix(C).as_rotvec())],
         "reference_gyro_bias_deg_s": None if bias is None else [float(x) for x in np.rad2deg(bias)],
@@ -698,26 +736,37 @@ def _at_magnetometer_time(
     }
 
 
-def _at_reference_delay(case: Case, _plain, floor: FloorFit | None, ml_run: dict) -> dict | None:
+def _at_reference_delay(
+    case: Case, _plain, floor: FloorFit | None, ml_run: dict, axes: ImuAxes | None = None
+) -> dict | None:
     """For a case scored on its own recording: the magnetometer's delay behind the reference
     (:func:`reference_delay`) and the known-attitude fit there, the calibration of the
     magnetometer as it is, with the lag left out of D. Scored as every method is (at t, the
     case's declination), it is the floor of a calibration that carries the lag in a time
     offset instead of in D; scored at its own time and north, what such a calibration gives
-    a fusion filter that knows the delay. None without a floor, a delay or an ML result."""
+    a fusion filter that knows the delay. The same fit with the reference turned to the IMU's
+    axes (``imu_fit``, where they are found: ``axes``, default :func:`imu_axes`) calibrates the
+    magnetometer against the IMU with the attitude known exactly: the best an inertial
+    calibration can find, scored as its result is, in the reference's axes. None without a
+    floor, a delay or an ML result."""
     if floor is None or ml_run.get("D") is None:
         return None
     delay = reference_delay(case.trials[0])
     if delay is None:
         return None
     fit = case_floor(case, delay)
-    C = imu_to_reference_rotation(case)
-    gyro_delay = None if C is None else gyroscope_delay(case, C)
+    axes = axes or imu_axes(case)
+    gyro_delay = None if axes is None else axes.gyro_delay_s
+    imu_fit = None if axes is None else case_floor(in_imu_frame(case, axes.C), delay)
     D_ml, o_ml = np.array(ml_run["D"]), np.array(ml_run["o"])
     return {
         "delay_s": delay,
         "gyroscope_delay_s": gyro_delay,
         "fit": case_heading_deg(fit.D, fit.o, case),
+        "imu_fit": None if imu_fit is None else case_heading_deg(imu_fit.D, imu_fit.o, case),
+        "imu_fit_rotation_deg": None
+        if imu_fit is None
+        else [float(x) for x in misalignment_deg(imu_fit.D)],
         "fit_at_delay": case_heading_deg(fit.D, fit.o, case, fit.heading_deg, delay),
         "fit_rotation_deg": [float(x) for x in misalignment_deg(fit.D)],
         "floor_rotation_deg": [float(x) for x in misalignment_deg(floor.D)],

@@ -211,24 +211,32 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "case's declination), it is the best a calibration can do that carries the lag in a "
         "time offset rather than in D, and ML's ratio to it (×d) says how close ML comes; "
         "scored at its own time and north it is what a fusion filter that knows the delay "
-        "could get. Cases scored on other recordings are left out.",
+        "could get. *In the IMU's axes*: the same fit with the reference turned to the IMU's "
+        "axes (as in the section below), the magnetometer calibrated against the IMU with the "
+        "attitude known exactly and the lag left out: the best an inertial calibration can "
+        "find. Scored as every method is, in the reference's axes, it carries the IMU's "
+        "mounting in the reference's frame as ML's result does; ML's ratio to it is ×i. Cases "
+        "scored on other recordings are left out.",
         "",
         "| case | magnetometer's delay ms | gyroscope's delay ms | ML's τ ms | floor | fit at "
-        "the delay | ml | fit at the delay, at its own time | its rotation ° | floor's "
-        "rotation ° |",
-        "|---|---:|---:|---:|---:|---:|---:|---:|---|---|",
+        "the delay | fit at the delay, in the IMU's axes | ml | fit at the delay, at its own "
+        "time | its rotation ° | floor's rotation ° |",
+        "|---|---:|---:|---:|---:|---:|---:|---:|---:|---|---|",
     ]
     for r, a, ml_run in _section_rows(good, "reference_delay"):
         tau = ml_run.get("time_offset_s")
         gyro = a.get("gyroscope_delay_s")
-        ml = f"{_f(a['ml'])} ({a['ml'] / a['fit']:.2f}×d, {a['ml'] / a['floor']:.2f}×f)"
+        imu_fit = a.get("imu_fit")
+        vs_imu = "" if imu_fit is None else f"{a['ml'] / imu_fit:.2f}×i, "
+        ml = f"{_f(a['ml'])} ({a['ml'] / a['fit']:.2f}×d, {vs_imu}{a['ml'] / a['floor']:.2f}×f)"
         if a.get("ml_forced"):
             ml = f"refused (forced {ml})"
+        imu_txt = "–" if imu_fit is None else f"{_f(imu_fit)} ({imu_fit / a['floor']:.2f}×f)"
         lines.append(
             f"| {r['case']} | {1e3 * a['delay_s']:.1f} | "
             f"{'–' if gyro is None else f'{1e3 * gyro:.1f}'} | "
             f"{'–' if tau is None else f'{1e3 * tau:.1f}'} | {_f(a['floor'])} | "
-            f"{_f(a['fit'])} ({a['fit'] / a['floor']:.2f}×f) | {ml} | "
+            f"{_f(a['fit'])} ({a['fit'] / a['floor']:.2f}×f) | {imu_txt} | {ml} | "
             f"{_f(a['fit_at_delay'])} | {_vec(a['fit_rotation_deg'])} | "
             f"{_vec(a['floor_rotation_deg'])} |"
         )
@@ -239,11 +247,12 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "The reference attitude is that of the optical markers' body frame. An inertial "
         "calibration aligns the magnetometer to the IMU's axes, which sit in that frame turned "
         "by the rotation given here (from the gyroscope's rotations over 0.1 s against the "
-        "reference's, least squares: `magcal_evaluation.real.imu_to_reference_rotation`). "
+        "reference's at the gyroscope's delay, least squares: "
+        "`magcal_evaluation.real.imu_axes`). "
         "Here the reference is turned to the IMU's axes before scoring, the floor turned "
         "with it (the same fit: its D times the rotation), and all three share the floor's "
         "north. The gyroscope's bias as the reference "
-        "shows it (its rate minus the reference's over 30 ms, median: "
+        "shows it (its rate minus the reference's over 30 ms at the gyroscope's delay, median: "
         "`magcal_evaluation.real.reference_gyro_bias`) stands beside ML's estimate. Cases "
         "scored on other recordings are left out.",
         "",

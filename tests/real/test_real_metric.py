@@ -294,6 +294,25 @@ def test_the_delays_are_read_against_the_reference(mag_delay_ms, gyro_delay_ms):
     assert 1e3 * real.gyroscope_delay(case, C) == pytest.approx(gyro_delay_ms, abs=0.3)
 
 
+def test_the_delay_is_read_on_the_magnetometers_own_samples():
+    # A magnetometer read at half the rows, its value repeated in between: a repeat shows
+    # the field one row later than it was measured, and is no measurement.
+    case, _, _ = _rig(mag_delay_s=0.02)
+    mag = case.session.mag.copy()
+    mag[1::2] = mag[0:-1:2]
+    trial = dataclasses.replace(case.trials[0], mag=mag)
+    case = dataclasses.replace(
+        case, session=dataclasses.replace(case.session, mag=mag), trials=(trial,)
+    )
+    measured = real.measured_rows(case)
+    assert measured.sum() == len(mag) // 2
+    assert 1e3 * real.reference_delay(trial, measured) == pytest.approx(20.0, abs=0.3)
+    assert 1e3 * real.reference_delay(trial) > 21.0
+    D, o = _distortion(4, symmetric=False)
+    got = real._at_reference_delay(case, None, real.case_floor(case), {"D": D, "o": o})
+    assert 1e3 * got["delay_s"] == pytest.approx(20.0, abs=0.3)
+
+
 def test_a_delay_beyond_the_search_is_not_reported():
     case, _, _ = _rig(mag_delay_s=1.5 * real.REFERENCE_DELAY_MAX_S)
     assert real.reference_delay(case.trials[0]) is None

@@ -69,6 +69,7 @@ from magcal.calib.initial.ellipsoid import (
     fit_ellipsoid_sdp,
     symmetric_fit,
 )
+from magcal.calib.samples import drop_magnetometer_glitches
 from magcal.errors import MagcalError
 from magcal.io.session import Session, read_session, session_from_arrays
 from magcal_evaluation import REPO_ROOT
@@ -435,14 +436,17 @@ def _best_delay(residual_at) -> float | None:
     return float(delays[k] + REFERENCE_DELAY_STEP_S * shift)
 
 
-def reference_delay(trial: Trial) -> float | None:
+def reference_delay(trial: Trial, rows: np.ndarray | None = None) -> float | None:
     """s: the magnetometer's delay behind the reference attitude, as the reference itself
     shows it: the delay at which the known-attitude model explains the magnetometer best
     (smallest residual against the reference at ``t − delay``, :func:`reference_at`;
-    :func:`_best_delay`). It is independent of any calibration, and it measures the
+    :func:`_best_delay`), over the trial's samples or the ``rows`` (N,) bool of them
+    (:func:`measured_rows`). It is independent of any calibration, and it measures the
     magnetometer against the reference's clock, not the gyroscope's. None when no delay
     within the grid is best."""
     have = np.all(np.isfinite(trial.q_wb), axis=1)
+    if rows is not None:
+        have &= rows
     # The same samples at every delay, so that the residuals compare.
     keep = have & _within(trial.t, trial.t[have], REFERENCE_DELAY_MAX_S)
 
@@ -486,15 +490,25 @@ def _within(t: np.ndarray, t_reference: np.ndarray, margin_s: float) -> np.ndarr
     return (t >= t_reference[0] + margin_s) & (t <= t_reference[-1] - margin_s)
 
 
-def case_floor(case: Case, delay_s: float = 0.0) -> FloorFit | None:
+def case_floor(case: Case, delay_s: float = 0.0, rows: np.ndarray | None = None) -> FloorFit | None:
     """The floor of a case scored on its own recording (fitted on the samples that have a
-    reference attitude; with ``delay_s``, the reference at the magnetometer's times), else
-    None."""
+    reference attitude, or the ``rows`` (N,) bool of them; with ``delay_s``, the reference
+    at the magnetometer's times), else None."""
     if not scored_on_own_recording(case):
         return None
     trial = case.trials[0]
     q, have = reference_at(trial, delay_s)
+    if rows is not None:
+        have = have & rows
     return known_attitude_floor(trial.mag[have], q[have])
+
+
+def measured_rows(case: Case) -> np.ndarray:
+    """(N,) bool: the session's rows where the magnetometer measured, as a calibration takes
+    them (:func:`magcal.calib.samples.drop_magnetometer_glitches`): a stream that repeats
+    its last value until the next reading has no new measurement in the repeats, and they
+    show the field later than it was measured (BROAD: 29 % of the rows)."""
+    return drop_magnetometer_glitches(case.session)[0].has_mag
 
 
 # ----------------------------------------------------------------------------- methods
@@ -741,23 +755,25 @@ def _at_reference_delay(
 ) -> dict | None:
     """For a case scored on its own recording: the magnetometer's delay behind the reference
     (:func:`reference_delay`) and the known-attitude fit there, the calibration of the
-    magnetometer as it is, with the lag left out of D. Scored as every method is (at t, the
-    case's declination), it is the floor of a calibration that carries the lag in a time
-    offset instead of in D; scored at its own time and north, what such a calibration gives
-    a fusion filter that knows the delay. The same fit with the reference turned to the IMU's
-    axes (``imu_fit``, where they are found: ``axes``, default :func:`imu_axes`) calibrates the
-    magnetometer against the IMU with the attitude known exactly: the best an inertial
-    calibration can find, scored as its result is, in the reference's axes. None without a
-    floor, a delay or an ML result."""
+    magnetometer as it is, with the lag left out of D; both on the rows where the
+    magnetometer measured (:func:`measured_rows`), as a calibration sees them. Scored as
+    every method is (at t, the case's declination), the fit is the floor of a calibration
+    that carries the lag in a time offset instead of in D; scored at its own time and north,
+    what such a calibration gives a fusion filter that knows the delay. The same fit with
+    the reference turned to the IMU's axes (``imu_fit``, where they are found: ``axes``,
+    default :func:`imu_axes`) calibrates the magnetometer against the IMU with the attitude
+    known exactly: the best an inertial calibration can find, scored as its result is, in
+    the reference's axes. None without a floor, a delay or an ML result."""
     if floor is None or ml_run.get("D") is None:
         return None
-    delay = reference_delay(case.trials[0])
+    measured = measured_rows(case)
+    delay = reference_delay(case.trials[0], measured)
     if delay is None:
         return None
-    fit = case_floor(case, delay)
+    fit = case_floor(case, delay, measured)
     axes = axes or imu_axes(case)
     gyro_delay = None if axes is None else axes.gyro_delay_s
-    imu_fit = None if axes is None else case_floor(in_imu_frame(case, axes.C), delay)
+    imu_fit = None if axes is None else case_floor(in_imu_frame(case, axes.C), delay, measured)
     D_ml, o_ml = np.array(ml_run["D"]), np.array(ml_run["o"])
     return {
         "delay_s": delay,

@@ -199,7 +199,9 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
         "",
         "The reference measures the magnetometer's delay too, independently of any "
         "calibration: the delay behind the reference's clock at which the known-attitude "
-        "model explains the magnetometer best (`magcal_evaluation.real.reference_delay`), "
+        "model explains the magnetometer best (`magcal_evaluation.real.reference_delay`; "
+        "on the rows where the magnetometer measured, as the calibration takes them: a "
+        "stream's repeats of its last value are no new measurement), "
         "and the gyroscope's, where the reference's rate matches the gyroscope's best "
         "(`magcal_evaluation.real.gyroscope_delay`). Their difference is the magnetometer's "
         "delay behind the gyroscope, which ML's time offset τ estimates; ML holds each "

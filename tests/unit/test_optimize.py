@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 
@@ -69,3 +71,20 @@ def test_lost_positive_definiteness_restarts_and_still_converges(monkeypatch):
     assert rep.hessian_resets == 1
     assert rep.converged
     np.testing.assert_allclose(rep.x, [1.0, 1.0], atol=1e-6)
+
+
+def test_a_step_that_rounds_to_nothing_ends_the_run_without_invalid_arithmetic():
+    # At the minimum of a steep quadratic far from the start, a gradient off by a little
+    # asks for a step below the position's round-off: it is accepted (the cost cannot
+    # change) and is exactly zero, which carries no curvature for the BFGS update.
+    K, c = 1e12, 1e5
+
+    def f(x):
+        u = x[0] - c
+        return 1e3 + 0.5 * K * u * u, np.array([K * u - 1.0])
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rep = minimize_bfgs(f, np.zeros(1), np.ones(1))
+    assert rep.stopping_rule == "step"
+    assert rep.x[0] == c

@@ -165,13 +165,16 @@ def minimize_bfgs(
         Bs = B @ s
         sBs = float(s @ Bs)
         sy = float(s @ y)
-        if sy < POWELL_DAMPING * sBs:
-            theta = (1.0 - POWELL_DAMPING) * sBs / (sBs - sy)
-            r = theta * y + (1.0 - theta) * Bs
-        else:
-            r = y
-        B = B - np.outer(Bs, Bs) / sBs + np.outer(r, r) / float(s @ r)
-        B = 0.5 * (B + B.T)
+        # A step the line search shrank to nothing (or below round-off) carries no
+        # curvature: B stays, and the step rule below ends the run.
+        if sBs > 0.0:
+            if sy < POWELL_DAMPING * sBs:
+                theta = (1.0 - POWELL_DAMPING) * sBs / (sBs - sy)
+                r = theta * y + (1.0 - theta) * Bs
+            else:
+                r = y
+            B = B - np.outer(Bs, Bs) / sBs + np.outer(r, r) / float(s @ r)
+            B = 0.5 * (B + B.T)
         dv = v - v_new
         z, v, g = z_new, v_new, g_new
         history.append(v)

@@ -90,6 +90,10 @@ def negative_log_likelihood_and_gradient(
     workspace of ``mekf.new_tape`` (allocated here when None)."""
     theta = np.asarray(theta, dtype=float)
     value, mg = mekf.cost_and_model_gradient(params.unpack(theta), data, tape=tape)
+    if not np.isfinite(value) or not all(np.all(np.isfinite(p)) for p in vars(mg).values()):
+        # The filter broke down at θ (a trial point far out in a line search): there is no
+        # gradient to carry over to θ, and the optimiser rejects a point without one.
+        return value, np.full(theta.shape, np.nan)
     grad = params.model_grad_to_theta(
         theta,
         mg.D,

@@ -309,7 +309,9 @@ def test_the_delay_is_read_on_the_magnetometers_own_samples():
     assert 1e3 * real.reference_delay(trial, measured) == pytest.approx(20.0, abs=0.3)
     assert 1e3 * real.reference_delay(trial) > 21.0
     D, o = _distortion(4, symmetric=False)
-    got = real._at_reference_delay(case, None, real.case_floor(case), {"D": D, "o": o})
+    got = real._at_reference_delay(
+        case, None, real.case_floor(case), {"D": D, "o": o}, axes=real.imu_axes(case)
+    )
     assert 1e3 * got["delay_s"] == pytest.approx(20.0, abs=0.3)
 
 
@@ -320,9 +322,10 @@ def test_a_delay_beyond_the_search_is_not_reported():
 
 def test_the_fit_at_the_magnetometers_delay_is_the_magnetometer_as_it_is():
     case, _, _ = _rig(mag_delay_s=0.03)
-    floor = real.case_floor(case)
+    floor, axes = real.case_floor(case), real.imu_axes(case)
     D, o = _distortion(4, symmetric=False)
-    got = real._at_reference_delay(case, None, floor, {"D": D.tolist(), "o": o.tolist()})
+    ml_run = {"D": D.tolist(), "o": o.tolist()}
+    got = real._at_reference_delay(case, None, floor, ml_run, axes=axes)
     assert got["delay_s"] == pytest.approx(0.03, abs=3e-4)
     # The fit there has D's own rotation and no error at its own time; scored at t it is
     # charged for the lag as the true D is, while the floor takes part of the lag into D.
@@ -334,12 +337,12 @@ def test_the_fit_at_the_magnetometers_delay_is_the_magnetometer_as_it_is():
     # In the IMU's axes (the reference's turned by C) the fit is the magnetometer against the
     # IMU, D C, which ML would find, scored in the reference's axes as ML's result is: C's
     # 3.7° move its score away from the fit's.
-    C = real.imu_axes(case).C
+    C = axes.C
     np.testing.assert_allclose(got["imu_fit_rotation_deg"], misalignment_deg(D @ C), atol=0.05)
     assert got["imu_fit"] == pytest.approx(real.case_heading_deg(D @ C, o, case), rel=0.01)
     assert abs(got["imu_fit"] - got["fit"]) > 1.0
     # Without a floor (a case scored on other recordings) there is nothing to compare.
-    assert real._at_reference_delay(case, None, None, {"D": D.tolist(), "o": o.tolist()}) is None
+    assert real._at_reference_delay(case, None, None, ml_run, axes=axes) is None
 
 
 def test_trial_by_trial_pairs_each_recording():

@@ -372,12 +372,8 @@ def known_attitude_floor(mag: np.ndarray, q_wb: np.ndarray) -> FloorFit:
     unknowns, m as a heading and a dip.
     """
     mag = np.asarray(mag, dtype=float)
-    R_wb = frames.quat_to_matrix(q_wb)
-    R_bw = np.transpose(R_wb, (0, 2, 1))
-    n = mag.shape[0]
-    # y_i = Σ_jk D_ij m_k (R_bw)_jk + o_i: linear in the 27 products D_ij m_k.
-    X = np.hstack([R_bw.reshape(n, 9), np.ones((n, 1))])
-    coef, *_ = np.linalg.lstsq(X, mag, rcond=None)
+    R_bw = np.transpose(frames.quat_to_matrix(q_wb), (0, 2, 1))
+    coef, _ = _bilinear_fit(mag, R_bw)
     products = coef[:9].T.reshape(9, 3)  # rows (i, j), columns k
     m = np.linalg.svd(products)[2][0]
     if m[2] > 0.0:  # the sign is D's and m's together; take the field pointing down
@@ -410,14 +406,20 @@ def known_attitude_floor(mag: np.ndarray, q_wb: np.ndarray) -> FloorFit:
     )
 
 
-def _bilinear_residual(mag: np.ndarray, q_wb: np.ndarray) -> float:
-    """RMS residual of ``mag`` (N, 3) on the known-attitude model with ``D ⊗ m`` as 27 free
-    coefficients (:func:`known_attitude_floor`'s start): linear, so cheap to scan."""
+def _bilinear_fit(mag: np.ndarray, R_bw: np.ndarray) -> tuple[np.ndarray, float]:
+    """The known-attitude model with ``D ⊗ m`` as 27 free coefficients, linear:
+    ``y_i = Σ_jk D_ij m_k (R_bw)_jk + o_i``. Its coefficients (10, 3) (the 9 products of
+    row i in column i, then o) and the RMS residual of ``mag`` (N, 3) on it; R_bw (N, 3, 3)."""
     n = mag.shape[0]
-    R_bw = np.transpose(frames.quat_to_matrix(q_wb), (0, 2, 1))
     X = np.hstack([R_bw.reshape(n, 9), np.ones((n, 1))])
     coef, *_ = np.linalg.lstsq(X, mag, rcond=None)
-    return float(np.sqrt(np.mean(np.sum((X @ coef - mag) ** 2, axis=1))))
+    return coef, float(np.sqrt(np.mean(np.sum((X @ coef - mag) ** 2, axis=1))))
+
+
+def _bilinear_residual(mag: np.ndarray, q_wb: np.ndarray) -> float:
+    """RMS residual of ``mag`` (N, 3) on :func:`_bilinear_fit` (:func:`known_attitude_floor`'s
+    start) with the attitudes ``q_wb``: linear, so cheap to scan."""
+    return _bilinear_fit(mag, np.transpose(frames.quat_to_matrix(q_wb), (0, 2, 1)))[1]
 
 
 def _best_delay(residual_at) -> float | None:
@@ -700,14 +702,13 @@ def in_imu_frame(case: Case, C: np.ndarray) -> Case:
 
 
 def _in_imu_frame(
-    case: Case, plain, floor: FloorFit | None, ml_run: dict, axes: ImuAxes | None = None
+    case: Case, plain, floor: FloorFit | None, ml_run: dict, *, axes: ImuAxes | None
 ) -> dict | None:
     """The plain fit, the floor and ML (forced, if it refused) scored with the reference
-    attitude turned to the IMU's axes (``axes``, default :func:`imu_axes`): the body frame an
+    attitude turned to the IMU's axes (``axes``: :func:`imu_axes`): the body frame an
     inertial calibration aligns the magnetometer to (None where there is no such rotation).
     The floor turns with the attitude: with R_imu = R_reference C its fit is D C, field and
     offset unchanged, so it is not refitted."""
-    axes = axes or imu_axes(case)
     if axes is None or ml_run.get("D") is None:
         return None
     C = axes.C
@@ -751,7 +752,7 @@ def _at_magnetometer_time(
 
 
 def _at_reference_delay(
-    case: Case, _plain, floor: FloorFit | None, ml_run: dict, axes: ImuAxes | None = None
+    case: Case, _plain, floor: FloorFit | None, ml_run: dict, *, axes: ImuAxes | None
 ) -> dict | None:
     """For a case scored on its own recording: the magnetometer's delay behind the reference
     (:func:`reference_delay`) and the known-attitude fit there, the calibration of the
@@ -761,7 +762,7 @@ def _at_reference_delay(
     that carries the lag in a time offset instead of in D; scored at its own time and north,
     what such a calibration gives a fusion filter that knows the delay. The same fit with
     the reference turned to the IMU's axes (``imu_fit``, where they are found: ``axes``,
-    default :func:`imu_axes`) calibrates the magnetometer against the IMU with the attitude
+    :func:`imu_axes`) calibrates the magnetometer against the IMU with the attitude
     known exactly: the best an inertial calibration can find, scored as its result is, in
     the reference's axes. None without a floor, a delay or an ML result."""
     if floor is None or ml_run.get("D") is None:
@@ -771,7 +772,6 @@ def _at_reference_delay(
     if delay is None:
         return None
     fit = case_floor(case, delay, measured)
-    axes = axes or imu_axes(case)
     gyro_delay = None if axes is None else axes.gyro_delay_s
     imu_fit = None if axes is None else case_floor(in_imu_frame(case, axes.C), delay, measured)
     D_ml, o_ml = np.array(ml_run["D"]), np.array(ml_run["o"])

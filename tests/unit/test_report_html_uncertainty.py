@@ -84,6 +84,59 @@ def test_a_direction_without_curvature_is_reported_and_makes_its_quantities_unbo
     np.testing.assert_allclose(sigma[1], np.sqrt(reduced[1, 1]), rtol=1e-9)
 
 
+def test_the_marginal_covariance_of_a_definite_hessian_is_its_inverse_block():
+    rng = np.random.default_rng(5)
+    M = rng.normal(size=(5, 5))
+    H = M @ M.T + 5 * np.eye(5)
+    keep = np.array([True, False, True, True, False])
+    hc = uncertainty.marginal_covariance(H, np.ones(5), keep)
+    assert hc.identifiable
+    np.testing.assert_allclose(hc.cov[np.ix_(keep, keep)], np.linalg.inv(H)[np.ix_(keep, keep)])
+    assert not hc.cov[~keep].any() and not hc.cov[:, ~keep].any()
+
+
+def test_a_noise_model_direction_without_resolved_curvature_leaves_the_calibration_bounded():
+    """Calibration coordinates a, b; noise-model coordinates c, d. d barely curves (below the
+    identifiability threshold) and couples to b at 1e-4: the whole Hessian's null direction
+    then touches b by more than rounding and calls b unbounded; marginalising the noise
+    model keeps b's σ within the few per cent d's unresolved curvature can move it."""
+    H = np.array(
+        [
+            [2.0, 0.3, 0.2, 0.0],
+            [0.3, 1.0, 0.1, 1e-4],
+            [0.2, 0.1, 1.0, 0.0],
+            [0.0, 1e-4, 0.0, 1e-7],
+        ]
+    )
+    calibration = np.array([True, True, False, False])
+    whole = uncertainty.covariance_from_hessian(H, np.ones(4))
+    _, sigma_whole = uncertainty.propagate(lambda th: th[:2], np.zeros(4), whole)
+    assert sigma_whole[1] == np.inf
+    hc = uncertainty.marginal_covariance(H, np.ones(4), calibration)
+    assert hc.identifiable
+    _, sigma = uncertainty.propagate(lambda th: th[:2], np.zeros(4), hc)
+    exact = np.sqrt(np.diag(np.linalg.inv(H))[:2])
+    np.testing.assert_allclose(sigma, exact, rtol=0.1)
+    noise = uncertainty.marginal_covariance(H, np.ones(4), ~calibration)
+    assert not noise.identifiable
+    text = uncertainty.direction_text(noise.null_directions[0], ["a", "b", "c", "d"])
+    assert text.startswith("1.00·d")
+
+
+def test_a_direction_the_calibration_leaves_free_stays_unbounded_when_the_noise_is_marginalised():
+    rng = np.random.default_rng(6)
+    A = rng.normal(size=(60, 4))
+    A = np.column_stack([A[:, :3], A[:, 1], A[:, 3]])  # θ1 and θ3 enter only as θ1 + θ3
+    H = A.T @ A
+    calibration = np.array([True, True, True, True, False])
+    hc = uncertainty.marginal_covariance(H, np.ones(5), calibration)
+    assert hc.null_directions.shape == (1, 5)
+    text = uncertainty.direction_text(hc.null_directions[0], list("abcde"))
+    assert text in ("0.71·b − 0.71·d", "0.71·d − 0.71·b")
+    _, sigma = uncertainty.propagate(lambda th: th[[0, 1]], np.zeros(5), hc)
+    assert np.isfinite(sigma[0]) and sigma[1] == np.inf
+
+
 def test_propagate_is_the_delta_method_on_a_linear_map():
     rng = np.random.default_rng(4)
     M = rng.normal(size=(6, 6))

@@ -21,6 +21,15 @@ How H is computed, and why:
   ``problem.parameter_scales``) H's eigenvalues are of order one, so "not positive definite" and
   "nearly singular" can be judged against a relative threshold, and a direction of
   (near-)zero curvature is reported as *not identifiable*, with the parameters it moves.
+* The **calibration's quantities are judged apart from the noise model's** (the Cholesky
+  parameters of Σ_ω, Σ_a, Σ_m), each with the other marginalised
+  (:func:`marginal_covariance`): a direction that only the noise model leaves free (on a
+  hand-held recording whose accelerations switch most accelerometer updates off, Σ_a's
+  correlations) leaves D, o and the rest as determined as they are. Read off the
+  eigenvectors of the whole Hessian instead, such a direction carries components of a
+  percent on D and o (less than a nearly singular eigenvector is resolved to, yet enough
+  to mark them unbounded), and a calibration the data determine to hundredths of a degree
+  came out "not identifiable".
 """
 
 from __future__ import annotations
@@ -167,6 +176,47 @@ def covariance_from_hessian(
     )
 
 
+def is_noise_model_parameter(name: str) -> bool:
+    """Whether θ's component ``name`` (:data:`params.PARAM_NAMES`) describes the noise model
+    (a covariance's Cholesky parameter) rather than the calibration."""
+    return name.startswith("chol_")
+
+
+def marginal_covariance(
+    H: np.ndarray, scales: np.ndarray, keep: np.ndarray, rtol: float = IDENTIFIABILITY_RTOL
+) -> HessianCovariance:
+    """The covariance of the coordinates ``keep`` ((n,) bool) with the others marginalised:
+    the inverse of the Schur complement ``H_kk − H_ko H_oo⁺ H_ok``, H_oo⁺ the inverse of the
+    others' block on the directions where it curves (:func:`covariance_from_hessian`).
+
+    For a positive semi-definite H a direction along which the others' block does not curve
+    at all does not couple to the kept coordinates, so leaving it out of H_oo⁺ changes
+    nothing there. One that curves too little to be resolved (below ``rtol``) is held at the
+    estimate: the kept coordinates' σ is the one given it, where the whole Hessian's
+    eigenvectors would call every coordinate it touches by rounding unbounded. The kept
+    coordinates' own directions of no curvature are those of the Schur complement. Returned
+    over all n coordinates, zero on the others."""
+    H = np.asarray(H, dtype=float)
+    scales = np.asarray(scales, dtype=float)
+    keep = np.asarray(keep, dtype=bool)
+    other = ~keep
+    n = H.shape[0]
+    others = covariance_from_hessian(H[np.ix_(other, other)], scales[other], rtol)
+    schur = H[np.ix_(keep, keep)] - (H[np.ix_(keep, other)] @ others.cov @ H[np.ix_(other, keep)])
+    own = covariance_from_hessian(schur, scales[keep], rtol)
+    cov = np.zeros((n, n))
+    cov[np.ix_(keep, keep)] = own.cov
+    null = np.zeros((own.null_directions.shape[0], n))
+    null[:, keep] = own.null_directions
+    return HessianCovariance(
+        cov=cov,
+        null_directions=null,
+        null_eigenvalues=own.null_eigenvalues,
+        scales=scales,
+        eigenvalues=own.eigenvalues,
+    )
+
+
 def direction_text(direction: np.ndarray, names: list[str] | tuple[str, ...]) -> str:
     """ "0.71·o2 − 0.70·D22" for a unit vector; components below DIRECTION_TEXT_MIN left out."""
     v = np.asarray(direction, dtype=float)
@@ -308,6 +358,16 @@ class CalibrationUncertainty:
         )
 
 
+def _coordinate_sigma(hc: HessianCovariance, left_out: np.ndarray) -> np.ndarray:
+    """σ of each coordinate from ``hc`` (inf where a null direction moves it), 0 on the
+    coordinates ``left_out`` ((n,) bool), which another covariance gives."""
+    sigma = np.sqrt(np.maximum(np.diag(hc.cov), 0.0))
+    if not hc.identifiable:
+        loaded = np.abs(hc.null_directions).max(axis=0) > NULL_LOADING_RTOL
+        sigma = np.where(loaded, np.inf, sigma)
+    return np.where(left_out, 0.0, sigma)
+
+
 def penalised_gradient(problem: LikelihoodProblem) -> Callable[[np.ndarray], np.ndarray]:
     """θ ↦ ∇(V + gyroscope noise prior) (35,), exact; all NaN where V is not finite."""
 
@@ -362,17 +422,29 @@ def calibration_uncertainty(
             "session: the result does not describe this session"
         )
     H = central_difference_hessian(gradient, theta0, HESSIAN_STEP_FRACTION * scales, progress)
-    hc = covariance_from_hessian(H, scales)
-    values, sigma = propagate(
-        lambda th: _flatten(derived_quantities(embed(th), problem.norm)), theta0, hc
-    )
-    theta_sigma = np.zeros(params.N_PARAMS)
-    theta_sigma[free] = np.sqrt(np.maximum(np.diag(hc.cov), 0.0))
-    if not hc.identifiable:
-        null_loading = np.zeros(params.N_PARAMS, dtype=bool)
-        null_loading[free] = np.abs(hc.null_directions).max(axis=0) > NULL_LOADING_RTOL
-        theta_sigma = np.where(null_loading, np.inf, theta_sigma)
     names = [name for name, keep in zip(params.PARAM_NAMES, free, strict=True) if keep]
+    noise_model = np.array([is_noise_model_parameter(name) for name in names])
+    hc = covariance_from_hessian(H, scales)
+    hc_calibration = marginal_covariance(H, scales, ~noise_model)
+    hc_noise_model = marginal_covariance(H, scales, noise_model)
+
+    def quantities(th: np.ndarray) -> np.ndarray:
+        return _flatten(derived_quantities(embed(th), problem.norm))
+
+    values, sigma_calibration = propagate(quantities, theta0, hc_calibration)
+    _, sigma_noise_model = propagate(quantities, theta0, hc_noise_model)
+    of_noise_model = _flatten(
+        {name: np.full(shape, name.startswith("noise_std_")) for name, shape in QUANTITIES}
+    ).astype(bool)
+    sigma = np.where(of_noise_model, sigma_noise_model, sigma_calibration)
+    theta_sigma = np.zeros(params.N_PARAMS)
+    theta_sigma[free] = _coordinate_sigma(hc_calibration, noise_model) + _coordinate_sigma(
+        hc_noise_model, ~noise_model
+    )
+    null_directions = [
+        direction_text(v, names)
+        for v in (*hc_calibration.null_directions, *hc_noise_model.null_directions)
+    ]
     notes = []
     if result.method != "ml":
         notes.append(
@@ -384,7 +456,7 @@ def calibration_uncertainty(
         values=_unflatten(values),
         sigma=_unflatten(sigma),
         theta_sigma=theta_sigma,
-        null_directions=[direction_text(v, names) for v in hc.null_directions],
+        null_directions=null_directions,
         newton_step_sigma=float(np.sqrt(max(float(g0 @ hc.cov @ g0), 0.0))),
         min_scaled_eigenvalue=float(hc.eigenvalues[0]),
         negative_curvature=bool(hc.eigenvalues[0] < -IDENTIFIABILITY_RTOL * hc.eigenvalues[-1]),

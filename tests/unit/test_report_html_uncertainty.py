@@ -93,6 +93,8 @@ def test_the_marginal_covariance_of_a_definite_hessian_is_its_inverse_block():
     assert hc.identifiable
     np.testing.assert_allclose(hc.cov[np.ix_(keep, keep)], np.linalg.inv(H)[np.ix_(keep, keep)])
     assert not hc.cov[~keep].any() and not hc.cov[:, ~keep].any()
+    everything = uncertainty.marginal_covariance(H, np.ones(5), np.ones(5, dtype=bool))
+    np.testing.assert_allclose(everything.cov, np.linalg.inv(H))
 
 
 def test_a_noise_model_direction_without_resolved_curvature_leaves_the_calibration_bounded():

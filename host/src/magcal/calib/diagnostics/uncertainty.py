@@ -200,6 +200,8 @@ def marginal_covariance(
     scales = np.asarray(scales, dtype=float)
     keep = np.asarray(keep, dtype=bool)
     other = ~keep
+    if not other.any():
+        return covariance_from_hessian(H, scales, rtol)
     n = H.shape[0]
     others = covariance_from_hessian(H[np.ix_(other, other)], scales[other], rtol)
     schur = H[np.ix_(keep, keep)] - (H[np.ix_(keep, other)] @ others.cov @ H[np.ix_(other, keep)])

@@ -125,6 +125,16 @@ def test_a_noise_model_direction_without_resolved_curvature_leaves_the_calibrati
     assert text.startswith("1.00·d")
 
 
+def test_a_block_is_judged_against_the_whole_hessians_curvature():
+    """A noise model that curves 1e-6 as much as the calibration is below what the finite
+    differences resolve, however well conditioned it is on its own."""
+    H = np.diag([2.0, 1.0, 1e-6, 2e-6])
+    calibration = np.array([True, True, False, False])
+    noise = uncertainty.marginal_covariance(H, np.ones(4), ~calibration)
+    assert noise.null_directions.shape == (2, 4)
+    assert uncertainty.marginal_covariance(H, np.ones(4), calibration).identifiable
+
+
 def test_a_direction_the_calibration_leaves_free_stays_unbounded_when_the_noise_is_marginalised():
     rng = np.random.default_rng(6)
     A = rng.normal(size=(60, 4))

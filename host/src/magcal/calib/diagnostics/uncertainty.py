@@ -156,16 +156,22 @@ class HessianCovariance:
 
 
 def covariance_from_hessian(
-    H: np.ndarray, scales: np.ndarray, rtol: float = IDENTIFIABILITY_RTOL
+    H: np.ndarray,
+    scales: np.ndarray,
+    rtol: float = IDENTIFIABILITY_RTOL,
+    largest: float | None = None,
 ) -> HessianCovariance:
     """H⁻¹ (n, n) via the eigendecomposition of the scaled Hessian ``S H S``.
 
-    scales : (n,) positive, about each coordinate's σ, so that S H S is of order one.
+    scales  : (n,) positive, about each coordinate's σ, so that S H S is of order one.
+    largest : the scaled eigenvalue ``rtol`` is relative to; default S H S's largest. A block
+              of a Hessian passes the whole one's: the finite differences are accurate
+              relative to that, not to the block's.
     """
     scales = np.asarray(scales, dtype=float)
-    Hz = scales[:, None] * np.asarray(H, dtype=float) * scales[None, :]
-    lam, V = np.linalg.eigh(0.5 * (Hz + Hz.T))
-    good = lam > rtol * max(float(lam.max()), 0.0) if lam.max() > 0.0 else np.zeros_like(lam, bool)
+    lam, V = np.linalg.eigh(_scaled(H, scales))
+    top = float(lam.max()) if largest is None else float(largest)
+    good = lam > rtol * top if top > 0.0 else np.zeros_like(lam, bool)
     Cz = (V[:, good] / lam[good]) @ V[:, good].T
     return HessianCovariance(
         cov=scales[:, None] * Cz * scales[None, :],
@@ -174,6 +180,12 @@ def covariance_from_hessian(
         scales=scales,
         eigenvalues=lam,
     )
+
+
+def _scaled(H: np.ndarray, scales: np.ndarray) -> np.ndarray:
+    """S H S, symmetrised."""
+    Hz = scales[:, None] * np.asarray(H, dtype=float) * scales[None, :]
+    return 0.5 * (Hz + Hz.T)
 
 
 def is_noise_model_parameter(name: str) -> bool:
@@ -187,7 +199,8 @@ def marginal_covariance(
 ) -> HessianCovariance:
     """The covariance of the coordinates ``keep`` ((n,) bool) with the others marginalised:
     the inverse of the Schur complement ``H_kk − H_ko H_oo⁺ H_ok``, H_oo⁺ the inverse of the
-    others' block on the directions where it curves (:func:`covariance_from_hessian`).
+    others' block on the directions where it curves (:func:`covariance_from_hessian`). Both
+    blocks judge "curves" against the whole Hessian's largest scaled eigenvalue.
 
     For a positive semi-definite H a direction along which the others' block does not curve
     at all does not couple to the kept coordinates, so leaving it out of H_oo⁺ changes
@@ -203,9 +216,10 @@ def marginal_covariance(
     if not other.any():
         return covariance_from_hessian(H, scales, rtol)
     n = H.shape[0]
-    others = covariance_from_hessian(H[np.ix_(other, other)], scales[other], rtol)
+    largest = float(np.linalg.eigvalsh(_scaled(H, scales)).max())
+    others = covariance_from_hessian(H[np.ix_(other, other)], scales[other], rtol, largest=largest)
     schur = H[np.ix_(keep, keep)] - (H[np.ix_(keep, other)] @ others.cov @ H[np.ix_(other, keep)])
-    own = covariance_from_hessian(schur, scales[keep], rtol)
+    own = covariance_from_hessian(schur, scales[keep], rtol, largest=largest)
     cov = np.zeros((n, n))
     cov[np.ix_(keep, keep)] = own.cov
     null = np.zeros((own.null_directions.shape[0], n))

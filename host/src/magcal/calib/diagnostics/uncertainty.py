@@ -309,14 +309,27 @@ def propagate(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Values and standard deviations (inf where not identifiable) of f(θ) (m,) by
     linearisation: σ² = diag(J cov Jᵀ), J by central differences of f."""
+    value, J = _jacobian(f, theta, JACOBIAN_STEP_FRACTION * hc.scales)
+    return value, _linear_sigma(J, hc)
+
+
+def _jacobian(
+    f: Callable[[np.ndarray], np.ndarray], theta: np.ndarray, steps: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """f(θ) (m,) and its Jacobian (m, n) by central differences of ``steps`` (n,)."""
     value = f(theta)
-    steps = JACOBIAN_STEP_FRACTION * hc.scales
     J = np.empty((value.size, theta.size))
     for i in range(theta.size):
         hi, lo = theta.copy(), theta.copy()
         hi[i] += steps[i]
         lo[i] -= steps[i]
         J[:, i] = (f(hi) - f(lo)) / (hi[i] - lo[i])
+    return value, J
+
+
+def _linear_sigma(J: np.ndarray, hc: HessianCovariance) -> np.ndarray:
+    """σ (m,) of the linear map J (m, n) under ``hc``: √diag(J cov Jᵀ), inf where a null
+    direction moves it by more than :data:`NULL_LOADING_RTOL` of its total sensitivity."""
     var = np.einsum("ij,jk,ik->i", J, hc.cov, J)
     sigma = np.sqrt(np.maximum(var, 0.0))
     if not hc.identifiable:
@@ -324,7 +337,7 @@ def propagate(
         loading = np.abs(Jz @ hc.null_directions.T).max(axis=1)
         total = np.linalg.norm(Jz, axis=1)
         sigma = np.where(loading > NULL_LOADING_RTOL * total, np.inf, sigma)
-    return value, sigma
+    return sigma
 
 
 # --------------------------------------------------------------------------------------------
@@ -372,16 +385,6 @@ class CalibrationUncertainty:
         return (
             not self.negative_curvature and self.newton_step_sigma <= AT_MINIMUM_NEWTON_STEP_SIGMA
         )
-
-
-def _coordinate_sigma(hc: HessianCovariance, left_out: np.ndarray) -> np.ndarray:
-    """σ of each coordinate from ``hc`` (inf where a null direction moves it), 0 on the
-    coordinates ``left_out`` ((n,) bool), which another covariance gives."""
-    sigma = np.sqrt(np.maximum(np.diag(hc.cov), 0.0))
-    if not hc.identifiable:
-        loaded = np.abs(hc.null_directions).max(axis=0) > NULL_LOADING_RTOL
-        sigma = np.where(loaded, np.inf, sigma)
-    return np.where(left_out, 0.0, sigma)
 
 
 def penalised_gradient(problem: LikelihoodProblem) -> Callable[[np.ndarray], np.ndarray]:
@@ -447,15 +450,21 @@ def calibration_uncertainty(
     def quantities(th: np.ndarray) -> np.ndarray:
         return _flatten(derived_quantities(embed(th), problem.norm))
 
-    values, sigma_calibration = propagate(quantities, theta0, hc_calibration)
-    _, sigma_noise_model = propagate(quantities, theta0, hc_noise_model)
+    # One linearisation, read under each block's covariance: the noise model's quantities
+    # and coordinates under its own, everything else under the calibration's.
+    values, J = _jacobian(quantities, theta0, JACOBIAN_STEP_FRACTION * scales)
     of_noise_model = _flatten(
         {name: np.full(shape, name.startswith("noise_std_")) for name, shape in QUANTITIES}
     ).astype(bool)
-    sigma = np.where(of_noise_model, sigma_noise_model, sigma_calibration)
+    sigma = np.where(
+        of_noise_model, _linear_sigma(J, hc_noise_model), _linear_sigma(J, hc_calibration)
+    )
+    coordinates = np.eye(len(theta0))
     theta_sigma = np.zeros(params.N_PARAMS)
-    theta_sigma[free] = _coordinate_sigma(hc_calibration, noise_model) + _coordinate_sigma(
-        hc_noise_model, ~noise_model
+    theta_sigma[free] = np.where(
+        noise_model,
+        _linear_sigma(coordinates, hc_noise_model),
+        _linear_sigma(coordinates, hc_calibration),
     )
     null_directions = [
         direction_text(v, names)

@@ -110,3 +110,17 @@ def test_turn_variance_sees_a_rate_jump_not_a_ramp_nor_the_noise_and_sums_over_r
     assert within.sum() == 3
     np.testing.assert_allclose(spread[within], v[4] * np.array([0.25, 0.5, 0.25]))
     np.testing.assert_allclose(spread.sum(), v.sum())
+
+
+def test_turn_squared_is_the_held_samples_turn_and_sums_over_rows():
+    t = np.array([0.0, 0.01, 0.03, 0.04])
+    gyr = np.array([[1.0, 2.0, 2.0], [0.0, 3.0, 4.0], [0.0, 0.0, 0.0], [9.0, 9.0, 9.0]])
+    # Step k turns by the sample held from k − 1: |ω|² T²
+    np.testing.assert_allclose(
+        sensor_levels.turn_squared(t, gyr), [0.0, 9 * 0.01**2, 25 * 0.02**2, 0.0]
+    )
+    # A multi-rate session's rows in between share it, and it sums to the IMU's
+    session_t = np.array([0.0, 0.005, 0.01, 0.02, 0.03, 0.04])
+    rows = sensor_levels._turn_variance_at_rows(session_t, t, sensor_levels.turn_squared(t, gyr))
+    np.testing.assert_allclose(rows.sum(), sensor_levels.turn_squared(t, gyr).sum())
+    np.testing.assert_allclose(rows[[3, 4]], 0.5 * 25 * 0.02**2)

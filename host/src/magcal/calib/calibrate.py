@@ -186,6 +186,9 @@ def calibrate(
         extra["time_offset_s"] = p.time_offset_s
         if est.time_offset_test is not None:
             extra["time_offset_test"] = est.time_offset_test.as_dict()
+        extra["gyro_gain_error"] = p.gyro_gain_error
+        if est.gyro_gain_test is not None:
+            extra["gyro_gain_test"] = est.gyro_gain_test.as_dict()
         extra["optimizer"] = {
             "gradient": gradient,
             "iterations": r.iterations,

@@ -39,7 +39,8 @@ class ModelUnavailableError(MagcalError):
 
 
 def model_params_from_result(result: CalibrationResult) -> ModelParams:
-    """The ML model of a result: D, o, dip, gyro bias and the three noise covariances.
+    """The ML model of a result: D, o, dip, gyro bias, the three noise covariances, the time
+    offset and the gyroscope gain error the filter allowed for (0 for results without).
 
     Raises :class:`ModelUnavailableError` naming what is missing or unusable.
     """
@@ -79,6 +80,7 @@ def model_params_from_result(result: CalibrationResult) -> ModelParams:
         gyro_bias=np.array(result.gyro_bias),
         **covariances,
         time_offset_s=float(result.extra.get("time_offset_s", 0.0)),
+        gyro_gain_error=float(result.extra.get("gyro_gain_error", 0.0)),
     )
 
 

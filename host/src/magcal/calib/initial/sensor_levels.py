@@ -10,7 +10,8 @@ One function, :func:`measure_sensor_levels`, computes them for every step that n
 * the sample rate;
 * the accelerometer bump inflation ``c_t`` (:func:`accelerometer_extra_variance`);
 * how uncertain each step's integrated turn is, the rate having left a straight line
-  within the step (:func:`turn_variance`);
+  within the step (:func:`turn_variance`), and the size of that turn, which an error of
+  the gyroscope's gain is proportional to (:func:`turn_squared`);
 * the time over which the accelerometer's errors stay correlated, and from it the samples
   whose accelerometer reading the likelihood uses (:func:`accelerometer_updates`);
 * Σ_a for the ML step: the accelerometer noise plus the motion's acceleration.
@@ -156,6 +157,21 @@ def turn_variance(t: np.ndarray, gyr: np.ndarray, Sigma_gyr: np.ndarray) -> np.n
     return v
 
 
+def turn_squared(t: np.ndarray, gyr: np.ndarray) -> np.ndarray:
+    """The squared size (N,) rad² of the turn each step integrates, ``|ω|² T²`` with the
+    gyroscope sample held over the step that follows it.
+
+    A gyroscope gain off the identity by ΔG turns the step's rotation by ``ΔG ω T``; with
+    ΔG's entries independent of 1-σ k, each axis of that turn has variance ``k² |ω|² T²``,
+    which is k² times this (``problem.GYRO_GAIN_ERROR``). Returns 0 at the first sample,
+    whose step is not taken.
+    """
+    v = np.zeros(len(t))
+    if len(t) >= 2:
+        v[1:] = np.sum(gyr[:-1] ** 2, axis=1) * np.diff(t) ** 2
+    return v
+
+
 def _turn_variance_at_rows(row_t: np.ndarray, imu_t: np.ndarray, v_imu: np.ndarray) -> np.ndarray:
     """:func:`turn_variance` of the IMU's samples (``v_imu`` at times ``imu_t``) spread over
     a multi-rate session's rows (``row_t``): the rows between two IMU samples share that
@@ -185,6 +201,7 @@ class SensorLevels:
     acc_extra_var : (N,) (m/s²)², the bump inflation c_t of Σ_a
     turn_var      : (N,) rad², how uncertain each step's integrated turn is
                     (:func:`turn_variance`)
+    turn_sq       : (N,) rad², the squared size of each step's turn (:func:`turn_squared`)
     acc_correlation_s : s, the accelerometer errors' integral time scale
                     (:func:`acceleration_correlation_time_s`)
     acc_used      : (N,) bool, the samples whose accelerometer reading the likelihood uses
@@ -198,6 +215,7 @@ class SensorLevels:
     rate_hz: float
     acc_extra_var: np.ndarray
     turn_var: np.ndarray
+    turn_sq: np.ndarray
     acc_correlation_s: float
     acc_used: np.ndarray
     Sigma_acc: np.ndarray
@@ -250,6 +268,7 @@ def measure_sensor_levels(session: Session) -> SensorLevels:
         noise=noise,
         acc_extra_var=spread(levels.acc_extra_var, 0.0),
         turn_var=_turn_variance_at_rows(session.t, t, levels.turn_var),
+        turn_sq=_turn_variance_at_rows(session.t, t, levels.turn_sq),
         acc_used=spread(levels.acc_used, False),
     )
 
@@ -276,6 +295,7 @@ def _measure(t: np.ndarray, gyr: np.ndarray, acc: np.ndarray, mag: np.ndarray) -
         rate_hz=rate_hz,
         acc_extra_var=acc_extra_var,
         turn_var=turn_variance(t, gyr, noise.Sigma_gyr),
+        turn_sq=turn_squared(t, gyr),
         acc_correlation_s=acc_correlation_s,
         acc_used=accelerometer_updates(t, acc_correlation_s),
         Sigma_acc=Sigma_acc,

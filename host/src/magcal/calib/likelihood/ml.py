@@ -8,6 +8,14 @@ freedom). Where the data cannot tell, τ = 0, so a sensor without a delay does n
 variance of a parameter that is confounded with the misalignment when the body turns mostly
 about one axis (τ ω then acts like a fixed rotation).
 
+Then the gyroscope's gain: the filter takes it as exact unless the session shows otherwise.
+At the estimate, the filter is run again allowing for a gain error of
+:data:`~magcal.calib.likelihood.problem.GYRO_GAIN_ERROR` per entry; where that raises the
+likelihood by more than the time offset's test asks of a parameter, the estimate is refitted
+from there with it. A simulated gyroscope with an exact gain, or a gyroscope whose gain
+errors are too small to show, keeps the first estimate; a real one turned fast shows its
+gain error as turns that miss by a share of their size.
+
 The problem (data, normalisation, scales, priors, cost and gradients) is built by
 ``problem.py``; this module runs the optimiser on it and maps the result back to raw
 magnetometer units on the canonical branch of the likelihood's symmetries.
@@ -25,12 +33,20 @@ import scipy.stats
 from magcal.calib.initial.estimate import InitialEstimate
 from magcal.calib.likelihood.optimize import OptimizeOptions, OptimizeReport, minimize_bfgs
 from magcal.calib.likelihood.params import INDEX_TIME_OFFSET, ModelParams
-from magcal.calib.likelihood.problem import LikelihoodProblem, Priors, on_canonical_branch
+from magcal.calib.likelihood.problem import (
+    GYRO_GAIN_ERROR,
+    LikelihoodProblem,
+    Priors,
+    on_canonical_branch,
+)
 from magcal.io.session import Session
 
 #: Significance level of the test that keeps a time offset (1 %: twice the log-likelihood
 #: must rise by χ²₁(0.99) = 6.63 when τ is freed).
 TIME_OFFSET_TEST_LEVEL = 0.01
+#: Significance level of the test that allows for the gyroscope's gain error: the same as
+#: the time offset's, as if the gain error were one more parameter.
+GYRO_GAIN_TEST_LEVEL = TIME_OFFSET_TEST_LEVEL
 
 
 @dataclass(frozen=True)
@@ -48,12 +64,29 @@ class TimeOffsetTest:
 
 
 @dataclass(frozen=True)
+class GyroGainTest:
+    """The test of the gyroscope's gain error: statistic 2 (cost at the estimate with the
+    gain exact − cost there allowing for ``gain_error``), the threshold it had to pass and
+    whether the gain error was allowed for (and the estimate refitted with it). The
+    statistic is taken before the refit, which only lowers the cost further."""
+
+    statistic: float
+    threshold: float
+    gain_error: float
+    kept: bool
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
 class MLEstimate:
     params: ModelParams  # raw magnetometer units
     theta: np.ndarray  # (35,) normalised
     theta0: np.ndarray  # (35,) normalised
-    report: OptimizeReport  # both fits together (iterations, evaluations, time)
+    report: OptimizeReport  # every fit together (iterations, evaluations, time)
     time_offset_test: TimeOffsetTest | None = None
+    gyro_gain_test: GyroGainTest | None = None
 
 
 def maximum_likelihood(
@@ -67,68 +100,92 @@ def maximum_likelihood(
     """Algorithm 1 step 2 from the initial estimate; ``gradient`` "exact" or "numeric";
     ``priors`` make it a MAP estimate (:class:`~magcal.calib.likelihood.problem.Priors`)."""
     problem = LikelihoodProblem.for_ml_step(session, init, priors=priors)
-    # Exact gradients: cost and gradient together at every trial point, since nearly every
-    # step is accepted at α = 1 and a cost-only line search would pay for the forward pass
-    # twice. Finite differences (the paper's way): the line search tries points by cost
-    # alone, as a gradient there costs n_θ + 1 passes.
-    if gradient == "exact":
-        fun_and_grad, line_search_cost = problem.cost_and_gradient, None
-    elif gradient == "numeric":
-        fun_and_grad, line_search_cost = problem.cost_and_numeric_gradient, problem.cost
-    else:
+    if gradient not in ("exact", "numeric"):
         raise ValueError(f"unknown gradient {gradient!r}: use 'exact' or 'numeric'")
 
-    def without_time_offset(theta: np.ndarray) -> tuple[float, np.ndarray]:
-        # A zero gradient component keeps BFGS from ever moving τ from its start, 0.
-        value, grad = fun_and_grad(theta)
-        grad = grad.copy()
-        grad[INDEX_TIME_OFFSET] = 0.0
-        return value, grad
+    def run(
+        pr: LikelihoodProblem, hold_time_offset: bool, x0: np.ndarray, done: list
+    ) -> OptimizeReport:
+        # Exact gradients: cost and gradient together at every trial point, since nearly
+        # every step is accepted at α = 1 and a cost-only line search would pay for the
+        # forward pass twice. Finite differences (the paper's way): the line search tries
+        # points by cost alone, as a gradient there costs n_θ + 1 passes.
+        if gradient == "exact":
+            fun_and_grad, line_search_cost = pr.cost_and_gradient, None
+        else:
+            fun_and_grad, line_search_cost = pr.cost_and_numeric_gradient, pr.cost
 
-    theta0 = problem.theta0.copy()
-    theta0[INDEX_TIME_OFFSET] = 0.0
+        def held(theta: np.ndarray) -> tuple[float, np.ndarray]:
+            # A zero gradient component keeps BFGS from ever moving τ from its start.
+            value, grad = fun_and_grad(theta)
+            grad = grad.copy()
+            grad[INDEX_TIME_OFFSET] = 0.0
+            return value, grad
 
-    def run(fun_and_grad, x0, budget: int, done: int) -> OptimizeReport:
+        before = sum(r.iterations for r in done)
+
         def progress_after(iteration: int, cost: float, decrement: float) -> None:
             if progress:
-                progress(done + iteration, cost, decrement)
+                progress(before + iteration, cost, decrement)
 
-        return minimize_bfgs(
-            fun_and_grad,
+        report = minimize_bfgs(
+            held if hold_time_offset else fun_and_grad,
             x0,
-            problem.scales,
-            dataclasses.replace(options, max_iter=budget),
+            pr.scales,
+            dataclasses.replace(options, max_iter=options.max_iter - before),
             fun=line_search_cost,
             progress=progress_after,
         )
+        done.append(report)
+        return report
 
-    plain = run(without_time_offset, theta0, options.max_iter, 0)
-    chosen, report, test = plain, plain, None
-    if plain.iterations < options.max_iter:  # budget left to test a delay
-        delayed = run(fun_and_grad, plain.x, options.max_iter - plain.iterations, plain.iterations)
+    def budget_left(done: list) -> bool:
+        return sum(r.iterations for r in done) < options.max_iter
+
+    theta0 = problem.theta0.copy()
+    theta0[INDEX_TIME_OFFSET] = 0.0
+    fits: list[OptimizeReport] = []
+    plain = run(problem, True, theta0, fits)
+    chosen, time_test, gain_test = plain, None, None
+    if budget_left(fits):  # budget left to test a delay
+        delayed = run(problem, False, plain.x, fits)
         statistic = 2.0 * (plain.cost - delayed.cost)
         threshold = float(scipy.stats.chi2.isf(TIME_OFFSET_TEST_LEVEL, df=1))
-        test = TimeOffsetTest(
+        time_test = TimeOffsetTest(
             statistic=float(statistic),
             threshold=threshold,
             fitted_s=float(delayed.x[INDEX_TIME_OFFSET]),
             kept=bool(statistic > threshold),
         )
-        chosen = delayed if test.kept else plain
-        report = dataclasses.replace(
-            chosen,
-            iterations=plain.iterations + delayed.iterations,
-            cost_evaluations=plain.cost_evaluations + delayed.cost_evaluations,
-            gradient_evaluations=plain.gradient_evaluations + delayed.gradient_evaluations,
-            seconds=plain.seconds + delayed.seconds,
-            history=plain.history + delayed.history,
-            hessian_resets=plain.hessian_resets + delayed.hessian_resets,
+        chosen = delayed if time_test.kept else plain
+    if budget_left(fits):  # and to test the gyroscope's gain
+        gained = problem.with_gyro_gain_error(GYRO_GAIN_ERROR)
+        statistic = 2.0 * (chosen.cost - gained.cost(chosen.x))
+        threshold = float(scipy.stats.chi2.isf(GYRO_GAIN_TEST_LEVEL, df=1))
+        gain_test = GyroGainTest(
+            statistic=float(statistic),
+            threshold=threshold,
+            gain_error=GYRO_GAIN_ERROR,
+            kept=bool(statistic > threshold),
         )
+        if gain_test.kept:
+            problem = gained
+            chosen = run(gained, not (time_test and time_test.kept), chosen.x, fits)
+    report = dataclasses.replace(
+        chosen,
+        iterations=sum(r.iterations for r in fits),
+        cost_evaluations=sum(r.cost_evaluations for r in fits),
+        gradient_evaluations=sum(r.gradient_evaluations for r in fits),
+        seconds=sum(r.seconds for r in fits),
+        history=[h for r in fits for h in r.history],
+        hessian_resets=sum(r.hessian_resets for r in fits),
+    )
     theta = on_canonical_branch(chosen.x)
     return MLEstimate(
         params=problem.model_params(theta),
         theta=theta,
         theta0=problem.theta0,
         report=report,
-        time_offset_test=test,
+        time_offset_test=time_test,
+        gyro_gain_test=gain_test,
     )

@@ -68,6 +68,9 @@ class ModelParams:
     Sigma_mag : (3, 3) magnetometer units²
     time_offset_s : float, s, the magnetometer's delay against the inertial sensors: its
                 sample at time t measured the field at t − τ (positive: it lags)
+    gyro_gain_error : float, the 1-σ relative error of each entry of the gyroscope's gain
+                matrix that the filter allows for (0: the gain is exact). Not in θ: the
+                ML step chooses it by a test (``ml.py``)
     """
 
     D: np.ndarray
@@ -78,6 +81,7 @@ class ModelParams:
     Sigma_acc: np.ndarray
     Sigma_mag: np.ndarray
     time_offset_s: float = 0.0
+    gyro_gain_error: float = 0.0
 
     @property
     def m_n(self) -> np.ndarray:
@@ -94,6 +98,7 @@ class ModelParams:
             Sigma_acc=self.Sigma_acc,
             Sigma_mag=self.Sigma_mag / scale**2,
             time_offset_s=self.time_offset_s,
+            gyro_gain_error=self.gyro_gain_error,
         )
 
     def unscaled_magnetometer(self, centre: np.ndarray, scale: float) -> ModelParams:
@@ -107,6 +112,7 @@ class ModelParams:
             Sigma_acc=self.Sigma_acc,
             Sigma_mag=self.Sigma_mag * scale**2,
             time_offset_s=self.time_offset_s,
+            gyro_gain_error=self.gyro_gain_error,
         )
 
 

@@ -37,6 +37,7 @@ Numerical choices, each a fix for a way the plain problem fails:
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from dataclasses import dataclass, field
 
@@ -248,6 +249,18 @@ MISALIGNMENT_PRIOR_DEG = 5.0
 TIME_OFFSET_PRIOR_S = 0.1
 
 
+#: 1-σ relative error of each entry of a gyroscope's 3×3 gain matrix (scale factors and
+#: cross-axis sensitivities) that the filter allows for where a session shows one (the test
+#: in ``ml.py``): each step's turn then has a variance ``k² |ω|² T²`` per axis
+#: (``sensor_levels.turn_squared``), none while still, many times the white noise's while
+#: turning fast. MEMS datasheets give ±1–3 % for the scale factor and ±1–2 % for the
+#: cross-axis sensitivity; this is the low end. A gain error is the same at every step, so
+#: this treats a slowly varying error as white; estimating the gain matrix instead adds
+#: parameters that the magnetometer's own rotation in D trades against (a symmetric gain,
+#: fitted on the real recordings of ``make real``, did not lower their heading error).
+GYRO_GAIN_ERROR = 0.01
+
+
 @dataclass(frozen=True)
 class Priors:
     """The MAP estimate's priors on what a session may not determine (1 σ; None: none).
@@ -376,6 +389,9 @@ class LikelihoodProblem:
     prior_precision : (35,) their diagonal precision (zero where there is no prior)
     misalignment_reference : (3, 3) the axis permutation the misalignment prior is centred on
     misalignment_sigma_rad : its width, or None for no misalignment prior
+    levels          : the data-only levels the filter's input was made with
+    gyro_gain_error : the gyroscope's gain error the filter allows for (ModelParams'),
+                      in ``data.turn_var``
     """
 
     data: FilterData
@@ -386,6 +402,8 @@ class LikelihoodProblem:
     prior_precision: np.ndarray
     misalignment_reference: np.ndarray = field(default_factory=lambda: np.eye(3))
     misalignment_sigma_rad: float | None = None
+    levels: SensorLevels | None = None
+    gyro_gain_error: float = 0.0
 
     @classmethod
     def for_ml_step(
@@ -444,7 +462,7 @@ class LikelihoodProblem:
             # measured (levels.acc_used is False where the row has no accelerometer).
             has_acc=levels.acc_used,
             has_mag=session.has_mag,
-            turn_var=levels.turn_var,
+            turn_var=levels.turn_var + p.gyro_gain_error**2 * levels.turn_sq,
         )
         prior_mean, prior_precision = gyro_noise_prior(
             levels.noise.Sigma_gyr, levels.stationary_samples
@@ -468,6 +486,16 @@ class LikelihoodProblem:
             prior_precision=prior_precision,
             misalignment_reference=frames.nearest_axis_permutation(frames.nearest_rotation(p.D)),
             misalignment_sigma_rad=priors.misalignment_rad,
+            levels=levels,
+            gyro_gain_error=p.gyro_gain_error,
+        )
+
+    def with_gyro_gain_error(self, k: float) -> LikelihoodProblem:
+        """The same problem with the filter allowing for a gyroscope gain error ``k``
+        (:data:`GYRO_GAIN_ERROR`); θ keeps its meaning."""
+        turn_var = self.levels.turn_var + k**2 * self.levels.turn_sq
+        return dataclasses.replace(
+            self, data=dataclasses.replace(self.data, turn_var=turn_var), gyro_gain_error=k
         )
 
     @property
@@ -529,7 +557,8 @@ class LikelihoodProblem:
 
     def model_params(self, theta: np.ndarray) -> ModelParams:
         """θ (35,) normalised → the model in raw magnetometer units."""
-        return params.unpack(theta).unscaled_magnetometer(self.norm.centre, self.norm.scale)
+        p = params.unpack(theta).unscaled_magnetometer(self.norm.centre, self.norm.scale)
+        return dataclasses.replace(p, gyro_gain_error=self.gyro_gain_error)
 
     def run_filter(self, theta: np.ndarray) -> mekf.FilterOutput:
         """The filter at θ (35,) normalised, with all diagnostics (attitude, innovations)."""

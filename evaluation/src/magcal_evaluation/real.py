@@ -826,8 +826,10 @@ def _on_other_recordings(case: Case, plain, _floor, ml_run: dict) -> dict | None
     (:func:`scored_recordings_fit`), its rotation and how far its offset is from ML's, and
     the headings of ML without its rotation (the symmetric factor P of D = P U), of the
     plain fit turned by the scored recordings' own rotation, and of ML's D and the plain
-    fit's D each given the scored recordings' own offset. None for a case scored on its
-    own recording (it has the floor instead), or without an ML result."""
+    fit's D each given the scored recordings' own offset, and of the fit's D given the
+    offset of the calibration recording (ML's, and the plain fit's): what the D those
+    recordings show is worth with the offset a calibration recording can give. None for a
+    case scored on its own recording (it has the floor instead), or without an ML result."""
     if scored_on_own_recording(case) or ml_run.get("D") is None:
         return None
     fit = scored_recordings_fit(case)
@@ -845,6 +847,9 @@ def _on_other_recordings(case: Case, plain, _floor, ml_run: dict) -> dict | None
         else case_heading_deg(plain[0] @ U_fit, plain[1], case),
         "ml_with_fit_offset": case_heading_deg(D_ml, fit.o, case),
         "plain_with_fit_offset": None if plain is None else case_heading_deg(plain[0], fit.o, case),
+        "fit_with_ml_offset": case_heading_deg(fit.D, o_ml, case),
+        "fit_with_plain_offset": None if plain is None else case_heading_deg(fit.D, plain[1], case),
+        "ml_plain_offset_gap": None if plain is None else float(np.linalg.norm(o_ml - plain[1])),
     }
 
 

@@ -100,6 +100,8 @@ def test_calibrate_writes_result_and_plots(simulated, tmp_path, capsys):
         assert (tmp_path / "p" / name).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     text = capsys.readouterr().out
     assert "iterations" in text and "known-attitude floor" in text
+    # A simulated gyroscope's gain is exact, and the summary says the test found so.
+    assert "gyro gain" in text and "taken as exact" in text
     # The result is saved before anything is printed about it.
     assert text.index(f"wrote {out}") < text.index("method")
 

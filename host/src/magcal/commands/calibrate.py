@@ -125,6 +125,20 @@ def summary_rows(cal) -> list[tuple[str, str]]:
             rows.append(
                 ("time offset", f"{1e3 * r.extra['time_offset_s']:.1f} ms (magnetometer delay)")
             )
+        test = x.get("gyro_gain_test")
+        if test is not None:
+            verdict = (
+                f"allowed for, {100 * test['gain_error']:g} % per entry"
+                if test["kept"]
+                else "taken as exact"
+            )
+            rows.append(
+                (
+                    "gyro gain",
+                    f"{verdict} (likelihood-ratio statistic {test['statistic']:.1f}, "
+                    f"threshold {test['threshold']:.2f})",
+                )
+            )
     if "optimizer" in x:
         o = x["optimizer"]
         rows.append(

@@ -70,6 +70,11 @@ def _cell(r: dict, method: str) -> str:
     return f"{_f(m['heading_deg'])} ({', '.join(ratios)})" if ratios else _f(m["heading_deg"])
 
 
+def _with_plain_ratio(x: float | None, plain: float | None) -> str:
+    """A heading with its ratio to the plain fit's: "7.94 (1.15×p)"."""
+    return f"{_f(x)} ({_f(real.ratio(x, plain), '{:.2f}×p')})"
+
+
 def _form(r: dict) -> str:
     if r.get("form") == real.FORM_RAW:
         return "multi-rate, from raw/"
@@ -306,28 +311,25 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
     lines += [
         "",
         "The calibration recording gives one offset, which ML and the plain fit agree on "
-        "(their gap, as a fraction of the field). The last two columns give the D the "
-        "scored recordings themselves show (the fit's) that offset: what a calibration "
-        "whose D is exactly right scores on those days. Where that is worse than the plain "
-        "fit, the plain fit's lead comes from its D's errors offsetting the moved offset, "
-        "which no calibration recording shows, and no calibration that finds the right D "
-        "can be as good as the plain fit there.",
+        "(their gap, as a fraction of the field). The last two columns score the D the "
+        "scored recordings themselves show (the fit's) with that offset: what a "
+        "calibration whose D is exactly right scores on those days. Where that is worse "
+        "than the plain fit, the plain fit's lead comes from its D's errors offsetting the "
+        "moved offset, which no calibration recording shows, and no calibration that finds "
+        "the right D can be as good as the plain fit there.",
         "",
         "| case | plain | ml | ML's offset − the plain fit's | the fit's D, ML's offset | "
         "the fit's D, the plain fit's offset |",
         "|---|---:|---:|---:|---:|---:|",
     ]
     for r, a, ml_run in _section_rows(good, "other_recordings"):
-
-        def against_plain(x: float | None, plain: float | None = r["plain"]) -> str:
-            return f"{_f(x)} ({_f(real.ratio(x, plain), '{:.2f}×p')})"
-
         gap = a.get("ml_plain_offset_gap")
         gap_txt = "–" if gap is None else f"{100 * gap / a['field_norm']:.2f} %"
         lines.append(
-            f"| {r['case']} | {_f(r['plain'])} | {against_plain(ml_run['heading_deg'])} | "
-            f"{gap_txt} | {against_plain(a['fit_with_ml_offset'])} | "
-            f"{against_plain(a.get('fit_with_plain_offset'))} |"
+            f"| {r['case']} | {_f(r['plain'])} | "
+            f"{_with_plain_ratio(ml_run['heading_deg'], r['plain'])} | {gap_txt} | "
+            f"{_with_plain_ratio(a['fit_with_ml_offset'], r['plain'])} | "
+            f"{_with_plain_ratio(a.get('fit_with_plain_offset'), r['plain'])} |"
         )
     lines += [
         "",

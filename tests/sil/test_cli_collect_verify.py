@@ -177,13 +177,15 @@ def _stderr_lines(proc: subprocess.Popen) -> queue.Queue:
     return q
 
 
+def _default_sigint() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_ctrl_c_writes_the_partial_session(device, tmp_path):
     sil, info, world, feeder = device
     out = tmp_path / "partial.csv"
     feeder.resume()
-    # Only Ctrl-C may end this run: at the default coverage target the emulated motion is
-    # done in about 7 s, which the progress lines' way through a pipe on a loaded machine
-    # has taken (collect stopped on coverage, exit 0, before the signal was sent).
+    # Only Ctrl-C may end this run, not the default coverage target (reached in about 7 s).
     argv = ["collect", "--port", sil.url, "-o", str(out), "--coverage", "off", "--duration", "600"]
     proc = subprocess.Popen(
         [str(REPO_ROOT / "host" / "magcal"), *argv],
@@ -191,6 +193,9 @@ def test_ctrl_c_writes_the_partial_session(device, tmp_path):
         stderr=subprocess.PIPE,
         text=True,
         env={**os.environ, "PYTHONUNBUFFERED": "1"},
+        # SIGINT as a terminal delivers it: a shell runs a background job (`make test &`)
+        # with SIGINT ignored, a child inherits that, and Python then keeps ignoring it.
+        preexec_fn=_default_sigint,
     )
     try:
         lines = _stderr_lines(proc)

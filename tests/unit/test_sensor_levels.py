@@ -105,7 +105,7 @@ def test_turn_variance_sees_a_rate_jump_not_a_ramp_nor_the_noise_and_sums_over_r
     # With a magnetometer's rows in between, the step's variance is shared by the rows
     # within it in proportion to their steps, and sums to the IMU's
     rows = np.sort(np.concatenate([t, [0.0325, 0.0375]]))
-    spread = sensor_levels._turn_variance_at_rows(rows, t, v)
+    spread = sensor_levels._steps_at_rows(rows, t, v)
     within = (rows > t[3]) & (rows <= t[4])
     assert within.sum() == 3
     np.testing.assert_allclose(spread[within], v[4] * np.array([0.25, 0.5, 0.25]))
@@ -121,6 +121,6 @@ def test_turn_squared_is_the_held_samples_turn_and_sums_over_rows():
     )
     # A multi-rate session's rows in between share it, and it sums to the IMU's
     session_t = np.array([0.0, 0.005, 0.01, 0.02, 0.03, 0.04])
-    rows = sensor_levels._turn_variance_at_rows(session_t, t, sensor_levels.turn_squared(t, gyr))
+    rows = sensor_levels._steps_at_rows(session_t, t, sensor_levels.turn_squared(t, gyr))
     np.testing.assert_allclose(rows.sum(), sensor_levels.turn_squared(t, gyr).sum())
     np.testing.assert_allclose(rows[[3, 4]], 0.5 * 25 * 0.02**2)

@@ -172,11 +172,12 @@ def turn_squared(t: np.ndarray, gyr: np.ndarray) -> np.ndarray:
     return v
 
 
-def _turn_variance_at_rows(row_t: np.ndarray, imu_t: np.ndarray, v_imu: np.ndarray) -> np.ndarray:
-    """:func:`turn_variance` of the IMU's samples (``v_imu`` at times ``imu_t``) spread over
-    a multi-rate session's rows (``row_t``): the rows between two IMU samples share that
-    step's variance in proportion to their own steps (a random walk), so that it sums to
-    the IMU's whatever other streams' rows fall in between."""
+def _steps_at_rows(row_t: np.ndarray, imu_t: np.ndarray, v_imu: np.ndarray) -> np.ndarray:
+    """A variance per step of the IMU's samples (``v_imu`` at times ``imu_t``:
+    :func:`turn_variance`, :func:`turn_squared`) spread over a multi-rate session's rows
+    (``row_t``): the rows between two IMU samples share that step's variance in proportion
+    to their own steps (a random walk), so that it sums to the IMU's whatever other
+    streams' rows fall in between."""
     out = np.zeros(len(row_t))
     if len(row_t) < 2 or len(imu_t) < 2:
         return out
@@ -267,8 +268,8 @@ def measure_sensor_levels(session: Session) -> SensorLevels:
         levels,
         noise=noise,
         acc_extra_var=spread(levels.acc_extra_var, 0.0),
-        turn_var=_turn_variance_at_rows(session.t, t, levels.turn_var),
-        turn_sq=_turn_variance_at_rows(session.t, t, levels.turn_sq),
+        turn_var=_steps_at_rows(session.t, t, levels.turn_var),
+        turn_sq=_steps_at_rows(session.t, t, levels.turn_sq),
         acc_used=spread(levels.acc_used, False),
     )
 

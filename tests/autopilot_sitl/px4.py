@@ -49,7 +49,8 @@ MOTOR_PAIRS = ((1, 3), (2, 4), (1, 2), (3, 4), (1, 4), (2, 3))
 #: Samples of the corrected field are compared with the true attitude below this rate, rad/s.
 SLOW_RAD_S = 0.1
 #: Slow samples a comparison of PX4's corrected field with the true attitude needs: 70 of
-#: SIH's 20–30 mG noise resolve an offset to 5–10 mG (test_px4_sitl.COMPARISON_BOUND_G).
+#: SIH's 20–30 mG noise resolve an offset to 3–10 mG against a known earth field
+#: (:func:`residual_offset`; test_px4_sitl.COMPARISON_BOUND_G).
 MIN_SLOW_SAMPLES = 70
 
 
@@ -292,3 +293,17 @@ def residual_offsets(*runs) -> tuple[list[np.ndarray], np.ndarray]:
             rhs.append(f)
     x, *_ = np.linalg.lstsq(np.concatenate(blocks), np.concatenate(rhs), rcond=None)
     return [x[3 + 3 * r : 6 + 3 * r] for r in range(len(runs))], x[:3]
+
+
+def earth_field(fields: np.ndarray, R_nb: np.ndarray, offset: np.ndarray) -> np.ndarray:
+    """The earth field b_n (NED, gauss) from a run of :meth:`Px4Sitl.slow_samples` whose
+    offset is known (no calibration in force: the simulated one): ``field_k = R_nbᵀ_k · b_n +
+    offset`` by least squares, which for rotations is the mean of ``R_nb_k (field_k − offset)``.
+    Unlike :func:`residual_offsets` it needs no attitudes spread beyond one axis."""
+    return np.mean(np.einsum("kij,kj->ki", R_nb, fields - offset), axis=0)
+
+
+def residual_offset(fields: np.ndarray, R_nb: np.ndarray, b_n: np.ndarray) -> np.ndarray:
+    """The body-frame offset PX4's corrected field still carries in a run, against a known
+    earth field b_n (:func:`earth_field`): the mean of ``field_k − R_nbᵀ_k · b_n``. Gauss."""
+    return np.mean(fields - np.einsum("kji,j->ki", R_nb, b_n), axis=0)

@@ -17,7 +17,8 @@ no estimator bias taken off. It is stopped whatever happens.
   exactly that offset from the internal compass, whose rotation stays the board's); and
   through PX4's own correction, the offset its corrected field (HIGHRES_IMU) still carries
   against the true attitude (HIL_STATE_QUATERNION), before flashing (the whole simulated
-  offset) and after (within COMPARISON_BOUND_G, that comparison's resolution).
+  offset) and after (within COMPARISON_BOUND_G, that comparison's resolution, against the
+  earth field of the run before, whose offset is the simulated one).
 """
 
 from __future__ import annotations
@@ -39,9 +40,12 @@ pytestmark = pytest.mark.skipif(px4.available() is not None, reason=str(px4.avai
 SEED = 7
 #: The acceptance bound on the recovered offset: 5 mG, about 1 % of the field.
 OFFSET_BOUND_G = 0.005
-#: What the comparison of HIGHRES_IMU with HIL_STATE_QUATERNION resolves in CHECK_S: 70–200
+#: What the comparison of HIGHRES_IMU with HIL_STATE_QUATERNION resolves in CHECK_S: 70–300
 #: slowly turning samples of SIH's 20–30 mG noise, paired by arrival (no common time stamp),
-#: give 5–10 mG; it shows PX4's correction no longer carries the simulated offset (≥ 150 mG).
+#: against the earth field of another run whose offset is known, gave 3–9 mG on 30 pairs of
+#: runs; it shows PX4's correction no longer carries the simulated offset (≥ 150 mG). Fitting
+#: each run's offset beside the earth field instead is only as good as the attitudes are
+#: spread: up to 28 mG on the same pairs, where the vehicle had turned about one axis.
 COMPARISON_BOUND_G = 0.020
 STILL_S = 15.0
 TURN_S = 45.0
@@ -125,11 +129,13 @@ def test_turned_vehicle_calibrated_offset_recovered_through_px4s_correction(vehi
     truth = vehicle.offset
     # before: no calibration in force, so PX4's correction carries the whole simulated offset
     before_run = vehicle.slow_samples(CHECK_S, seed=SEED)
-    (before,), b_n = px4.residual_offsets(before_run)
+    (before,), _ = px4.residual_offsets(before_run)
     print(f"before: {len(before_run[0])} samples, residual offset {before} G (simulated {truth})")
     print(f"before: the comparison's error {1e3 * np.linalg.norm(before - truth):.2f} mG")
     assert len(before_run[0]) >= px4.MIN_SLOW_SAMPLES, len(before_run[0])
     assert np.linalg.norm(before - truth) < 0.2 * np.linalg.norm(truth)  # it sees the offset
+    # the reference for after: the earth field, from this run with its offset known
+    b_n = px4.earth_field(*before_run, truth)
 
     session, result = tmp_path / "turn.csv", tmp_path / "turn.json"
     backup = tmp_path / "backup.params"
@@ -183,8 +189,7 @@ def test_turned_vehicle_calibrated_offset_recovered_through_px4s_correction(vehi
     assert np.linalg.norm(off - truth) < OFFSET_BOUND_G
 
     after_run = vehicle.slow_samples(CHECK_S, seed=SEED + 2)
-    # the earth field is the same before and after: both runs fitted together
-    (before, after), _ = px4.residual_offsets(before_run, after_run)
+    after = px4.residual_offset(*after_run, b_n)
     print(f"after: {len(after_run[0])} samples, PX4's correction leaves {1e3 * after} mG")
     # fewer samples than that do not resolve the bound: say so rather than judge noise
     assert len(after_run[0]) >= px4.MIN_SLOW_SAMPLES, len(after_run[0])

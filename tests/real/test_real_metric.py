@@ -363,3 +363,24 @@ def test_trial_by_trial_pairs_each_recording():
     assert max(got["ml"]) < min(got["plain"])  # the plain fit misses the rotation
     one = dataclasses.replace(case, trials=trials[:1])
     assert real._trial_by_trial(one, (P, o), None, {"D": D.tolist(), "o": o.tolist()}) is None
+
+
+def test_the_right_calibration_is_taken_from_the_section_each_case_has():
+    def result(case, plain, ml, refused=None, **sections):
+        methods = {"ml": {"heading_deg": ml, "refused": refused}}
+        return {"case": case, "plain": plain, "methods": methods, **sections}
+
+    results = [
+        result("own", 6.0, 5.5, reference_delay={"fit": 5.0}),
+        result("other", 7.0, 8.0, other_recordings={"fit_with_ml_offset": 7.5}),
+        result("refused", 7.0, 9.0, refused="no", reference_delay={"fit": 6.5}),
+        result("no plain", None, 3.0, reference_delay={"fit": 2.0}),
+        result("no section", 5.0, 4.0),
+    ]
+    got = real.right_calibrations(results)
+    assert [(c.case, c.right, c.ml) for c in got] == [
+        ("own", 5.0, 5.5),
+        ("other", 7.5, 8.0),
+        ("refused", 6.5, None),
+    ]
+    assert got[0].kind != got[1].kind

@@ -872,6 +872,47 @@ def ratio(a: float | None, b: float | None) -> float | None:
     return a / b
 
 
+@dataclass(frozen=True)
+class RightCalibration:
+    """What the calibration a case's own data show to be right scores (heading, degrees):
+    where the case is scored on its own recording, the known-attitude fit at the
+    magnetometer's delay (``reference_delay``'s fit); where it is scored on other recordings,
+    the D those recordings show with the calibration recording's offset, ML's
+    (``other_recordings``' fit_with_ml_offset). ``kind`` says which."""
+
+    case: str
+    kind: str
+    plain: float
+    ml: float | None
+    right: float
+
+
+def right_calibrations(results: list[dict]) -> list[RightCalibration]:
+    """:class:`RightCalibration` of every case with a plain fit and one of those sections."""
+    out = []
+    for r in results:
+        if r.get("plain") is None or "ml" not in r.get("methods", {}):
+            continue
+        ml_run = r["methods"]["ml"]
+        ml = None if ml_run["refused"] is not None else ml_run["heading_deg"]
+        delay, other = r.get("reference_delay"), r.get("other_recordings")
+        if delay:
+            out.append(
+                RightCalibration(r["case"], "fit at the delay", r["plain"], ml, delay["fit"])
+            )
+        elif other and other.get("fit_with_ml_offset") is not None:
+            out.append(
+                RightCalibration(
+                    r["case"],
+                    "the scored recordings' D, ML's offset",
+                    r["plain"],
+                    ml,
+                    other["fit_with_ml_offset"],
+                )
+            )
+    return out
+
+
 def criteria(results: list[dict]) -> list[Criterion]:
     """The acceptance criteria on :func:`evaluate_case` results (ML: method "ml")."""
     by_name = {r["case"]: r for r in results}

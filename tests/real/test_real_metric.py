@@ -384,3 +384,4 @@ def test_the_right_calibration_is_taken_from_the_section_each_case_has():
         ("refused", 6.5, None),
     ]
     assert got[0].kind != got[1].kind
+    assert [c.better for c in got] == [5.0, 7.5, 6.5]

@@ -886,6 +886,11 @@ class RightCalibration:
     ml: float | None
     right: float
 
+    @property
+    def better(self) -> float:
+        """The better of ML (None where it refused) and the right calibration."""
+        return self.right if self.ml is None else min(self.ml, self.right)
+
 
 def right_calibrations(results: list[dict]) -> list[RightCalibration]:
     """:class:`RightCalibration` of every case with a plain fit and one of those sections."""

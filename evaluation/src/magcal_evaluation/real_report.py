@@ -339,9 +339,10 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
             "",
             "Each case's heading error with the calibration its own data show to be right: "
             "where it is scored on its own recording, the known-attitude fit at the "
-            "magnetometer's delay (the delay section above); where it is scored on other "
-            "recordings, the D those recordings show with the calibration recording's offset, "
-            "ML's (the section above). It is no lower bound: a calibration can score better by "
+            "magnetometer's delay (from the section on the magnetometer's delay); where it is "
+            "scored on other recordings, the D those recordings show with the calibration "
+            "recording's offset, ML's (from the section on other recordings). It is no lower "
+            "bound: a calibration can score better by "
             "being wrong in a way the recording's motion or the scored days' offset rewards, "
             "as ML does where its ratio is below the right one's. The medians say what being "
             "right earns across the cases, against the median the acceptance asks of ML "
@@ -352,20 +353,19 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
             "|---|---|---:|---:|---:|---:|",
         ]
         for c in rights:
-            best = c.right if c.ml is None else min(c.ml, c.right)
             lines.append(
                 f"| {c.case} | {c.kind} | {_f(c.plain)} | "
                 f"{_with_plain_ratio(c.right, c.plain)} | "
                 f"{'refused' if c.ml is None else _with_plain_ratio(c.ml, c.plain)} | "
-                f"{_with_plain_ratio(best, c.plain)} |"
+                f"{_with_plain_ratio(c.better, c.plain)} |"
             )
         right_q = [c.right / c.plain for c in rights]
         ml_q = [c.ml / c.plain for c in rights if c.ml is not None]
-        best_q = [(c.right if c.ml is None else min(c.ml, c.right)) / c.plain for c in rights]
+        better_q = [c.better / c.plain for c in rights]
         lines.append(
             f"| median over {len(rights)} cases of the ratio to plain | | | "
             f"{np.median(right_q):.3f}×p | {np.median(ml_q):.3f}×p | "
-            f"{np.median(best_q):.3f}×p |"
+            f"{np.median(better_q):.3f}×p |"
         )
     lines += [
         "",

@@ -52,6 +52,11 @@ SLOW_RAD_S = 0.1
 #: SIH's 20–30 mG noise resolve an offset to 3–10 mG against a known earth field
 #: (:func:`residual_offset`; test_px4_sitl.COMPARISON_BOUND_G).
 MIN_SLOW_SAMPLES = 70
+#: How far apart a run's attitudes must be for :func:`residual_offsets` to tell an offset from
+#: the earth field: 1 − the largest singular value of the mean R_nb (0 when every attitude
+#: shares one axis, 1 when they cover every direction). Runs of SIH's vehicle turned about
+#: two axes gave 0.013–0.05, runs where it only turned about one 0.0004.
+MIN_ATTITUDE_SPREAD = 0.005
 
 
 def _udp_free(port: int) -> bool:
@@ -224,13 +229,21 @@ class Px4Sitl:
             self.burst(MOTOR_PAIRS[rng.integers(len(MOTOR_PAIRS))], seconds=seconds)
             stop.wait(seconds + 0.5)
 
-    def slow_samples(self, seconds: float, seed: int, burst_s: float = 1.0, period_s: float = 4.0):
+    def slow_samples(
+        self,
+        seconds: float,
+        seed: int,
+        burst_s: float = 1.0,
+        period_s: float = 4.0,
+        spread: bool = False,
+    ):
         """PX4's corrected field (HIGHRES_IMU, gauss, body frame) beside the true R_nb
         (HIL_STATE_QUATERNION, the latest before it) while bursts every ``period_s`` turn the
         vehicle, kept where the vehicle turns slower than SLOW_RAD_S (so that the pairing of
         the two streams costs nothing), for ``seconds`` and on until MIN_SLOW_SAMPLES are
-        kept (at most three times as long: a vehicle that keeps spinning after a burst gives
-        few). Returns fields (N, 3), R_nb (N, 3, 3)."""
+        kept and, with ``spread``, the attitudes are MIN_ATTITUDE_SPREAD apart (at most three
+        times as long: a vehicle that keeps spinning after a burst gives few samples, one
+        that only yaws gives no spread). Returns fields (N, 3), R_nb (N, 3, 3)."""
         rng = np.random.default_rng(seed)
         self.stream(HIGHRES_IMU_ID, 50)
         self.stream(HIL_STATE_QUATERNION_ID, 50)
@@ -239,9 +252,13 @@ class Px4Sitl:
         state = None
         t0 = time.monotonic()
         next_burst = t0
-        while (elapsed := time.monotonic() - t0) < seconds or (
-            len(fields) < MIN_SLOW_SAMPLES and elapsed < 3 * seconds
-        ):
+
+        def wanting() -> bool:
+            return len(fields) < MIN_SLOW_SAMPLES or (
+                spread and attitude_spread(np.array(attitudes)) < MIN_ATTITUDE_SPREAD
+            )
+
+        while (elapsed := time.monotonic() - t0) < seconds or (elapsed < 3 * seconds and wanting()):
             if time.monotonic() >= next_burst:
                 self.burst(MOTOR_PAIRS[rng.integers(len(MOTOR_PAIRS))], seconds=burst_s)
                 next_burst += period_s
@@ -293,6 +310,14 @@ def residual_offsets(*runs) -> tuple[list[np.ndarray], np.ndarray]:
             rhs.append(f)
     x, *_ = np.linalg.lstsq(np.concatenate(blocks), np.concatenate(rhs), rcond=None)
     return [x[3 + 3 * r : 6 + 3 * r] for r in range(len(runs))], x[:3]
+
+
+def attitude_spread(R_nb: np.ndarray) -> float:
+    """1 − the largest singular value of the mean of ``R_nb`` (MIN_ATTITUDE_SPREAD); 0 for
+    no attitudes."""
+    if len(R_nb) == 0:
+        return 0.0
+    return float(1.0 - np.linalg.svd(np.mean(R_nb, axis=0), compute_uv=False)[0])
 
 
 def earth_field(fields: np.ndarray, R_nb: np.ndarray, offset: np.ndarray) -> np.ndarray:

@@ -221,6 +221,11 @@ class SensorLevels:
     acc_used: np.ndarray
     Sigma_acc: np.ndarray
 
+    def turn_var_with_gain_error(self, k: float) -> np.ndarray:
+        """(N,) rad², each step's turn variance allowing for a gyroscope gain error of 1-σ
+        ``k`` per entry (:func:`turn_squared`): ``turn_var + k² turn_sq``."""
+        return self.turn_var + k**2 * self.turn_sq
+
     @property
     def stationary_samples(self) -> int:
         """Samples of the stationary stretch the noise was measured on (0: none)."""

@@ -462,7 +462,7 @@ class LikelihoodProblem:
             # measured (levels.acc_used is False where the row has no accelerometer).
             has_acc=levels.acc_used,
             has_mag=session.has_mag,
-            turn_var=levels.turn_var + p.gyro_gain_error**2 * levels.turn_sq,
+            turn_var=levels.turn_var_with_gain_error(p.gyro_gain_error),
         )
         prior_mean, prior_precision = gyro_noise_prior(
             levels.noise.Sigma_gyr, levels.stationary_samples
@@ -493,7 +493,7 @@ class LikelihoodProblem:
     def with_gyro_gain_error(self, k: float) -> LikelihoodProblem:
         """The same problem with the filter allowing for a gyroscope gain error ``k``
         (:data:`GYRO_GAIN_ERROR`); θ keeps its meaning."""
-        turn_var = self.levels.turn_var + k**2 * self.levels.turn_sq
+        turn_var = self.levels.turn_var_with_gain_error(k)
         return dataclasses.replace(
             self, data=dataclasses.replace(self.data, turn_var=turn_var), gyro_gain_error=k
         )

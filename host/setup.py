@@ -6,7 +6,7 @@ setup(
     ext_modules=[
         Extension(
             "magcal.calib.likelihood._mekf",
-            sources=["csrc/mekf_likelihood.c", "csrc/_mekf_module.c"],
+            sources=["csrc/mekf_likelihood.c", "csrc/mekf_fisher.c", "csrc/_mekf_module.c"],
             include_dirs=["csrc"],
             # No auto-vectorisation: on the kernel's 3×3 arithmetic GCC 12 produces packed
             # code with shuffles that runs slower than scalar code (cost+gradient ~20%

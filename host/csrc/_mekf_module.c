@@ -3,7 +3,7 @@
  * protocol (no numpy headers needed to build this) and must be C-contiguous native float64:
  * the format and item size are checked, not just the byte count, so an int64 or float32
  * array is an error rather than a wrong result. The Python wrapper in
- * magcal/calib/native.py prepares them.
+ * magcal/calib/likelihood/mekf.py prepares them.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>
@@ -117,9 +117,9 @@ enum {
     B_EXTRA,
     B_Q0,
     B_P0,
-    B_OUT0, /* cost: q_filt; cost_grad: tape */
-    B_OUT1, /* cost: innov;  cost_grad: grad */
-    B_OUT2, /* cost: normalised               */
+    B_OUT0, /* cost: q_filt; cost_grad: tape; fisher: info */
+    B_OUT1, /* cost: innov;  cost_grad: grad; fisher: grad */
+    B_OUT2, /* cost: normalised; fisher: directions */
     B_HAS_ACC,
     B_HAS_MAG,
     B_TURN_VAR,
@@ -259,6 +259,48 @@ static PyObject *py_cost_grad(PyObject *self, PyObject *args)
     return ok ? PyFloat_FromDouble(cost) : NULL;
 }
 
+static PyObject *py_fisher(PyObject *self, PyObject *args)
+{
+    (void)self;
+    PyObject *in[11], *dir_obj, *info_obj, *grad_obj;
+    double g;
+    int use_mag;
+    in[8] = in[9] = in[10] = Py_None;
+    if (!PyArg_ParseTuple(args, "OOOOOOdOOpOOO|OOO", &in[0], &in[1], &in[2], &in[3], &in[4],
+                          &in[5], &g, &in[6], &in[7], &use_mag, &dir_obj, &info_obj, &grad_obj,
+                          &in[8], &in[9], &in[10]))
+        return NULL;
+    buffers_t bufs;
+    memset(&bufs, 0, sizeof bufs);
+    mc_mekf_model_t model;
+    mc_mekf_data_t data;
+    const double *dirs = NULL;
+    double *info = NULL, *grad = NULL;
+    Py_ssize_t k = 0;
+    int ok = prepare(in, g, use_mag, &bufs, &model, &data) &&
+             (dirs = get_float64(dir_obj, &bufs.b[B_OUT2], -1, 0, "directions")) != NULL;
+    if (ok) {
+        const Py_ssize_t len = bufs.b[B_OUT2].len / (Py_ssize_t)sizeof(double);
+        k = len / MC_MEKF_MODEL_DOUBLES;
+        if (k < 1 || k * MC_MEKF_MODEL_DOUBLES != len || k > MC_MEKF_FISHER_MAX_DIRECTIONS) {
+            PyErr_Format(PyExc_ValueError,
+                         "directions: expected k × %d values with 1 ≤ k ≤ %d, got %zd values",
+                         MC_MEKF_MODEL_DOUBLES, MC_MEKF_FISHER_MAX_DIRECTIONS, len);
+            ok = 0;
+        }
+    }
+    ok = ok && (info = get_float64(info_obj, &bufs.b[B_OUT0], k * k, 1, "info")) != NULL &&
+         (grad = get_float64(grad_obj, &bufs.b[B_OUT1], k, 1, "grad")) != NULL;
+    double cost = NAN;
+    if (ok) {
+        Py_BEGIN_ALLOW_THREADS
+        cost = mc_mekf_fisher(&model, &data, dirs, (size_t)k, info, grad);
+        Py_END_ALLOW_THREADS
+    }
+    release_all(&bufs);
+    return ok ? PyFloat_FromDouble(cost) : NULL;
+}
+
 static PyMethodDef methods[] = {
     {"cost", py_cost, METH_VARARGS,
      "cost(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, q_out, innov_out, "
@@ -270,6 +312,11 @@ static PyMethodDef methods[] = {
      "[, has_acc, has_mag, turn_var]) -> cost\n\nArrays: C-contiguous float64; tape holds "
      "TAPE_DOUBLES_PER_SAMPLE * n and grad_out MODEL_DOUBLES values; the masks and turn_var "
      "as in cost."},
+    {"fisher", py_fisher, METH_VARARGS,
+     "fisher(model, dt, gyr, acc, mag, acc_extra_var, g, q0, P0, use_mag, directions, "
+     "info_out, grad_out[, has_acc, has_mag, turn_var]) -> cost\n\nThe Fisher information "
+     "(k, k) and the cost's derivative (k) along the k rows of directions (k, MODEL_DOUBLES); "
+     "the other arguments as in cost."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -282,7 +329,9 @@ PyMODINIT_FUNC PyInit__mekf(void)
     PyObject *mod = PyModule_Create(&module);
     /* The layout sizes, so the Python side never hard-codes them. */
     if (mod && (PyModule_AddIntConstant(mod, "TAPE_DOUBLES_PER_SAMPLE", MC_MEKF_TAPE_DOUBLES) < 0 ||
-                PyModule_AddIntConstant(mod, "MODEL_DOUBLES", MC_MEKF_MODEL_DOUBLES) < 0)) {
+                PyModule_AddIntConstant(mod, "MODEL_DOUBLES", MC_MEKF_MODEL_DOUBLES) < 0 ||
+                PyModule_AddIntConstant(mod, "FISHER_MAX_DIRECTIONS",
+                                        MC_MEKF_FISHER_MAX_DIRECTIONS) < 0)) {
         Py_DECREF(mod);
         return NULL;
     }

@@ -99,4 +99,20 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                          double *tape, size_t tape_len, mc_mekf_model_t *grad);
 
+/* Most directions mc_mekf_fisher takes in one pass (its workspace is on the stack). */
+#define MC_MEKF_FISHER_MAX_DIRECTIONS 64
+
+/* The cost of mc_mekf_cost and, along k directions of the model (the rows of `directions`,
+ * k × MC_MEKF_MODEL_DOUBLES, in the layout of mc_mekf_model_t), the Fisher information of
+ * the prediction-error likelihood,
+ *   info[i][j] = Σ_t (∂_i ε_tᵀ S_t⁻¹ ∂_j ε_t + ½ tr(S_t⁻¹ ∂_i S_t S_t⁻¹ ∂_j S_t)),
+ * into `info` (k × k, symmetric), and the cost's derivative along each direction into
+ * `grad` (k), both by forward sensitivities of the filter (mekf_fisher.c). A direction's
+ * covariance entries are symmetrised as the model's are. Returns the cost; on NaN (the
+ * arguments of mc_mekf_cost, `directions`, `info` or `grad` NULL, k = 0 or above
+ * MC_MEKF_FISHER_MAX_DIRECTIONS, or a covariance not positive definite) info and grad are
+ * zero. */
+double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
+                      const double *directions, size_t k, double *info, double *grad);
+
 #endif

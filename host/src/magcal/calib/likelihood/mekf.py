@@ -324,6 +324,34 @@ def cost_and_model_gradient(
     )
 
 
+#: Most directions :func:`fisher_information` takes in one call (the kernel's limit).
+FISHER_MAX_DIRECTIONS: int = _mekf.FISHER_MAX_DIRECTIONS
+
+
+def model_vector(p: ModelParams) -> np.ndarray:
+    """The model as the kernel's flat vector (MODEL_DOUBLES,): the layout of directions."""
+    return _model_buffer(p)
+
+
+def fisher_information(
+    p: ModelParams, data: FilterData, directions: np.ndarray
+) -> tuple[float, np.ndarray, np.ndarray]:
+    """V(θ), the Fisher information (k, k) and ∂V (k,) along the k rows of ``directions``
+    (k, MODEL_DOUBLES) in the model's flat layout (:func:`model_vector`), by forward
+    sensitivities of the filter (``host/csrc/mekf_fisher.c``), with the magnetometer.
+    On a non-finite V both are zero."""
+    directions = np.ascontiguousarray(directions, dtype=float)
+    if directions.ndim != 2 or directions.shape[1] != MODEL_DOUBLES:
+        raise ValueError(f"directions: expected (k, {MODEL_DOUBLES}), got {directions.shape}")
+    k = directions.shape[0]
+    info = np.empty((k, k))
+    grad = np.empty(k)
+    cost = _mekf.fisher(
+        _model_buffer(p), *_data_args(data), True, directions, info, grad, *_optional_args(data)
+    )
+    return cost, info, grad
+
+
 def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True) -> FilterOutput:
     """Textbook MEKF with the full innovation covariance over the measurements present at
     each sample (6×6, 3×3 or none). Slow; for tests."""

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """Generate both sides of the device protocol from protocol/schema.json.
 
 Writes (paths relative to the repository root):
@@ -55,7 +56,10 @@ HEADER = "\n".join(
 )
 
 
-C_HEADER = "/* " + HEADER.replace("\n", "\n * ") + " */"
+# The licence of every generated file, as its first line (as in every source file).
+SPDX = "SPDX-License-Identifier: Apache-2.0"
+C_HEADER = f"/* {SPDX} */\n/* " + HEADER.replace("\n", "\n * ") + " */"
+PY_HEADER = f"# {SPDX}"
 
 
 # ----------------------------------------------------------------------------- schema
@@ -1107,6 +1111,7 @@ def py_kw(name: str, value: str, indent: int) -> list[str]:
 def gen_python(schema: dict) -> str:
     fr, pv = schema["framing"], schema["protocol"]
     L = [
+        PY_HEADER,
         '"""' + HEADER,
         "",
         "The device protocol's tables for magcal.device.framing: status codes, units,",

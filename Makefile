@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # magcal: the one entry point. `make demo` and `make test` set everything up themselves.
 SHELL := /bin/bash
 PYTHON ?= python3

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Host driver for bench/firmware_figures.py: calls mc_correction_apply N times (argv[1],
  * default 100000) on pseudo-random int16 samples with a realistic parameter set, so that

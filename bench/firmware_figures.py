@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """Firmware figures: the library's size on a Cortex-M4 and the cost of one correction.
 
     python3 bench/firmware_figures.py --out bench/firmware.json

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """Link figures: what the device protocol sustains on a 921600-baud serial line, its overhead
 per sample, and how long a parameter flash takes.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Text output of bench/run_bench.py: the table of one run and the headline figures of
 several results files side by side (``--show``).
 

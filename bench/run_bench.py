@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """magcal benchmark: speed and memory against the product's targets, measured on one core.
 
     python bench/run_bench.py --out bench/results.json     # what `make bench` runs (~35 s)

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal against ArduPilot's on-board calibrator on ArduCopter SITL (``make bench-sitl``).
 
 For each seed, the same set-up twice (tests/autopilot_sitl: a random SIM_MAG1_OFS/DIA/ODI,

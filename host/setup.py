@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Build of the native EKF-likelihood kernel; everything else is in pyproject.toml."""
 
 from setuptools import Extension, setup

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # The report's browser test: Debian's Chromium, headless (tests/browser).
 #
 #   make deps-browser   installs Debian's chromium (only when missing)

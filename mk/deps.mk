@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # Python dependencies: installs come from a lock file, so that CI, the team and users of a
 # checkout get the versions CI tested. host/pyproject.toml keeps its ranges for people who
 # install the package into an environment of their own.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # The product stands alone: magcal installed from host/ as a user installs it (not editable,
 # so the native kernel is compiled into the wheel) into a fresh virtual environment, without
 # the evaluation package, and run from a directory outside the checkout.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # The device protocol: code generation from protocol/schema.json and the frame decoder's
 # libFuzzer target. Included by the root Makefile after FW_SRC, FW_HDR, FW_WARN and FW_INC.
 #

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # The software-in-the-loop device: the firmware library's protocol endpoint (device.h) as a
 # native process, build/sil/magcal-sil (firmware/port/posix/sil_main.c documents its
 # interface). Included by the root Makefile after FW_SRC, FW_HDR, FW_WARN and FW_INC.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # Real autopilots in the loop: ArduCopter SITL from SITL_DIR (../shared/sitl beside the
 # checkout by default) and PX4 SITL with SIH from PX4SITL_DIR (../shared/px4sitl). `make
 # test-sitl` runs tests/autopilot_sitl (the real command line against the simulated vehicles);

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 # Cross-building the firmware library for a Cortex-M4 and running it under QEMU
 # (mps2-an386). Included by the root Makefile after FW_SRC, FW_HDR, FW_WARN and FW_INC.
 #

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A pure-Python magcal device (protocol/SPEC.md, device side) and test links.
 
 FakeDevice is a byte-in/byte-out state machine: ``receive(data)`` feeds it what the host

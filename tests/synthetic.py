@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Synthetic filter problems with known truth, shared by the filter-level tests."""
 
 import dataclasses

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * libFuzzer target for the frame decoder (frame.h) and the message codec (messages.h), built
  * with -fsanitize=fuzzer,address,undefined by `make fuzz-smoke`.

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The sensors both emulated devices report through info: the native SIL device
  * (port/posix/sil_main.c) and the QEMU target's synthetic sensors

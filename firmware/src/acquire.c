@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Acquisition through the sensor HAL into the sample ring. See acquire.h and sensor_hal.h. */
 #include "magcal/acquire.h"
 

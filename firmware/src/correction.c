@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* The fixed-point correction m = D^-1 (y - o). See correction.h. */
 #include "magcal/correction.h"
 

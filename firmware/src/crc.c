@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* CRC-16/CCITT-FALSE and CRC-32/ISO-HDLC, bitwise. See crc.h. */
 #include "magcal/crc.h"
 

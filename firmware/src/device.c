@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* The protocol endpoint and command dispatcher. See device.h and protocol/SPEC.md. */
 #include "magcal/device.h"
 

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Protocol framing: streaming COBS decoder and encoder with CRC-16/CCITT-FALSE. See frame.h. */
 #include "magcal/frame.h"
 

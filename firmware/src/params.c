@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* The parameter set: validation in exact integer arithmetic and the little-endian encoding.
  * See params.h. */
 #include "magcal/params.h"

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Single-producer / single-consumer sample ring. See ring.h for the memory-ordering argument. */
 #include "magcal/ring.h"
 

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Two-slot power-loss-safe parameter storage. The layout and the protocol are in storage.h. */
 #include "magcal/storage.h"
 

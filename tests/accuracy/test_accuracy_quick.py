@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Quick versions of the accuracy checks (the full report is ``make accuracy``).
 
 Each check runs a few fixed seeds (1..n, never chosen by outcome) through the same functions

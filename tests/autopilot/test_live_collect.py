@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The live CKF in ``magcal collect --mavlink`` against the autopilot emulator: the
 progress shows the estimate's norm spread, says "ok to stop" once coverage and convergence
 are both good enough, and the session records the final estimate as ``live_estimate``, as the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """End to end over MAVLink with the autopilot emulator, through the real CLI:
 collect → calibrate → flash → the emulator's own corrected field; backups, dry runs, restores
 and a lossy parameter link.

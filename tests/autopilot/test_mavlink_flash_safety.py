@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What flash, collect and info do around the writes, on the autopilot emulator through the
 real CLI: an absent compass is refused, the backup exists before the first PARAM_SET, a dry
 run sends none, an interrupted write accounts for every parameter and names the backup, and

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """An autopilot emulator for the tests: ArduPilot or PX4 over MAVLink 2 on UDP loopback.
 
     from tests.autopilot_emulator import AutopilotEmulator

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``python -m tests.autopilot_emulator``: run an emulated autopilot until Ctrl-C."""
 
 from __future__ import annotations

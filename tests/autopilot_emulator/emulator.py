@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The emulator: a thread that speaks MAVLink 2 over UDP loopback as ArduPilot or PX4 would.
 
 Link: the emulator sends from an ephemeral port on 127.0.0.1 to ``127.0.0.1:PORT`` (as SITL

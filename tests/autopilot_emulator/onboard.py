@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The autopilots' own magnetometer corrections, re-implemented from their sources.
 
 This module is deliberately independent of ``magcal.autopilot.mapping`` (the tests compare

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Parameter storage and the two autopilots' encodings of PARAM_VALUE / PARAM_SET.
 
 ArduPilot (``libraries/GCS_MAVLink/GCS_Param.cpp``, ``AP_Param::set_float``):

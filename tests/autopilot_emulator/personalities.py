@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """ArduPilot and PX4 personalities: parameters, hidden compass errors, on-board state.
 
 Each compass ``n`` (1-based) reads ``raw = A m_b + c + σ e`` in the autopilot's raw units

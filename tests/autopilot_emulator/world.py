@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The emulated vehicle's world: motion from ``magcal.sim``, IMU readings, the true field.
 
 Frames: the navigation frame is magcal's (x magnetic north, y west, z up, field

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """ArduCopter SITL (``../shared/sitl`` beside the checkout) as a test fixture.
 
 :class:`ArduPilotSitl` starts ``arducopter --model calibration`` in a temporary directory, in

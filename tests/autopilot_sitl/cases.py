@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """One SITL calibration case end to end through the real command line (tests and bench).
 
 :func:`magcal_case`: a random compass error (and mounting rotation), a wrong calibration in

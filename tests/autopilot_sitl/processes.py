@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulators run in their own process groups and are always stopped: at the end of their
 ``with`` block, and at interpreter exit for any left running (a test that failed, Ctrl-C)."""
 

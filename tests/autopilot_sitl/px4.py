@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """PX4 SITL with its built-in simulator SIH (``../shared/px4sitl`` beside the checkout) as a
 test fixture.
 

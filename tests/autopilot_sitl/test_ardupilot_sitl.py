@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal against ArduCopter SITL (``make test-sitl``; skipped when ``../shared/sitl`` is
 absent): the real command line end to end on the calibration stand, checked with ArduPilot's
 own correction of the values written against the simulated truth.

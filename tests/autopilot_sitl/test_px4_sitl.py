@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal against PX4 SITL with SIH (``make test-sitl``; skipped when ``../shared/px4sitl`` is
 absent): the real command line on a real PX4, for what SIH can show (its README).
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal report``'s page in a real browser: Debian's Chromium, headless.
 
 Two renderings of the same page are compared: as written, and a copy whose images are

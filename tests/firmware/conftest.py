@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The firmware library as a shared object, driven through ctypes.
 
 ``make test`` builds ``build/libmagcal_fw.so`` first; running pytest alone builds it here

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The acquisition's data structures through ctypes: the sample record's layout (what the
 protocol streams), the ring's drop-newest counting, the sensor descriptions the C check accepts
 and refuses, and the exact conversion of counts to SI units that sensor_hal.h documents,

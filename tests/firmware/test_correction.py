@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The fixed-point correction through ctypes against magcal.device.fixed_point.
 
 Criteria, on 10^6 random samples (3 * 10^6 outputs) over unit-scale, counts-scale, ~60-scale

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The firmware's CRCs agree with Python's (binascii) on the catalogue check value and on
 random data. binascii.crc_hqx with init 0xFFFF is CRC-16/CCITT-FALSE; binascii.crc32 is
 CRC-32/ISO-HDLC."""

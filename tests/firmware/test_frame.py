@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The C frame codec (frame.h, messages.h) through the shared library: the golden vectors,
 and agreement with the host's Deframer on random byte streams."""
 

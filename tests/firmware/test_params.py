@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The device parameter set through ctypes against magcal.device.fixed_point: the encoding
 both ways (golden bytes, random sets), the validation verdicts (C and the exact Python mirror
 agree on every status), and the host's conversion with its representability errors."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The firmware's parameter storage (storage.h) through ctypes, over a flash held in a Python
 bytearray: a second, independent implementation of the on-flash record (struct + binascii)
 reads what the C code writes and writes what the C code must read.

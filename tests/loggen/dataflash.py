@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Write ArduPilot DataFlash ``.bin`` logs from a :class:`~tests.loggen.scenario.BenchDay`.
 
 The format (as pymavlink's DFReader parses it): every message is ``0xA3 0x95 <type id>``

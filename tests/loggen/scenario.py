@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A simulated log's truth: rest, hand rotation, put down, rest, "flight", rest.
 
 Built from magcal's simulator (:mod:`magcal.sim`, read-only): the hand rotation is a

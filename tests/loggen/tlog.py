@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Write MAVLink telemetry logs (``.tlog``) from a :class:`~tests.loggen.scenario.BenchDay`.
 
 A tlog is what a ground station records: each MAVLink frame (packed by pymavlink's

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Write PX4 ULog files (``.ulg``) from a :class:`~tests.loggen.scenario.BenchDay`.
 
 The format (PX4's "ULog File Format" and pyulog's parser): a 16-byte header (``ULog``,

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * A minimal test harness for the native C tests (no framework to install): CHECK counts and
  * reports, CHECK_EQ_INT prints both sides, and check_summary() prints

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * A RAM NOR flash for the native tests, with power-cut and fault injection. Header-only
  * (static functions) because each tests/native/test_fw_*.c is compiled alone with the

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * A simulated sensor HAL for the native tests (static inline functions, so that a test
  * program may include it and use only some of them).

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The sample ring and the acquisition under ASan+UBSan: argument errors, wrap-around (of the
  * slots, of the free-running indices and of the 32-bit sequence number), drop-newest with

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* The fixed-point correction: argument and state errors, validation refusals through init,
  * the fixed.h helpers on their edge cases, known values and ties, forced saturation at the
  * extremes of every input and parameter, and 10^6 random cases against two references:

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* The firmware CRCs against their catalogue check values, whole and in pieces. */
 #include "check.h"
 #include "magcal/crc.h"

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The protocol endpoint (device.h) under ASan+UBSan: scripted request frames in, response
  * frames out, for every flow of protocol/SPEC.md §3 and §5: hello/version negotiation, info,

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The POSIX file-backed flash (firmware/port/posix/flash_file.c) and the storage over it.
  *

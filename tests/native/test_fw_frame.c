@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The frame decoder and encoder (frame.h) against the golden vectors (protocol/vectors, as C
  * arrays generated into protocol/vectors/vectors.h), their argument checks and the encoder's

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The generated message codec (messages.h): the unit table agrees with sensor_hal.h, every
  * message's pack/unpack checks its arguments, the room at out and the payload size, and the

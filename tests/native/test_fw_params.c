@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* The parameter set: every validation refusal with its own status code (and the order of the
  * checks), the exact integer conditioning test against a float64 computation on random
  * matrices, and the byte encoding (golden bytes, round trip, errors). */

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The SIL device's sensor HAL (firmware/port/posix/sensor_feed.c) under ASan+UBSan: the
  * mailbox, the simulator's clock, the line format (valid, malformed and out-of-range lines,

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Parameter storage (storage.h) on the RAM flash of flash_sim.h:
  *   - power loss: a commit is cut at EVERY byte step (program and erase), with the cut byte

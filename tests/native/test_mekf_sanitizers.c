@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The EKF likelihood kernel (host/csrc/mekf_likelihood.c) on its own, no Python: built and
  * run by `make test-native` under AddressSanitizer and UndefinedBehaviorSanitizer with

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The host's framing and message codec (magcal.device.framing) against the golden vectors
 (protocol/vectors/*.json), the CRC catalogue check value, COBS properties, and the deframer's
 resynchronisation and error reporting."""

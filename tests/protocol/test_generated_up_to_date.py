@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The committed generated files are exactly what protocol/generate.py makes of
 protocol/schema.json (nothing is generated at run time), and the schema is in its canonical
 layout."""

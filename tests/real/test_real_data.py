@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The real-data report on real recordings: end to end on the committed excerpt
 (``evaluation/data/real``, always present), and the plain fit and floor against the figures
 the full set's README gives (``../shared/realdata`` beside the checkout, when present).

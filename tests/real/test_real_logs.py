@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal import`` on real autopilot logs: every one is imported or refused in one true
 paragraph, never a traceback or a flood of lines.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The real-data metric, the plain fit and the known-attitude floor on synthetic data with a
 known attitude (:mod:`magcal_evaluation.real`)."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The SIL device (build/sil/magcal-sil) as a process for the tests, on magcal_evaluation.sil.
 
 ``sil_binary`` builds it once per session with ``make -s sil``; ``start_sil`` starts one

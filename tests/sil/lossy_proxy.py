@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A lossy TCP proxy for the SIL tests: 127.0.0.1:port -> the device, with seeded line noise.
 
 :class:`LossyProxy` forwards a client's connection to a TCP port (the SIL's protocol port) and

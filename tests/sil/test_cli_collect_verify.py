@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal collect`` and ``magcal verify`` against the SIL device (build/sil/magcal-sil over
 TCP), with a simulated tumbling session fed through the sensor feed faster than real time
 (magcal_evaluation.world.WorldFeeder):

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal flash`` against the SIL device (build/sil/magcal-sil over TCP), run in-process
 through :func:`magcal.cli.main`:
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """End to end in CI: the demo's flow against the SIL device, seeded and shorter.
 
 magcal-sil starts on a fresh flash file; the world (a MEMS sensor with a random distortion in

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The host against the REAL SIL device (build/sil/magcal-sil) over a bad link:
 a seeded :class:`tests.sil.lossy_proxy.LossyProxy` between the DeviceClient and the SIL's
 protocol port flips bits, drops, duplicates and delays bytes and splits frames, in both

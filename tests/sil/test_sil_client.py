@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The host's client library against the SIL device (build/sil/magcal-sil) end to end:
 open_link("socket://..."), hello/info, a simulated session fed through the feed socket as
 physical values (magcal_evaluation.world, P lines) and streamed back raw as the counts the device

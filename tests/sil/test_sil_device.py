@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The SIL device (build/sil/magcal-sil) end to end over TCP loopback: start-up lines, hello,
 info with the documented sensor scales, retries and nacks, parameter set/get/commit, reset,
 a restart of the process with the same flash file, raw and corrected streams fed over the

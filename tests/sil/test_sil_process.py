@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal_evaluation.sil's process wrapper against the SIL device: its stderr never blocks it.
 
 The SIL writes one stderr line per refused feed line; a pipe nobody reads while it runs

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The firmware on its Cortex-M4 target under QEMU.
 
 Plain ``pytest tests`` skips these tests when ``qemu-system-arm`` or the image

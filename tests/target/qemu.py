@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The Cortex-M4 firmware image under QEMU (``-M mps2-an386``), its UART0 on a host pty.
 
 QEMU starts halted (``-S``) with its monitor on stdin/stdout; ``QemuTarget.start`` reads

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The cross-built firmware (library + firmware/port/mps2-an386) on QEMU's mps2-an386.
 
 Boot: the banner names the firmware, the library revision and the board; the self-test

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Tests of the misalignment step (Algorithm 1, step 1c)."""
 
 from __future__ import annotations

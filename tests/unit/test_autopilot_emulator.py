@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The autopilot emulator over its UDP link, with plain pymavlink as the client.
 
 Rates are counted in simulated time (the messages' time fields); absences are checked

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The emulator's on-board corrections and parameter rules, without the link.
 
 Hand-computed numbers pin each reading of the sources; the random cases check that the

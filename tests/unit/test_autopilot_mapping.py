@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Tests of magcal.autopilot: enumerated rotations and the parameter mapping."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """bench/run_bench.py runs end to end on tiny sessions (structure only, never timing)."""
 
 import importlib.util

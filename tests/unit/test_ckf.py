@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Zhao et al.'s CKF (magcal.calib.norm_only.ckf): recovery on noise-free and noisy simulations, the
 square-root update against the paper's covariance form, positive definiteness over 100k
 samples, constant memory, invariance to the data's scale, the start, and the pipeline's

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal calibrate --method ckf|two-step`` as a user runs it: a valid magcal-result/1,
 the usual refusal (exit 2) on a session that cannot determine the calibration and a result
 with a warning under --force, and --method's help naming all four methods."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The live CKF while collecting (magcal.calib.norm_only.live and its use in magcal.device.collect):
 "ok to stop" on a good session and not on a partial or a too noisy one, block means at high
 rates, and collect's progress line with the estimate (and without it should it fail)."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The command line as a user runs it: files in, files out, exit codes and messages."""
 
 import json

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """How the command line finds its commands (every module of magcal.commands with add_parser,
 and every module other packages register in the entry-point group ``magcal.commands``), and
 option values that start with a minus and a digit (a southern latitude, a negative time)."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """DeviceClient's wait for one attempt's response raises on a time-out (never returns None),
 and a request retries such attempts then raises DeviceTimeoutError naming them all."""
 

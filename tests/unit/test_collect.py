@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal.device.collect against a fake client: units and exact scales, metadata, the stop
 conditions (samples, duration, coverage), dropped samples from seq gaps (with the uint32 wrap)
 and the device's count, Ctrl-C and errors keeping what was collected, and the session file

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A result its own session contradicts is refused: each check of
 ``magcal.calib.diagnostics.consistency`` on constructed data, the refusal through
 ``calibrate`` and ``magcal calibrate`` (exit 2, nothing written; ``--force`` writes it with the

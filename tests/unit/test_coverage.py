@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal.device.coverage: the equal-area partition, cell indices, the running centre, the
 coverage of simulated sessions (tumbling ~100 %, yaw-only low) and the hint."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal_evaluation.cramer_rao: the augmented MEKF is the calibration MEKF when the
 acceleration process is off (against the C kernel, with and without knocks), the Fisher
 information from per-sample scores agrees with the kernel's Hessian, and unknown

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal.device.client, magcal.device.flash and magcal.link against the pure-Python fake
 device (tests/fake_device.py): negotiation, exact unit conversion, seq and same-bytes retries,
 refusals, stream routing, line noise, a lossy link, the flash flow interrupted at every byte,

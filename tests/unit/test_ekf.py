@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The C kernel against the textbook numpy MEKF, and the filter against the truth."""
 
 import dataclasses

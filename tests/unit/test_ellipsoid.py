@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Tests of the ellipsoid fit (Algorithm 1, step 1b)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal.device.flash's outcomes against the fake device (tests/fake_device.py): the backup
 file is never overwritten and leaves nothing behind on failure; clients made by reconnect are
 closed when recovery fails; a recovery before the backup step reports no backup; a commit

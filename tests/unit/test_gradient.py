@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The exact (reverse-mode) gradient of V(θ) against central finite differences."""
 
 import numpy as np

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The ML step's test of the gyroscope's gain error, on simulated sessions with an exact
 gyroscope and with one whose gain matrix is off the identity."""
 

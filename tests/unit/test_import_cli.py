@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal import`` on the command line, and on to ``magcal calibrate``."""
 
 from __future__ import annotations

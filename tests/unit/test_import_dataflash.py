@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal import`` of ArduPilot DataFlash logs written by tests/loggen from the simulator."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Pairing magnetometer and IMU samples (magcal.logs.convert) and the parameter timeline."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The hand-rotation detector (magcal.logs.stretch) on synthetic inertial data."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal import`` of MAVLink telemetry logs (ArduPilot and PX4 personalities)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal import`` of PX4 ULog files written by tests/loggen (read back with pyulog)."""
 
 from __future__ import annotations

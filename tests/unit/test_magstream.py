@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The magnetometer screen of ``collect --mavlink`` and the coverage of orientations taken.
 
 A stream at 50 Hz carrying a 10 Hz compass: repeats are IMU-only rows, each value's time is

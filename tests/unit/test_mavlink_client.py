@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The MAVLink client (magcal.link.mavlink) and the --mavlink command-line rules, against a
 tiny fake vehicle on UDP loopback (heartbeats only) and without any vehicle."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Planning, backing up and confirming an autopilot flash (magcal.autopilot.flash), on fakes."""
 
 from __future__ import annotations

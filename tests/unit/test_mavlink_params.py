@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Parameter values on the MAVLink wire and in .parm / .params files (magcal.autopilot.params)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What magcal knows about an ArduPilot or PX4 vehicle (magcal.autopilot.vehicle): identity,
 compass numbering, stream units, the session's frame, time stamps, reading parameters."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The field strength for autopilot parameters: World Magnetic Model and --field / --location."""
 
 from __future__ import annotations

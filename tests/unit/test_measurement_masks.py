@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Samples with some measurements absent (FilterData.has_acc, has_mag): the C kernel against
 the textbook filter, its exact gradient against finite differences, and the all-present
 masks against no masks."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Multi-rate sessions: the view at the magnetometer's rows, magnetometer glitches, and the
 calibration of a session whose magnetometer is slower than its IMU."""
 

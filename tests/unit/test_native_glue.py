@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The CPython glue of the native kernel (host/csrc/_mekf_module.c): argument checking.
 
 Every buffer must be C-contiguous float64 of the right length, outputs writable; anything

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Algorithm 1 end to end on simulated sessions: recovery, scale invariance, refusals."""
 
 import dataclasses

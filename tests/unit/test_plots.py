@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Plots: each writes a PNG, leaves pyplot alone, and rejects mismatched inputs."""
 
 from __future__ import annotations

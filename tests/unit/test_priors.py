@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The MAP priors: the misalignment measure and its gradient, the priors in the problem's
 cost, their effect on an estimate, and the command line's widths."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal report``: a self-contained page with the result's numbers, their σ, the figures, the
 validation on a held-out session, and clear refusals for inputs that do not belong together."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The report's uncertainty: the Hessian of the ML cost, its inverse, and what they say.
 
 Toy problems with a known answer pin the numerics; simulated sessions pin the statistics (the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Result JSON files: the contract's keys, round trip, forward compatibility, error paths."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The data-only levels of a session: the accelerometer bump inflation of Σ_a, the time scale
 of the accelerometer's errors and the samples whose accelerometer reading is used."""
 

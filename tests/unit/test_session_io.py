@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Session CSV files: round trip, tolerated variations, and every error path."""
 
 from __future__ import annotations

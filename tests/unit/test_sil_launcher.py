@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal_evaluation.sil finds the SIL device without the product's help: an argument, else
 $MAGCAL_SIL_BINARY, else the checkout the evaluation package runs from."""
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The simulator: sensor sampling, trajectories, measurements, truth files."""
 
 import json

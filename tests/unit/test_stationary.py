@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Tests of stationary detection and noise/bias initialisation (Algorithm 1, step 1a)."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal study: a tiny study writes its files; interrupted and resumed it gives the same
 summary without redoing runs; other settings are refused; runs are deterministic per seed;
 failures are counted; the Markdown tables hold the runs' numbers."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The study runner's folder: settings checked, runs saved one per line, a torn last line
 redone, damage elsewhere refused, progress on one line."""
 

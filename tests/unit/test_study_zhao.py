@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Zhao et al.'s simulation settings and model, and the study's two new plots."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The ML estimate of the magnetometer's time offset on simulated sessions with a known lag."""
 
 import numpy as np

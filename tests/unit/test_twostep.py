@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Alonso & Shuster's TWO-STEP (magcal.calib.norm_only.twostep): recovery, agreement with a generic
 least-squares fit of the same norm model, invariance to the data's scale, refusal of
 planar data, and the pipeline's --method two-step (a full D, o through the alignment)."""

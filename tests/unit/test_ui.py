@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The command line's one way of showing progress (magcal.ui, on rich): on a terminal, lines
 redrawn in place that never wrap; in a log (not a terminal, TERM=dumb, CI), whole plain lines,
 rate-limited as each command asks, the last state always written."""

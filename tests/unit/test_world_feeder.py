@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal_evaluation.world: the mirror of the SIL port's quantisation (the value of a count, round
 half away from zero, saturation at the int16 limits), the exact round trip counts -> SI (the
 client's conversion) -> counts, the physical feed lines (exact reprs), the feed socket, and

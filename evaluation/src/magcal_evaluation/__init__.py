@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal's evaluation, beside the product: it imports :mod:`magcal`, which never imports it.
 
 - :mod:`~magcal_evaluation.accuracy`: the accuracy checks on seeded simulations (``make

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The accuracy checks (what the calibration must be shown to achieve) as seeded functions.
 
 One *run* simulates one seeded session, calibrates it and returns a flat dict of plain

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """The accuracy report: every accuracy check over seeded runs, `make accuracy`.
 
     python -m magcal_evaluation.accuracy_report --runs 20 --table2-runs 150 \\

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Cramér–Rao bound on the calibration-induced heading error when translational
 accelerations are unknown (the accelerated MEMS accuracy check).
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """Cramér–Rao bound on the heading error of the MEMS accuracy checks: `make cramer-rao`.
 
     python -m magcal_evaluation.cramer_rao_report --runs 20 --out bench/cramer_rao.md

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The end-to-end demo (``make demo``): an emulated device with a random distortion, tumbled
 by the world simulator while the real command line collects, calibrates, flashes and
 verifies; then the heading error and the field-norm spread before and after, against the

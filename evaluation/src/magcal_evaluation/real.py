@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """magcal on real recordings with an optical reference attitude: the heading metric, the
 plain-fit baseline, the known-attitude floor, every method, the acceptance criteria.
 

@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """Cut a small excerpt of the real-data set, for the quick check `make test` runs.
 
     python -m magcal_evaluation.real_excerpt --data ../shared/realdata \\

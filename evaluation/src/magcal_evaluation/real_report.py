@@ -1,4 +1,5 @@
 #!/usr/bin/env python3
+# SPDX-License-Identifier: Apache-2.0
 """The real-recordings report: every calibration method on real data, `make real`.
 
     python -m magcal_evaluation.real_report --data ../shared/realdata --out bench/real.md

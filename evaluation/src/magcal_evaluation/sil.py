@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The SIL device (``build/sil/magcal-sil``) as a child process: build, start, stop.
 
 ``magcal-sil`` (firmware/port/posix/sil_main.c) is the firmware's protocol endpoint as a

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """World simulator for the SIL device: a simulated session turned into the sensor-feed lines.
 
 (In the package, not the tests, so that ``make demo`` can use it too; :func:`tumbling_session`

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Acquisition: read the three sensors through the HAL (sensor_hal.h), number each sample and
  * queue it in a ring (ring.h) for the main loop, counting every sample that is lost.

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Build-time configuration of the magcal firmware library: every knob is a -D flag with the
  * default below. Each module has its own section.

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The magnetometer correction m = D^-1 (y - o) in fixed point (docs/contracts.md), with the
  * parameter set of params.h. Integer arithmetic only: no floating point, no division, no

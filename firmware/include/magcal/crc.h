@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * CRCs, named by their catalogue names (Greg Cook's CRC catalogue, "reveng"):
  *

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The protocol endpoint (protocol/SPEC.md): one mc_device_t ties the frame decoder (frame.h),
  * the message codec (messages.h), the idempotent-retry cache, acquisition (acquire.h), the

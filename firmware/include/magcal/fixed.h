@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Fixed-point helpers shared by the firmware modules: saturation, round-to-nearest right
  * shifts and the two's-complement conversions between unsigned and signed integers, all

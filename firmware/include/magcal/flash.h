@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The flash abstraction the parameter storage (storage.h) runs on: a NOR flash region of
  * page_count pages of page_size bytes, addressed by byte offset from the start of the region

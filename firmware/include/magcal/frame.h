@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Protocol framing (protocol/SPEC.md): COBS-encoded frames delimited by 0x00, each checked by
  * a CRC-16/CCITT-FALSE.

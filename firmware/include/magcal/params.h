@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The calibration parameter set the device stores and corrects with, its validation and its
  * fixed little-endian byte encoding (the blob the storage module keeps and the protocol

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Sensor hardware-abstraction layer: how the acquisition (acquire.h) reads the magnetometer,
  * accelerometer and gyroscope, and how a port tells the host exactly what one raw count is.

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Power-loss-safe storage of one opaque payload (the encoded parameter set) in two flash
  * slots, A and B, over the flash abstraction of flash.h. No malloc; the caller owns the

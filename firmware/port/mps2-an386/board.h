@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The MPS2 board with the AN386 FPGA image (Cortex-M4), as Arm's Application Note AN386
  * documents it and QEMU's `-M mps2-an386` models it (hw/arm/mps2.c; checked with the QEMU

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The magcal firmware on mps2-an386 (Cortex-M4 under QEMU): the protocol endpoint
  * (mc_device_t, device.h; protocol/SPEC.md) on UART0, with synthetic sensors

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* RAM-backed NOR flash. See ram_flash.h. */
 #include "ram_flash.h"
 

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * A RAM-backed NOR flash (flash.h) for the mps2-an386 target, which has no flash the
  * firmware may write: MC_RAM_FLASH_PAGES pages of MC_RAM_FLASH_PAGE_SIZE bytes, erase sets a

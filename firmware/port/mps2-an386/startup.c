@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Reset and exception entry for the Cortex-M4 on mps2-an386, in C: the vector table,
  * Reset_Handler (copy .data from its load address, zero .bss, call main) and a default

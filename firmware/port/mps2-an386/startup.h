@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Hooks of startup.c for the application. */
 #ifndef MAGCAL_PORT_STARTUP_H
 #define MAGCAL_PORT_STARTUP_H

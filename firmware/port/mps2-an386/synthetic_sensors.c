@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Synthetic sensors: see synthetic_sensors.h for the exact counts. */
 #include "synthetic_sensors.h"
 

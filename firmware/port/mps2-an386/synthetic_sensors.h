@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Synthetic sensors for the mps2-an386 target: the board has no magnetometer or IMU, so this
  * HAL (sensor_hal.h) produces deterministic counts of a physically consistent motion, in

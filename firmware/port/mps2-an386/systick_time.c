@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Microsecond time from SysTick. See systick_time.h. */
 #include "systick_time.h"
 

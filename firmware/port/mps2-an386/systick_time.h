@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Microsecond time from the Cortex-M SysTick timer: SysTick counts the core clock and
  * interrupts once per millisecond; mc_systick_time_us adds the elapsed part of the current

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* Polled CMSDK APB UART. See uart_cmsdk.h. */
 #include "uart_cmsdk.h"
 

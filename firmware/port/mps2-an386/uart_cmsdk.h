@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Polled driver for the Arm CMSDK APB UART (Cortex-M System Design Kit TRM, DDI0479):
  * 8N1, one byte of buffering in each direction, no FIFO and no flow control.

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* File-backed NOR flash for the POSIX SIL device. See flash_file.h. */
 #define _POSIX_C_SOURCE 200809L
 

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * A NOR flash (flash.h) kept in a file, for the POSIX software-in-the-loop device: what the
  * device stores survives a restart of the process, and a process killed in the middle of a

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /* A sensor HAL fed by the SIL device from the world simulator. See sensor_feed.h. */
 #include "sensor_feed.h"
 

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * A sensor HAL (sensor_hal.h) fed by the caller instead of hardware: the SIL device reads
  * samples that the Python world simulator writes to a pipe or socket, and hands each one to

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * magcal-sil: the firmware's protocol endpoint (device.h) as a native process, the
  * software-in-the-loop device the host tool and the tests talk to.

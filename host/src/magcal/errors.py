@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The error types of magcal.
 
 Every error message names the operation that failed and says what to do about it, e.g.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What the command line shows a person: exit codes, refusals, messages on stderr, progress and
 result tables.
 

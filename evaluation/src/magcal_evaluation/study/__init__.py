@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal study``: the papers' experiments, reproducible.
 
 :func:`run_study` runs the experiments of :mod:`magcal_evaluation.study.experiments` (Kok &

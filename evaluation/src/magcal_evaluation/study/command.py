@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal study OUTDIR``: the papers' experiments, resumable (see
 :mod:`magcal_evaluation.study`).
 

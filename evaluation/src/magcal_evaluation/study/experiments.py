@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The study's experiments: their settings, their tasks and the run of one task.
 
 Three experiments (``magcal study --experiments``):

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A resumable, parallel runner for independent seeded runs.
 
 A study is a list of :class:`Task`\\ s, each with a unique key. :func:`run_tasks` runs the ones

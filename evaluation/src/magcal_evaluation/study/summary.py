@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """From the study's run records to its summary: numbers, Markdown and figures.
 
 :func:`summarise` is a pure function of the settings and the records (any order): the same

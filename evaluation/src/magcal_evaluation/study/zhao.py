@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Zhao et al.'s simulation (Table 1 and Figure 1): magnetometer-only data of known ``A``, ``b``.
 
 H. Zhao, C. Lin, H. Zhang, G. Zhai, *Real-time Calibration Algorithm for Three-axis

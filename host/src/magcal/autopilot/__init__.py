@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """ArduPilot and PX4: compass parameters and MAVLink.
 
 magcal gives ``m_b = D⁻¹ (y − o)`` with unit norm. This package turns ``(D, o)``, the local

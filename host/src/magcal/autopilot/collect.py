@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Recording a calibration session from an ArduPilot or PX4 vehicle over MAVLink.
 
 :func:`collect` asks for compass N's IMU stream (:func:`magcal.autopilot.vehicle.collect_stream`)

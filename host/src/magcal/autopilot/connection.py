@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """An open autopilot: the MAVLink client, who the vehicle is, and its parameters.
 
 ``open_autopilot(url)`` opens the link, waits for the vehicle's HEARTBEAT, refuses anything

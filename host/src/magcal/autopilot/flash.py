@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Writing a calibration to an ArduPilot or PX4 vehicle: plan, back up, write, confirm.
 
 1. **Plan** (:func:`plan_flash`, pure): the result's ``D⁻¹``, ``o`` in the autopilot's unit,

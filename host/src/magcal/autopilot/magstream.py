@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Which magnetometer values in an autopilot's IMU stream are samples the vehicle measured.
 
 An autopilot streams its IMU (``RAW_IMU``, ``SCALED_IMU``, ...) at the rate asked for and puts

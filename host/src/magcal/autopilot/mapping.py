@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Map a magcal calibration onto ArduPilot and PX4 compass parameters, and back.
 
 magcal gives ``m_b = D⁻¹ (y − o)`` with ``‖m_b‖ = 1``; times the local field strength ``F``

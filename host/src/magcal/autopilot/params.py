@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Autopilot parameter values on the wire and in files (pure functions, no I/O but files).
 
 **Wire encoding.** PARAM_VALUE and PARAM_SET carry every value in a float32 field, with its

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The enumerated sensor rotations of ArduPilot and PX4, as rotation matrices.
 
 Convention (both autopilots, checked in their sources): an enumerated rotation ``R`` maps a

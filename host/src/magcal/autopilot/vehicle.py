@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What magcal knows about an ArduPilot or PX4 vehicle on a MAVLink link.
 
 Identity. The HEARTBEAT's ``autopilot`` field: MAV_AUTOPILOT_ARDUPILOTMEGA (3) is ArduPilot,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Checking the field an ArduPilot or PX4 vehicle corrects with the parameters in force.
 
 :func:`verify` streams the vehicle's own corrected field with its IMU and measures:

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The local field strength for an autopilot's compass parameters.
 
 magcal's correction has unit norm; an autopilot wants the field in its unit (ArduPilot mG,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The calibration: from a session's raw readings to D, o and the inertial alignment.
 
 The folders follow the algorithm (Kok & Schön 2016, Algorithm 1; ``docs/algorithm.md``):

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """From a session to a calibration result: Algorithm 1 with its checks and diagnostics.
 
 This is the one entry point the command line and the report scripts call.

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Frames, quaternions and rotations: the one place for attitude conventions.
 
 Conventions (see also ``docs/contracts.md``):

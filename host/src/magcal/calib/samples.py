@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Multi-rate sessions: the magnetometer's own samples, glitches removed, and a view at them.
 
 A multi-rate session (``magcal-session: 2``) has the IMU at its rate and the magnetometer at

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The host side of the device protocol (protocol/SPEC.md §2-§5) over a :class:`Link`.
 
 ``DeviceClient(link)`` sends requests and waits for their responses; stream messages that

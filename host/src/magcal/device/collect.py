@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Recording a calibration session from the device's raw stream.
 
 :func:`collect` starts a raw stream, converts each sample's counts to SI units with the

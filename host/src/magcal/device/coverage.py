@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Coverage of the sphere of field directions while a magnetometer is rotated.
 
 A calibration determines the ellipsoid ``y = D R m + o`` well only when the field has been

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The device's fixed-point parameter set and correction, on the host.
 
 Mirrors ``firmware/include/magcal/params.h`` and ``correction.h`` (read them for the

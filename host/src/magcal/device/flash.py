@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """SPEC §5's flash flow (protocol/SPEC.md) on top of :class:`DeviceClient`.
 
 :func:`flash_parameters` writes a parameter set with a backup of the device's current set

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The device protocol's framing and message codec (protocol/SPEC.md), on bytes.
 
 A frame on the wire is ``COBS(body) 0x00`` with ``body = id (u8) | seq (u16 LE) | payload |

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Checking the device's calibrated output: the field norm's spread and heading consistency.
 
 :func:`verify` reads the device's active parameter set (``E_NO_PARAMS`` when there is none),

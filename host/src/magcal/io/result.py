@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Calibration results (``"format": "magcal-result/1"`` JSON): in memory, reading, writing.
 
 See ``docs/contracts.md``. A result file is one JSON object with the required keys

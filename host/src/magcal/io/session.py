@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Session files (``magcal-session`` CSV): the in-memory form, reading and writing.
 
 See ``docs/contracts.md`` for the format::

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Byte links to a device, behind one URL factory.
 
 ``open_link(url, timeout_s)`` turns a ``--port`` URL into a :class:`Link`: a device or

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The Link protocol: a byte stream with a timed read, a write and a close.
 
 A link knows nothing about frames: :class:`magcal.device.client.DeviceClient` writes whole

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A small MAVLink client for ArduPilot and PX4, on top of pymavlink.
 
 :class:`MavlinkClient` is the only place magcal talks MAVLink. It opens anything

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Links over pyserial: device and pseudo-terminal paths, ``socket://``, other pyserial URLs."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Import autopilot flight logs as magcal sessions (``magcal import LOG -o session.csv``).
 
 - :mod:`~magcal.logs.dataflash`: ArduPilot DataFlash ``.bin`` (IMU, MAG, PARM);

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """From a log's streams to a magcal session: pair the sensors in time, cut, describe.
 
 **Pairing.** A session row holds one gyroscope, accelerometer and magnetometer vector at one

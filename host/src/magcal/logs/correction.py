@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Undo the autopilot's on-board compass correction along a log's parameter timeline.
 
 ArduPilot logs (DataFlash ``MAG``) and streams (``RAW_IMU``, ``SCALED_IMU2/3``) the

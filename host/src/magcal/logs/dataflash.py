@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """ArduPilot DataFlash logs (``.bin``): IMU, MAG, PARM (and ARM/EV for the armed state).
 
 Message definitions, as in ArduPilot's sources (read with the code search tool):

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What a flight-log reader hands on: time series in SI units, parameters over time.
 
 Every reader (:mod:`~magcal.logs.dataflash`, :mod:`~magcal.logs.tlog`,

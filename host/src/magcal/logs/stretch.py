@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Find the stretch of a flight log where the vehicle was turned by hand.
 
 A log holds much that is no use for a calibration: the vehicle on the ground, taxiing,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """MAVLink telemetry logs (``.tlog``): what a ground station recorded from either autopilot.
 
 A tlog is a sequence of MAVLink frames, each after the 8-byte big-endian µs (Unix) time the

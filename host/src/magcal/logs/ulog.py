@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """PX4 ULog files (``.ulg``), read with pyulog.
 
 Topics (PX4 ``msg/*.msg``, read with the code search tool):

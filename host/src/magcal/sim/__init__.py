@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulated sessions with known truth: sensor models, trajectories, scenarios.
 
 Start with :func:`simulate` and :func:`preset`; the pieces live in ``model`` (sensor

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulated sensor parameters (the "truth") and the measurement model.
 
 The measurement model is the paper's (Kok & Schön 2016, eqs. 7-8), with the conventions of

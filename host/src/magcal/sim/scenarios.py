@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulation scenarios: configuration, presets, the ``simulate`` entry point, truth files.
 
 ``simulate(preset("table2"), seed=3)`` returns a :class:`~magcal.io.session.Session` and the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Simulated motion: attitude, body rate and translational acceleration at the sample times.
 
 A trajectory is a stationary stretch followed by motion. The attitude during motion is a

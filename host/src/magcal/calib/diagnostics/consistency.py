@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Checks of a finished calibration against its own session: a result the data contradict is
 refused, whatever method produced it.
 

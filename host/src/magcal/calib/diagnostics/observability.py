@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Can this session determine the calibration? Checks before fitting, with reasons.
 
 Three things must hold for Kok & Schön's method (and for any ellipsoid fit):

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Quality figures of a calibration: innovation statistics, field norms, heading errors.
 
 Pure functions on arrays. The heading error isolates the calibration from any filter:

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """A given calibration evaluated on a session: the ML cost's filter, field norms, inclination.
 
 The calibration is *fixed* here (nothing is estimated): this is what a report shows for the

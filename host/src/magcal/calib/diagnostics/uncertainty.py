@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Uncertainty of a calibration: the inverse Hessian of the ML cost at the estimate.
 
 For many samples the ML estimate θ̂ is close to Gaussian around the truth with covariance

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Step 1c of Kok & Schön (2016), Section 6.2: magnetometer-to-inertial misalignment.
 
 The ellipsoid fit gives ``D̃`` with ``D = D̃ R_D`` for an unknown rotation ``R_D``. The body-

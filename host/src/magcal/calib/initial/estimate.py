@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Algorithm 1, step 1: the initial estimate θ₀ (paper Section 6).
 
 a. gyro bias and noise covariances (``rest.py``): from a detected stationary

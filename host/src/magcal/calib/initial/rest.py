@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Step 1a of Kok & Schön (2016), Section 6: gyro bias and noise covariances.
 
 The paper takes them from "a short batch of stationary data" at the start of the recording,

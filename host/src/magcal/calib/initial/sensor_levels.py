@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What a session says about its sensors before any calibration: the data-only levels.
 
 One function, :func:`measure_sensor_levels`, computes them for every step that needs them

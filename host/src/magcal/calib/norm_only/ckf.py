@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Real-time magnetometer calibration with a cubature Kalman filter (Zhao et al.).
 
 Zhao, Lin, Zhang, Zhai, *Real-time Calibration Algorithm for Three-axis Magnetometer*

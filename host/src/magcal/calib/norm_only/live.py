@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Live calibration while a session is being recorded: is it good enough to stop?
 
 :class:`LiveCalibration` runs Zhao et al.'s CKF (:mod:`magcal.calib.norm_only.ckf`) on the

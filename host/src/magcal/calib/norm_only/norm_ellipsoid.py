@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What the attitude-independent methods (``ckf.py``, ``twostep.py``) share.
 
 Both estimate the ellipsoid on which the raw readings lie,

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """TWO-STEP: attitude-independent calibration from the field norm (Alonso & Shuster 2002).
 
 R. Alonso, M. D. Shuster, *TWOSTEP: A Fast Robust Algorithm for Attitude-Independent

@@ -284,7 +284,7 @@ static PyObject *py_fisher(PyObject *self, PyObject *args)
         k = len / MC_MEKF_MODEL_DOUBLES;
         if (k < 1 || k * MC_MEKF_MODEL_DOUBLES != len || k > MC_MEKF_FISHER_MAX_DIRECTIONS) {
             PyErr_Format(PyExc_ValueError,
-                         "directions: expected k × %d values with 1 ≤ k ≤ %d, got %zd values",
+                         "directions: expected k x %d values with 1 <= k <= %d, got %zd values",
                          MC_MEKF_MODEL_DOUBLES, MC_MEKF_FISHER_MAX_DIRECTIONS, len);
             ok = 0;
         }

@@ -35,6 +35,10 @@
  */
 #include "mekf_step.h"
 
+#if defined(__GNUC__) && !defined(__clang__)
+#pragma GCC optimize("tree-vectorize")
+#endif
+
 /* The rotation-vector coefficients of rotvec_apply for one θ, so that a step applies
  * Exp(θ) and the Jacobians to every direction without recomputing them. */
 typedef struct {
@@ -357,21 +361,23 @@ static void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
             forward_solve(u->L, ny, r);
             for (int j = 0; j < ny; ++j) W[ny * i + j] = r[j];
         }
-        double *f = phi_buf + FEATURES * d;
+        /* Feature c of direction d at phi_buf[MAX · c + d]: feature-major, so that the
+         * accumulation below runs along contiguous directions. */
+        double *f = phi_buf + d;
         double gq = 0.0, gw = 0.0, tr = 0.0;
-        int nfi = 0;
+        int c = 0;
         for (int i = 0; i < ny; ++i) {
-            f[nfi++] = a[i];
+            f[MC_MEKF_FISHER_MAX_DIRECTIONS * c++] = a[i];
             gq += a[i] * u->w[i];
         }
         for (int i = 0; i < ny; ++i) {
             const double wii = W[ny * i + i];
-            f[nfi++] = wii * SQRT_HALF;
+            f[MC_MEKF_FISHER_MAX_DIRECTIONS * c++] = wii * SQRT_HALF;
             tr += wii;
             gw += wii * u->w[i] * u->w[i];
             for (int j = i + 1; j < ny; ++j) {
                 const double wij = 0.5 * (W[ny * i + j] + W[ny * j + i]);
-                f[nfi++] = wij;
+                f[MC_MEKF_FISHER_MAX_DIRECTIONS * c++] = wij;
                 gw += 2.0 * wij * u->w[i] * u->w[j];
             }
         }
@@ -410,15 +416,13 @@ static void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
         rotvec_jac(&eta_c, 1.0, deta, r2);
         for (int i = 0; i < 3; ++i) dphi1[i] = r1[i] + r2[i];
     }
-    /* F += Φ Φᵀ on the upper triangle. */
-    for (size_t i = 0; i < nd; ++i) {
-        const double *fi = phi_buf + FEATURES * i;
-        double *row = acc->info + nd * i;
-        for (size_t j = i; j < nd; ++j) {
-            const double *fj = phi_buf + FEATURES * j;
-            double v = 0.0;
-            for (int c = 0; c < nf; ++c) v += fi[c] * fj[c];
-            row[j] += v;
+    /* F += Φ Φᵀ on the upper triangle, one rank-one update per feature. */
+    for (int c = 0; c < nf; ++c) {
+        const double *fc = phi_buf + MC_MEKF_FISHER_MAX_DIRECTIONS * c;
+        for (size_t i = 0; i < nd; ++i) {
+            const double fi = fc[i];
+            double *restrict row = acc->info + nd * i;
+            for (size_t j = i; j < nd; ++j) row[j] += fi * fc[j];
         }
     }
 }

@@ -120,3 +120,27 @@ def test_prior_widths_on_the_command_line():
     for bad in ("-2deg/s", "0", "fast", "nan"):
         with pytest.raises(argparse.ArgumentTypeError, match="width"):
             angle_rate_prior(bad)
+
+
+def test_the_priors_curvature_and_the_information_step_of_the_problem(short_session):
+    """The priors' Hessian against central differences of their gradient, and the problem's
+    (cost, gradient, information) against its cost and reverse-mode gradient."""
+    session, _ = short_session
+    init = calibrate(session, "init").init
+    priors = Priors(gyro_bias_rad_s=np.deg2rad(2.0), misalignment_rad=np.deg2rad(3.0))
+    problem = LikelihoodProblem.for_ml_step(session, init, priors=priors)
+    theta = problem.theta0 + 1e-3 * np.random.default_rng(1).standard_normal(params.N_PARAMS)
+    h = 1e-6
+    fd = np.array(
+        [
+            (problem.prior(theta + h * e)[1] - problem.prior(theta - h * e)[1]) / (2 * h)
+            for e in np.eye(params.N_PARAMS)
+        ]
+    ).T
+    curvature = problem.prior_curvature(theta)
+    np.testing.assert_allclose(curvature, fd, rtol=1e-5, atol=1e-6 * np.abs(fd).max())
+    value, grad, info = problem.cost_gradient_and_information(theta)
+    value_r, grad_r = problem.cost_and_gradient(theta)
+    assert value == pytest.approx(value_r, rel=1e-12)
+    np.testing.assert_allclose(grad, grad_r, rtol=1e-8, atol=1e-9 * np.abs(grad_r).max())
+    assert np.linalg.eigvalsh(info - curvature).min() >= -1e-9 * np.abs(info).max()

@@ -352,22 +352,17 @@ def fisher_information(
     return cost, info, grad
 
 
-def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True) -> FilterOutput:
-    """Textbook MEKF with the full innovation covariance over the measurements present at
-    each sample (6×6, 3×3 or none). Slow; for tests."""
-    n = len(data)
+def _reference_steps(p: ModelParams, data: FilterData, use_mag: bool):
+    """The textbook MEKF, one sample at a time: yields (t, rows, ε, S, q) after each sample's
+    update, ``rows`` the measured rows of (acc, mag) (an empty array where there is none:
+    ε and S are then None and q is the prediction)."""
     g_n = frames.gravity_n(data.g)
     m_n = p.m_n
     G = frames.skew(g_n)
     Mx = frames.skew(m_n)
     q = data.q0.copy()
     P = data.P0.copy()
-    ny = 6 if use_mag else 3
-    cost = 0.0
-    q_filt = np.empty((n, 4))
-    innov = np.zeros((n, 6))
-    normed = np.zeros((n, 6))
-    for t in range(n):
+    for t in range(len(data)):
         rate = data.gyr[max(t - 1, 0)] - p.gyro_bias
         E = frames.rotvec_to_matrix(p.time_offset_s * rate)  # its delay
         if t > 0:
@@ -381,10 +376,8 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
             R = frames.quat_to_matrix(q)
         # The rows of y = (y_a, y_m) measured at t; absent ones are NaN in the outputs.
         rows = np.flatnonzero([data.has_acc[t]] * 3 + [use_mag and data.has_mag[t]] * 3)
-        innov[t, :ny] = np.nan
-        normed[t, :ny] = np.nan
         if rows.size == 0:  # no measurement: the prediction is carried on
-            q_filt[t] = q
+            yield t, rows, None, None, q
             continue
         Rt = R.T
         y_pred = np.concatenate([-Rt @ g_n, p.D @ E @ Rt @ m_n + p.o])[rows]
@@ -397,8 +390,6 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
         eps = y - y_pred
         S = H @ P @ H.T + Rm
         L = np.linalg.cholesky(S)
-        w = scipy.linalg.solve_triangular(L, eps, lower=True)
-        cost += 0.5 * (w @ w + 2.0 * np.sum(np.log(np.diag(L))))
         # K = P Hᵀ S⁻¹ with the Cholesky factor already at hand, not an explicit inverse.
         K = scipy.linalg.cho_solve((L, True), H @ P).T
         eta = K @ eps
@@ -406,10 +397,36 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
         IKH = np.eye(3) - K @ H
         P = IKH @ P @ IKH.T + K @ Rm @ K.T
         q = frames.quat_normalize(frames.quat_multiply(frames.quat_exp(0.5 * eta), q))
+        yield t, rows, eps, S, q
+
+
+def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True) -> FilterOutput:
+    """Textbook MEKF with the full innovation covariance over the measurements present at
+    each sample (6×6, 3×3 or none). Slow; for tests."""
+    n = len(data)
+    ny = 6 if use_mag else 3
+    cost = 0.0
+    q_filt = np.empty((n, 4))
+    innov = np.zeros((n, 6))
+    normed = np.zeros((n, 6))
+    for t, rows, eps, S, q in _reference_steps(p, data, use_mag):
         q_filt[t] = q
+        innov[t, :ny] = np.nan
+        normed[t, :ny] = np.nan
+        if rows.size == 0:
+            continue
+        L = np.linalg.cholesky(S)
+        w = scipy.linalg.solve_triangular(L, eps, lower=True)
+        cost += 0.5 * (w @ w + 2.0 * np.sum(np.log(np.diag(L))))
         innov[t, rows] = eps
         normed[t, rows] = w
     return FilterOutput(cost=float(cost), q_filt=q_filt, innovations=innov, normalised=normed)
+
+
+def reference_innovations(p: ModelParams, data: FilterData) -> list[tuple]:
+    """The textbook MEKF's (rows, ε, S) at every sample with a measurement, with the
+    magnetometer: what the Fisher information is made of. Slow; for tests."""
+    return [(rows, eps, S) for _, rows, eps, S, _ in _reference_steps(p, data, True) if rows.size]
 
 
 def run_filter(p: ModelParams, data: FilterData, use_mag: bool = True) -> FilterOutput:

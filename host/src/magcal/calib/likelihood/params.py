@@ -187,6 +187,49 @@ def unpack(theta: np.ndarray) -> ModelParams:
     )
 
 
+def model_vector(theta: np.ndarray) -> np.ndarray:
+    """θ (35,) → the model in the native kernel's flat layout (46,): D (9, row-major), o,
+    m_n, the gyroscope bias, Σ_ω, Σ_a, Σ_m (9 each, row-major) and τ. Works on complex θ, so
+    that :func:`model_jacobian` can take complex steps."""
+
+    def cov(c):
+        U = np.eye(3, dtype=c.dtype)
+        for k, (i, j) in enumerate(_TRIL_OFF):
+            U[i, j] = c[3 + k]
+        L = np.exp(c[:3])[:, None] * U
+        return (L @ L.T).ravel()
+
+    dip = theta[INDEX_DIP]
+    return np.concatenate(
+        [
+            theta[SLICE_D],
+            theta[SLICE_O],
+            [np.cos(dip), 0.0 * dip, -np.sin(dip)],
+            theta[SLICE_BIAS],
+            cov(theta[SLICE_CHOL_GYR]),
+            cov(theta[SLICE_CHOL_ACC]),
+            cov(theta[SLICE_CHOL_MAG]),
+            [theta[INDEX_TIME_OFFSET]],
+        ]
+    )
+
+
+#: Imaginary step of the complex-step derivative: far below rounding, exact to it.
+_COMPLEX_STEP = 1e-30
+
+
+def model_jacobian(theta: np.ndarray) -> np.ndarray:
+    """∂(model vector)/∂θ (46, 35) at θ, exact to rounding by complex steps (every entry of
+    :func:`model_vector` is an analytic function of θ)."""
+    theta = np.asarray(theta, dtype=float)
+    J = np.empty((46, N_PARAMS))
+    for k in range(N_PARAMS):
+        z = theta.astype(complex)
+        z[k] += 1j * _COMPLEX_STEP
+        J[:, k] = model_vector(z).imag / _COMPLEX_STEP
+    return J
+
+
 def model_grad_to_theta(
     theta: np.ndarray,
     D_bar: np.ndarray,

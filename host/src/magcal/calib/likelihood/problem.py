@@ -533,6 +533,42 @@ class LikelihoodProblem:
             grad[params.SLICE_D] += g
         return value, grad
 
+    def prior_curvature(self, theta: np.ndarray) -> np.ndarray:
+        """The priors' Hessian (35, 35): their diagonal precision, plus the misalignment
+        prior's curvature by central differences of its exact gradient."""
+        H = np.diag(self.prior_precision)
+        if self.misalignment_sigma_rad is not None:
+            D = np.asarray(theta[params.SLICE_D], dtype=float)
+            h = 1e-6
+            block = np.empty((9, 9))
+            for k in range(9):
+                e = np.zeros(9)
+                e[k] = h
+                g_hi = misalignment_penalty(
+                    D + e, self.misalignment_reference, self.misalignment_sigma_rad
+                )[1]
+                g_lo = misalignment_penalty(
+                    D - e, self.misalignment_reference, self.misalignment_sigma_rad
+                )[1]
+                block[:, k] = (g_hi - g_lo) / (2.0 * h)
+            H[params.SLICE_D, params.SLICE_D] += 0.5 * (block + block.T)
+        return H
+
+    def cost_gradient_and_information(
+        self, theta: np.ndarray
+    ) -> tuple[float, np.ndarray, np.ndarray]:
+        """V(θ) + prior, its exact gradient (35,) and the curvature a Gauss–Newton step
+        uses (35, 35): the Fisher information of V (forward sensitivities of the filter,
+        ``mekf.fisher_information``) plus the priors' exact Hessian. On a non-finite V the
+        gradient is NaN."""
+        theta = np.asarray(theta, dtype=float)
+        J = params.model_jacobian(theta)
+        value, info, grad = mekf.fisher_information(params.unpack(theta), self.data, J.T)
+        if not np.isfinite(value):
+            return value, np.full(theta.shape, np.nan), np.zeros((theta.size, theta.size))
+        pv, pg = self.prior(theta)
+        return value + pv, grad + pg, info + self.prior_curvature(theta)
+
     def cost(self, theta: np.ndarray) -> float:
         """V(θ) + prior: the objective of the ML step."""
         return negative_log_likelihood(theta, self.data) + self.prior(theta)[0]

@@ -60,6 +60,9 @@ HEADER = "\n".join(
 SPDX = "SPDX-License-Identifier: Apache-2.0"
 C_HEADER = f"/* {SPDX} */\n/* " + HEADER.replace("\n", "\n * ") + " */"
 PY_HEADER = f"# {SPDX}"
+# A public header's declarations have C linkage in a C++ translation unit too.
+CPP_OPEN = ["#ifdef __cplusplus", 'extern "C" {', "#endif", ""]
+CPP_CLOSE = ["#ifdef __cplusplus", "}", "#endif", ""]
 
 
 # ----------------------------------------------------------------------------- schema
@@ -542,6 +545,7 @@ def gen_status_h(schema: dict) -> str:
         "#ifndef MAGCAL_STATUS_H",
         "#define MAGCAL_STATUS_H",
         "",
+        *CPP_OPEN,
         "/* The one status type of the library: MC_OK = 0, errors negative. The same table is",
         " * generated into Python (magcal.device.generated.Status). */",
         "typedef enum {",
@@ -550,7 +554,7 @@ def gen_status_h(schema: dict) -> str:
         sep = "," if i < len(entries) - 1 else ""
         text = f"MC_{e['name']} = {e['value']}{sep}"
         lines.append(f"    {text:<{width}} /* {e['doc']} */")
-    lines += ["} mc_status_t;", "", "#endif /* MAGCAL_STATUS_H */", ""]
+    lines += ["} mc_status_t;", "", *CPP_CLOSE, "#endif /* MAGCAL_STATUS_H */", ""]
     return "\n".join(lines)
 
 
@@ -602,6 +606,7 @@ def gen_messages_h(schema: dict) -> str:
         "",
         '#include "magcal/status.h"',
         "",
+        *CPP_OPEN,
         "/* ---- protocol versions and framing constants */",
         f"#define MC_PROTOCOL_VERSION {pv['version']}u",
         f"#define MC_PROTOCOL_MIN_VERSION {pv['min_version']}u",
@@ -686,6 +691,7 @@ def gen_messages_h(schema: dict) -> str:
         '/* The message\'s schema name ("sample"), or NULL for an unknown id. */',
         "const char *mc_msg_name(uint8_t id);",
         "",
+        *CPP_CLOSE,
         "#endif /* MAGCAL_MESSAGES_H */",
         "",
     ]

@@ -44,6 +44,10 @@
 #include "magcal/sensor_hal.h"
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 typedef struct {
     mc_sensor_hal_t hal;
     mc_ring_t ring;
@@ -101,5 +105,9 @@ mc_status_t mc_acquire_stats(const mc_acquire_t *acq, mc_acquire_stats_t *out);
  * MC_E_ARG for a NULL argument; MC_E_STATE when acq is not initialised (the HAL is not
  * called). *out is unspecified unless MC_OK. */
 mc_status_t mc_acquire_describe(const mc_acquire_t *acq, mc_sensor_info_t out[MC_SENSOR_COUNT]);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_ACQUIRE_H */

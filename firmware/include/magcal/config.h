@@ -6,6 +6,10 @@
 #ifndef MAGCAL_CONFIG_H
 #define MAGCAL_CONFIG_H
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* ---- correction and parameter validation (correction.h, params.h) ---- */
 
 /* Largest condition number kappa_inf(D^-1) = ||D^-1||_inf ||D||_inf that mc_params_validate
@@ -67,5 +71,9 @@
 /* ---- protocol endpoint (frame.h, messages.h, device.h) ----
  * No knobs: frame and payload sizes are protocol constants both sides must agree on, so they
  * come from protocol/schema.json through the generated messages.h, not from -D flags. */
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_CONFIG_H */

@@ -44,6 +44,10 @@
 #include "magcal/params.h"
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* mc_correction_t.ready after a successful mc_correction_init. */
 #define MC_CORRECTION_READY 0x4D43434Fu
 
@@ -88,5 +92,9 @@ mc_status_t mc_correction_apply(const mc_correction_t *c, const int16_t raw[3], 
  */
 mc_status_t mc_correction_apply_n(const mc_correction_t *c, const int16_t *raw, size_t n,
                                   int32_t *out);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_CORRECTION_H */

@@ -17,6 +17,10 @@
 #include <stddef.h>
 #include <stdint.h>
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 #define MC_CRC16_CCITT_FALSE_INIT 0xFFFFu
 #define MC_CRC32_ISO_HDLC_INIT 0xFFFFFFFFu
 
@@ -37,5 +41,9 @@ uint16_t mc_crc16_ccitt_false_update(uint16_t crc, const uint8_t *data, size_t l
 uint32_t mc_crc32_iso_hdlc(const uint8_t *data, size_t len);
 uint32_t mc_crc32_iso_hdlc_update(uint32_t state, const uint8_t *data, size_t len);
 uint32_t mc_crc32_iso_hdlc_final(uint32_t state);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_CRC_H */

@@ -98,6 +98,10 @@
 #include "magcal/status.h"
 #include "magcal/storage.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* Stream kinds (stream_start.kind). */
 #define MC_DEVICE_STREAM_RAW 0u
 #define MC_DEVICE_STREAM_CORRECTED 1u
@@ -230,5 +234,9 @@ mc_status_t mc_device_link_reset(mc_device_t *dev);
 
 /* The counters (frame counters taken from the decoder now). MC_OK or MC_E_ARG. */
 mc_status_t mc_device_stats(const mc_device_t *dev, mc_device_stats_t *out);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_DEVICE_H */

@@ -16,6 +16,10 @@
 
 #include <stdint.h>
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* The int64_t whose two's-complement bit pattern is u (u mod 2^64 read as signed), without
  * the implementation-defined conversion of an out-of-range value. Compilers reduce it to
  * nothing. */
@@ -124,5 +128,9 @@ static inline int64_t mc_fx_rshift_round_i64(int64_t x, unsigned s)
     const uint64_t q = (u >> s) + ((u >> (s - 1u)) & 1u);
     return mc_fx_i64_from_u64(q - (UINT64_C(1) << (63u - s)));
 }
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_FIXED_H */

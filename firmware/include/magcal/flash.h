@@ -37,6 +37,10 @@
 
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* The programming unit in bytes. Fixed, not a config knob: program_word takes a uint32_t. */
 #define MC_FLASH_WORD_SIZE 4u
 
@@ -54,5 +58,9 @@ typedef struct mc_flash {
     uint32_t page_size;  /* bytes */
     uint32_t page_count; /* pages */
 } mc_flash_t;
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_FLASH_H */

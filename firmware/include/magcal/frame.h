@@ -28,6 +28,10 @@
 #include "magcal/messages.h"
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* Worst-case wire size (COBS overhead and delimiter included) of a frame with an n-byte
  * payload: body + body / 254 + 1 COBS code bytes + 1 delimiter. */
 #define MC_FRAME_ENCODED_SIZE(n) \
@@ -94,5 +98,9 @@ mc_status_t mc_frame_decoder_feed(mc_frame_decoder_t *d, const uint8_t *data, si
  */
 mc_status_t mc_frame_encode(uint8_t id, uint16_t seq, const uint8_t *payload, size_t len,
                             uint8_t *out, size_t cap, size_t *out_len);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_FRAME_H */

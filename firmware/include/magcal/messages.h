@@ -20,6 +20,10 @@
 
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* ---- protocol versions and framing constants */
 #define MC_PROTOCOL_VERSION 1u
 #define MC_PROTOCOL_MIN_VERSION 1u
@@ -409,5 +413,9 @@ mc_status_t mc_msg_pack(const mc_msg_t *msg, uint8_t *out, size_t cap, size_t *o
 
 /* The message's schema name ("sample"), or NULL for an unknown id. */
 const char *mc_msg_name(uint8_t id);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_MESSAGES_H */

@@ -56,6 +56,10 @@
 #include "magcal/config.h"
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* Format version of mc_params_t and of its encoding. */
 #define MC_PARAMS_FORMAT_VERSION 1u
 
@@ -118,5 +122,9 @@ mc_status_t mc_params_encode(const mc_params_t *p, uint8_t *buf, size_t len, siz
  * another size); otherwise MC_E_LENGTH when len != MC_PARAMS_ENCODED_SIZE. *p is written only
  * on MC_OK. Does not validate the values (mc_params_validate does). */
 mc_status_t mc_params_decode(const uint8_t *buf, size_t len, mc_params_t *p);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_PARAMS_H */

@@ -51,6 +51,10 @@
 #include "magcal/config.h"
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* One acquired sample, as the ring stores it and the protocol streams it (32 bytes: 30 of
  * fields, no inner padding, 2 of tail padding on every ABI we build for). */
 typedef struct {
@@ -88,5 +92,9 @@ mc_status_t mc_ring_pop(mc_ring_t *ring, mc_sample_t *out);
 uint32_t mc_ring_count(const mc_ring_t *ring);
 uint32_t mc_ring_capacity(const mc_ring_t *ring);
 uint32_t mc_ring_overflow(const mc_ring_t *ring);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_RING_H */

@@ -69,6 +69,10 @@
 
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* The three sensors, in the order of describe()'s output and of mc_sensor_info_t.kind. */
 typedef enum {
     MC_SENSOR_MAG = 0, /* magnetometer */
@@ -143,5 +147,9 @@ typedef struct {
  * STANDARD_GRAVITY; gyroscope: RAD_PER_S or DEG_PER_S). Returns MC_OK, MC_E_ARG (info NULL
  * or kind not a sensor) or MC_E_RANGE. Defined in src/acquire.c. */
 mc_status_t mc_sensor_info_check(const mc_sensor_info_t *info, mc_sensor_kind_t kind);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_SENSOR_HAL_H */

@@ -4,6 +4,10 @@
 #ifndef MAGCAL_STATUS_H
 #define MAGCAL_STATUS_H
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 /* The one status type of the library: MC_OK = 0, errors negative. The same table is
  * generated into Python (magcal.device.generated.Status). */
 typedef enum {
@@ -28,5 +32,9 @@ typedef enum {
     MC_E_SEQUENCE = -18,        /* stale or repeated sequence number */
     MC_E_OUTCOME_UNKNOWN = -19  /* a commit's flash failed past its commit point: old or new set stored */
 } mc_status_t;
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_STATUS_H */

@@ -61,6 +61,10 @@
 #include "magcal/flash.h"
 #include "magcal/status.h"
 
+#ifdef __cplusplus
+extern "C" {
+#endif
+
 #define MC_STORAGE_MAGIC 0x5350434Du /* "MCPS" as stored (little-endian) */
 #define MC_STORAGE_LAYOUT_VERSION 1u
 /* Not 0xFFFFFFFF (erased) and not 0: no partially programmed or partially erased word equals
@@ -160,5 +164,9 @@ mc_status_t mc_storage_commit(mc_storage_t *st, const uint8_t *payload, size_t l
  */
 mc_status_t mc_storage_active(const mc_storage_t *st, mc_storage_slot_t *slot,
                               uint32_t *sequence);
+
+#ifdef __cplusplus
+}
+#endif
 
 #endif /* MAGCAL_STORAGE_H */

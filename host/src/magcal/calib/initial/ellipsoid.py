@@ -32,8 +32,10 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
+import clarabel
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 
 from magcal.errors import CalibrationError, InsufficientDataError
 
@@ -72,6 +74,16 @@ PD_INACTIVE_EIG = 1e-6
 _GRAM_BLOCK_ROWS = 65536
 
 _SOLVER_NAME = "CLARABEL"
+#: Clarabel's statuses with a solution (its own "almost": solved to its reduced tolerances) ...
+_SOLVED = ("Solved", "AlmostSolved")
+#: ... and those where the solver itself failed rather than finding the problem infeasible.
+_SOLVER_FAILED = ("NumericalError", "InsufficientProgress", "Unsolved")
+
+#: Clarabel's PSD cone holds a symmetric matrix as its upper triangle, column by column, with
+#: the off-diagonal entries times √2 (so that inner products are the matrices' ones):
+#: (A11, √2 A12, A22, √2 A13, √2 A23, A33). Their positions in ξ and their weights:
+_SVEC_XI = np.array([0, 3, 1, 4, 5, 2])
+_SVEC_WEIGHT = np.array([1.0, np.sqrt(2.0), 1.0, np.sqrt(2.0), np.sqrt(2.0), 1.0])
 
 
 @dataclass(frozen=True, eq=False)
@@ -273,40 +285,60 @@ def _solve_sdp(r: np.ndarray, ridge: float = 0.0) -> np.ndarray:
 
     ``ridge`` > 0 adds ``½ ridge (‖A − I/3‖²_F + FORCED_RIDGE_B ‖b‖²)`` (see
     :data:`FORCED_RIDGE`).
-    """
-    import cvxpy as cp  # imported here: cvxpy is slow to import and only this step needs it
 
-    A = cp.Variable((3, 3), symmetric=True)
-    b = cp.Variable(3)
-    c = cp.Variable(1)
-    xi = cp.hstack([A[0, 0], A[1, 1], A[2, 2], A[0, 1], A[0, 2], A[1, 2], b, c])
-    objective = 0.5 * cp.sum_squares(r @ xi)
-    if ridge > 0.0:
-        objective = objective + 0.5 * ridge * (
-            cp.sum_squares(A - np.eye(3) / 3.0) + FORCED_RIDGE_B * cp.sum_squares(b)
-        )
-    problem = cp.Problem(cp.Minimize(objective), [cp.trace(A) == 1, A >> 0])
+    Clarabel's standard form is ``min ½ xᵀPx + qᵀx s.t. Ax + s = b, s ∈ K`` with ``x = ξ``:
+    ``P = RᵀR`` (the ridge adds to ``P`` and ``q``), one zero-cone row for the trace and
+    ``s = svec(A)`` in the cone of 3 × 3 positive semidefinite matrices.
+    """
+    p, q = _sdp_objective(r, ridge)
+    # Rows: tr A = 1 (zero cone), then s = svec(A) (PSD cone), i.e. A_con = −svec, b = 0.
+    a_con = np.zeros((1 + len(_SVEC_XI), 10))
+    a_con[0, :3] = 1.0
+    a_con[1 + np.arange(len(_SVEC_XI)), _SVEC_XI] = -_SVEC_WEIGHT
+    b_con = np.zeros(a_con.shape[0])
+    b_con[0] = 1.0
+    settings = clarabel.DefaultSettings()
+    settings.verbose = False
     try:
-        problem.solve(solver=cp.CLARABEL)
-    except cp.error.SolverError as exc:
+        solver = clarabel.DefaultSolver(
+            scipy.sparse.csc_matrix(np.triu(p)),  # Clarabel reads P's upper triangle
+            q,
+            scipy.sparse.csc_matrix(a_con),
+            b_con,
+            [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(3)],
+            settings,
+        )
+        solution = solver.solve()
+    except Exception as exc:  # the solver's own refusal, raised as a plain Exception
         raise CalibrationError(
             f"ellipsoid fit: the SDP solver {_SOLVER_NAME} failed ({exc}); check the "
             "magnetometer data for outliers, or install/upgrade clarabel"
         ) from exc
-    if problem.status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or A.value is None:
+    status = str(solution.status)
+    if status in _SOLVER_FAILED:
+        raise CalibrationError(
+            f"ellipsoid fit: the SDP solver {_SOLVER_NAME} failed ({status}); check the "
+            "magnetometer data for outliers, or install/upgrade clarabel"
+        )
+    if status not in _SOLVED:
         raise CalibrationError(
             f"ellipsoid fit: the SDP solver {_SOLVER_NAME} ended with status "
-            f"'{problem.status}'; check the magnetometer data for outliers and rotate the "
+            f"'{status}'; check the magnetometer data for outliers and rotate the "
             "sensor through all orientations"
         )
-    Av = A.value
-    return np.concatenate(
-        [
-            [Av[0, 0], Av[1, 1], Av[2, 2], Av[0, 1], Av[0, 2], Av[1, 2]],
-            np.asarray(b.value, dtype=float),
-            np.asarray(c.value, dtype=float).ravel(),
-        ]
-    )
+    return np.asarray(solution.x, dtype=float)
+
+
+def _sdp_objective(r: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]:
+    """``P`` (10, 10) and ``q`` (10,) with ``½ ξᵀPξ + qᵀξ`` the SDP's objective (up to a
+    constant): ``½‖R ξ‖²``, plus the ridge of :func:`_solve_sdp` when ``ridge`` > 0."""
+    p = r.T @ r
+    q = np.zeros(10)
+    if ridge > 0.0:
+        # ‖A − I/3‖²_F = Σ (A_ii − ⅓)² + 2 Σ_{i<j} A_ij² (ξ holds each off-diagonal once).
+        p += ridge * np.diag([1.0, 1.0, 1.0, 2.0, 2.0, 2.0, *3 * [FORCED_RIDGE_B], 0.0])
+        q[:3] = -ridge / 3.0
+    return 0.5 * (p + p.T), q
 
 
 def _polish(g: np.ndarray, xi: np.ndarray) -> np.ndarray:

@@ -26,6 +26,11 @@ from typing import TextIO
 EXIT_FAILED = 1
 #: A refusal or an error: one paragraph on stderr (:func:`refusal`).
 EXIT_ERROR = 2
+#: A flash to an autopilot wrote the calibration (every value confirmed, in force) but left
+#: out a misalignment costing at least 0.5° of heading: no custom rotation (the firmware has
+#: none, or --no-custom-rotation) and no enumerated one within its uncertainty. A warning on
+#: stderr names the cost.
+EXIT_MISALIGNMENT_LEFT_OUT = 3
 #: Exit status after Ctrl-C (128 + SIGINT, as a shell reports it).
 EXIT_INTERRUPTED = 130
 

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * CPython glue for mekf_likelihood.c: magcal.calib.likelihood._mekf. Arrays arrive through the buffer
  * protocol (no numpy headers needed to build this) and must be C-contiguous native float64:

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Forward sensitivities of the multiplicative EKF and the Fisher information of its
  * prediction-error likelihood. See mekf_likelihood.h for the interface and

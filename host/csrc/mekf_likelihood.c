@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Multiplicative EKF likelihood and its reverse-mode gradient. See mekf_likelihood.h and
  * magcal/calib/ekf.py for the model.

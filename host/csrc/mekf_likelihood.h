@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Negative log-likelihood of the multiplicative EKF (Kok & Schön 2016, eq. 6) and its exact
  * gradient by a reverse (adjoint) pass. Plain C99, no Python: the CPython glue is

@@ -1,3 +1,4 @@
+/* SPDX-License-Identifier: Apache-2.0 */
 /*
  * The multiplicative EKF's step and its helpers, shared by the passes of mekf_likelihood.c
  * (cost, reverse-mode gradient) and mekf_fisher.c (forward sensitivities, Fisher

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The multiplicative EKF for orientation (paper Section 5.2): the one place for the filter.
 
 State: ``q̃_nb`` plus a navigation-frame orientation error ``η`` with covariance ``P``

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Algorithm 1, step 2: minimise V(θ) (eq. 6) plus the priors (gyroscope noise and bias, and
 the misalignment when asked) from θ₀ with damped BFGS: a MAP estimate.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Damped BFGS with a backtracking line search (Nocedal & Wright, Procedure 18.2 and
 Algorithm 3.1), the quasi-Newton method of the paper's Section 5.1.
 

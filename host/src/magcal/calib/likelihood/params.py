@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The ML parameter vector θ (35 numbers) and its map to model quantities.
 
 Layout of θ (paper Section 5.3, eq. 17):

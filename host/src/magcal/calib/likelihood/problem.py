@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The maximum-likelihood problem of Algorithm 1, step 2, built in one place for every caller.
 
 :class:`LikelihoodProblem` holds everything the cost needs besides θ: the filter's data

@@ -9,15 +9,16 @@ redrawn in place on a terminal (cut at its width), one line a second otherwise; 
 the live estimate's norm spread and says when it is ok to stop. Whatever was collected is
 written, also after Ctrl-C (exit 130) or an error mid-collection (exit 2, the file named).
 
-The ``--mavlink`` half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
+Each half loads what it needs when it runs, not when the parser is built (the device client
+and the live estimate; the ``--mavlink`` half :mod:`magcal.autopilot` and pymavlink).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from typing import TYPE_CHECKING
 
-from magcal.calib.diagnostics import observability
 from magcal.commands.common import (
     add_link_arguments,
     check_link_options,
@@ -25,10 +26,11 @@ from magcal.commands.common import (
     open_device,
     positive,
 )
-from magcal.device.collect import CollectError, CollectProgress, CollectResult, collect
 from magcal.errors import MagcalError
-from magcal.io.session import check_writable, write_session
 from magcal.ui import EXIT_INTERRUPTED, StatusLine, say
+
+if TYPE_CHECKING:
+    from magcal.device.collect import CollectProgress, CollectResult
 
 DEFAULT_COVERAGE_PCT = 90.0
 #: Progress lines per second when stderr is not a terminal (a log file).
@@ -94,6 +96,8 @@ def progress_printer(stream=None):
 
 def write_collected(path: str, result: CollectResult, out) -> None:
     """Write the session and say what it holds."""
+    from magcal.io.session import write_session
+
     write_session(path, result.session)
     print(
         f"wrote {path} ({result.samples} samples, {result.elapsed_s:.1f} s, dropped "
@@ -105,6 +109,9 @@ def write_collected(path: str, result: CollectResult, out) -> None:
 def collect_saving_partial(run_collect, path: str, progress) -> CollectResult:
     """``run_collect()``, the progress line ended however it stops. On a CollectError the
     samples received so far are written to ``path`` and the error names the file."""
+    from magcal.device.collect import CollectError
+    from magcal.io.session import write_session
+
     try:
         return run_collect()
     except CollectError as exc:
@@ -149,6 +156,10 @@ def finish_collect(
 
 
 def run(args, out=None) -> int:
+    from magcal.calib.diagnostics import observability
+    from magcal.device.collect import collect
+    from magcal.io.session import check_writable
+
     check_link_options(args, ("rate",))
     if args.mavlink:
         return run_autopilot(args, out)
@@ -183,6 +194,8 @@ def run(args, out=None) -> int:
 def run_autopilot(args, out=None) -> int:
     from magcal.autopilot.collect import collect as collect_from_autopilot
     from magcal.autopilot.connection import open_autopilot
+    from magcal.calib.diagnostics import observability
+    from magcal.io.session import check_writable
 
     out = out or sys.stdout
     if args.duration is None and args.coverage is None and args.max_samples is None:

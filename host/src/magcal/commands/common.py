@@ -1,6 +1,7 @@
 """What every device command shares: the link arguments (``--port`` for a device running
 magcal's firmware, ``--mavlink`` for an autopilot), opening a device session, and reading an
-autopilot's compass parameters. Imports no command module."""
+autopilot's compass parameters. Imports no command module, and loads the device and link
+stacks only when a link is opened: the parsers are built from here for every command."""
 
 from __future__ import annotations
 
@@ -9,10 +10,12 @@ import contextlib
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
-from magcal.device.client import DeviceClient, DeviceInfo, HelloResult, Scale
 from magcal.errors import MagcalError
-from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
+
+if TYPE_CHECKING:
+    from magcal.device.client import DeviceClient, DeviceInfo, HelloResult, Scale
 
 
 def add_link_arguments(p: argparse.ArgumentParser) -> None:
@@ -119,6 +122,9 @@ class DeviceSession:
 @contextlib.contextmanager
 def open_device(url: str) -> Iterator[DeviceSession]:
     """Open ``url``, say hello, read info; close the link on the way out, whatever happens."""
+    from magcal.device.client import DeviceClient
+    from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
+
     if not url:
         raise MagcalError("no device given: pass --port URL")
     with open_link(url, LINK_OPEN_TIMEOUT_S) as link:

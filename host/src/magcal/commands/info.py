@@ -1,7 +1,8 @@
 """``magcal info --port URL``: what the device says about itself; ``--mavlink URL``: the
 autopilot, its firmware and each compass with its parameters in force.
 
-The ``--mavlink`` half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
+Each half loads what it needs when it runs, not when the parser is built (the device client;
+the ``--mavlink`` half :mod:`magcal.autopilot` and pymavlink).
 """
 
 from __future__ import annotations
@@ -15,7 +16,6 @@ from magcal.commands.common import (
     open_device,
     scale_text,
 )
-from magcal.device.collect import SI_UNIT_TEXT as SI_UNIT
 
 
 def add_parser(sub) -> None:
@@ -27,6 +27,8 @@ def add_parser(sub) -> None:
 
 
 def run(args, out=None) -> int:
+    from magcal.device.collect import SI_UNIT_TEXT as SI_UNIT
+
     check_link_options(args)
     if args.mavlink:
         return run_autopilot(args, out)

@@ -8,12 +8,14 @@ it reports or the norm spread exceeds ``--max-spread``.
 ``--mavlink URL [--compass N]``: the field the autopilot corrects with its parameters in force
 (:mod:`magcal.autopilot.verify`): norm spread and heading consistency of its own stream, and
 with ``--session`` the parameters in force applied to a session recorded by ``magcal collect
---mavlink``. That half loads :mod:`magcal.autopilot` (and pymavlink) only when it runs.
+--mavlink``. Each half loads what it needs when it runs, not when the parser is built (this
+one :mod:`magcal.autopilot` and pymavlink).
 """
 
 from __future__ import annotations
 
 import sys
+from typing import TYPE_CHECKING
 
 from magcal.commands.common import (
     add_link_arguments,
@@ -22,9 +24,10 @@ from magcal.commands.common import (
     open_device,
     positive,
 )
-from magcal.device.verify import HeadingConsistency, verify
-from magcal.io.session import read_session
 from magcal.ui import EXIT_FAILED
+
+if TYPE_CHECKING:
+    from magcal.device.verify import HeadingConsistency
 
 DEFAULT_MAX_SPREAD_PCT = 2.0
 
@@ -73,6 +76,9 @@ def heading_lines(h: HeadingConsistency, where: str) -> list[str]:
 
 
 def run(args, out=None) -> int:
+    from magcal.device.verify import verify
+    from magcal.io.session import read_session
+
     check_link_options(args, ("rate",))
     if args.mavlink:
         if args.rate is None:
@@ -136,6 +142,7 @@ def run(args, out=None) -> int:
 def run_autopilot(args, out=None) -> int:
     from magcal.autopilot import verify as apverify
     from magcal.autopilot.connection import open_autopilot
+    from magcal.io.session import read_session
 
     out = out or sys.stdout
     session = read_session(args.session) if args.session else None

@@ -9,9 +9,21 @@ confirmed by the vehicle's echo). Either takes ``--restore BACKUP`` to write a b
 
 from __future__ import annotations
 
+from fractions import Fraction
+
 from magcal.commands.common import add_link_arguments, check_link_options
-from magcal.commands.flash.device import MAG_UNIT_TESLA
 from magcal.errors import MagcalError
+
+#: The magnetometer units a result may be in, with their size in tesla (None: raw counts).
+#: Here, not in :mod:`.device`, which converts with it: ``--mag-unit`` offers its keys, and
+#: the parser is built without loading the device stack.
+MAG_UNIT_TESLA: dict[str, Fraction | None] = {
+    "uT": Fraction(1, 10**6),
+    "T": Fraction(1),
+    "gauss": Fraction(1, 10**4),
+    "mG": Fraction(1, 10**7),
+    "counts": None,
+}
 
 
 def add_parser(sub) -> None:

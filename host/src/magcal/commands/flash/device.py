@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from magcal.commands.common import open_device, scale_text
+from magcal.commands.flash import MAG_UNIT_TESLA
 from magcal.device import fixed_point
 from magcal.device.client import DeviceClient, DeviceInfo, Scale
 from magcal.device.flash import (
@@ -49,15 +50,7 @@ from magcal.io.result import CalibrationResult, read_result
 from magcal.link import LINK_OPEN_TIMEOUT_S, open_link
 from magcal.ui import say
 
-#: The magnetometer units a result may be in, with their size in tesla (None: raw counts).
-MAG_UNIT_TESLA: dict[str, Fraction | None] = {
-    "uT": Fraction(1, 10**6),
-    "T": Fraction(1),
-    "gauss": Fraction(1, 10**4),
-    "mG": Fraction(1, 10**7),
-    "counts": None,
-}
-#: Other spellings of the units above (as a session's ``# mag_unit:`` may write them).
+#: Other spellings of MAG_UNIT_TESLA's units (as a session's ``# mag_unit:`` may write them).
 _UNIT_ALIASES = {"µT": "uT", "μT": "uT", "microtesla": "uT", "tesla": "T", "G": "gauss"}
 _MAG_SCALE_TESLA = {Unit.TESLA: Fraction(1), Unit.GAUSS: Fraction(1, 10**4)}
 

@@ -4,10 +4,9 @@ the paper's figures, and the errors against a simulation's truth."""
 
 from __future__ import annotations
 
+import math
 import sys
 from pathlib import Path
-
-import numpy as np
 
 from magcal import ui
 from magcal.errors import MagcalError
@@ -71,8 +70,8 @@ def add_parser(sub) -> None:
 #: --gyro-bias-prior's default, as the command line writes it (GYRO_BIAS_PRIOR_DEG_S of
 #: magcal.calib.likelihood.problem; not imported here, the parser loads no numerical code).
 DEFAULT_GYRO_BIAS_PRIOR = "5deg/s"
-_RATE_UNITS = {"deg/s": np.pi / 180.0, "°/s": np.pi / 180.0, "rad/s": 1.0}
-_ANGLE_UNITS = {"deg": np.pi / 180.0, "°": np.pi / 180.0, "rad": 1.0}
+_RATE_UNITS = {"deg/s": math.pi / 180.0, "°/s": math.pi / 180.0, "rad/s": 1.0}
+_ANGLE_UNITS = {"deg": math.pi / 180.0, "°": math.pi / 180.0, "rad": 1.0}
 
 
 def _width(text: str, units: dict[str, float], bare: str) -> float | None:
@@ -91,7 +90,7 @@ def _width(text: str, units: dict[str, float], bare: str) -> float | None:
         raise argparse.ArgumentTypeError(
             f"{text!r}: give a width like 5{bare}, a number in {', '.join(units)}, or none"
         ) from None
-    if not np.isfinite(value) or value <= 0.0:
+    if not math.isfinite(value) or value <= 0.0:
         raise argparse.ArgumentTypeError(f"{text!r}: a width must be a positive number, or none")
     return value * units[unit or bare]
 
@@ -109,6 +108,8 @@ def angle_prior(text: str) -> float | None:
 def summary_rows(cal) -> list[tuple[str, str]]:
     """The result at a glance, as label-value rows: method, D, o, dip, gyroscope bias, the
     optimizer's account, the innovations, the field norm before and after, the time taken."""
+    import numpy as np
+
     r = cal.result
     x = r.extra
     indent = " " * (ui.LABEL_WIDTH + 1)
@@ -246,6 +247,8 @@ def _prepare_plot_dir(directory: str) -> None:
 
 
 def _write_plots(cal, session, directory: str) -> list[Path]:
+    import numpy as np
+
     from magcal.report import plots
 
     d = Path(directory)

@@ -3,6 +3,7 @@
 Reads a DataFlash ``.bin``, a MAVLink ``.tlog`` or a PX4 ``.ulg``, undoes the autopilot's
 compass correction, finds the stretch where the vehicle was turned by hand (or takes
 ``--start/--end``), and writes the session. Progress and the stretch chosen go to stderr.
+The log readers (pymavlink, pyulog) load when the command runs, not when the parser is built.
 """
 
 from __future__ import annotations
@@ -11,13 +12,7 @@ import os
 import sys
 
 from magcal import ui
-from magcal.autopilot import vehicle
-from magcal.autopilot.vehicle import AUTOPILOT_NAMES
-from magcal.calib.diagnostics import observability
 from magcal.commands.common import finite, positive
-from magcal.io.session import check_writable, write_session
-from magcal.logs import ImportOptions, import_log
-from magcal.logs.stretch import describe
 
 #: Progress lines when stderr is not a terminal: one per this many percent.
 LOG_STEP_PCT = 25
@@ -58,6 +53,8 @@ def add_parser(sub) -> None:
 
 def faster_imu_hint(streams) -> str:
     """How to log the IMU faster, for the log's autopilot and format."""
+    from magcal.autopilot import vehicle
+
     if streams.log_format == "DataFlash":
         return "set the IMU_FAST bit of LOG_BITMASK"
     if streams.log_format == "tlog":
@@ -89,6 +86,12 @@ def progress_printer(label: str, stream=None):
 
 
 def run(args, out=None, err=None) -> int:
+    from magcal.autopilot.vehicle import AUTOPILOT_NAMES
+    from magcal.calib.diagnostics import observability
+    from magcal.io.session import check_writable, write_session
+    from magcal.logs import ImportOptions, import_log
+    from magcal.logs.stretch import describe
+
     out = out or sys.stdout
     err = err or sys.stderr
     check_writable(args.output, "writing session")

@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 
 from magcal import ui
-from magcal.calib.initial import ellipsoid
 from magcal.errors import MagcalError
 
 #: Bytes read to tell a session CSV from a result JSON when a file fails to parse.
@@ -44,6 +43,7 @@ def _looks_like(path: str) -> str | None:
 
 
 def _read_inputs(args):
+    from magcal.calib.initial import ellipsoid
     from magcal.io.result import read_result
     from magcal.io.session import read_session
 

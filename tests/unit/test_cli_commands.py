@@ -6,6 +6,7 @@ option values that start with a minus and a digit (a southern latitude, a negati
 from __future__ import annotations
 
 import importlib.metadata
+import subprocess
 import sys
 import types
 
@@ -100,6 +101,47 @@ def test_a_plugin_cannot_replace_a_product_command(monkeypatch, capsys):
     _entry_points(monkeypatch, _plugin(monkeypatch, "info", m))
     assert _subcommands().count("info") == 1
     assert "command 'info' from fake_magcal_plugin_info not loaded" in capsys.readouterr().err
+
+
+# ----------------------------------------------------------------------- start-up imports
+#: Libraries that only running a command may load: every parser is built for `magcal --help`.
+HEAVY = ("numpy", "scipy", "matplotlib", "cvxpy", "clarabel", "pymavlink", "pyulog", "serial")
+
+
+def _loaded_after(argvs: list[list[str]]) -> list[str]:
+    """The HEAVY libraries a fresh interpreter holds after ``magcal ARGV`` for each of
+    ``argvs`` (the product's commands only: no entry points; their output dropped)."""
+    code = "\n".join(
+        [
+            "import contextlib, importlib.metadata, io, sys",
+            "importlib.metadata.entry_points = lambda **kw: []",
+            "from magcal.cli import main",
+            f"for argv in {argvs!r}:",
+            "    with contextlib.redirect_stdout(io.StringIO()):",
+            "        try:",
+            "            assert main(argv) == 0, argv",
+            "        except SystemExit as exc:",  # --help
+            "            assert exc.code == 0, argv",
+            f"print(' '.join(m for m in {HEAVY!r} if m in sys.modules))",
+        ]
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    return done.stdout.split()
+
+
+def test_help_loads_no_library_a_command_needs():
+    loaded = _loaded_after([["--help"]] + [[name, "--help"] for name in EXPECTED])
+    assert loaded == []
+
+
+def test_calibrate_loads_neither_cvxpy_nor_matplotlib_without_plots(tmp_path):
+    session = tmp_path / "s.csv"
+    argv = ["simulate", "--duration", "20", "--seed", "1", "-o", str(session)]
+    assert main(argv) == 0
+    loaded = _loaded_after([["calibrate", str(session), "--method", "init"]])
+    assert "numpy" in loaded and "clarabel" in loaded  # it did calibrate
+    assert "cvxpy" not in loaded and "matplotlib" not in loaded
 
 
 # ----------------------------------------------------------------------- negative values

@@ -11,14 +11,16 @@ import json
 import math
 import re
 import shlex
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 
 from magcal import cli
 from magcal.sim.scenarios import PRESETS, ScenarioConfig
-from magcal_evaluation.study import StudyError, StudySettingsError, make_settings, run_study
 from magcal_evaluation.study import experiments as ex
+from magcal_evaluation.study.run import StudyError, StudySettingsError, make_settings, run_study
 from magcal_evaluation.study.runner import RUNS_FILE, SETTINGS_FILE, Task
 from magcal_evaluation.study.summary import SUMMARY_FILE
 
@@ -344,6 +346,17 @@ def test_jobs_default_to_the_cpus_this_process_may_use(monkeypatch):
     assert args.jobs == 2  # the affinity mask (a container's or taskset's limit), not 64
     monkeypatch.delattr(os, "sched_getaffinity")
     assert study_command.available_cpus() == 64  # platforms without affinity masks
+
+
+def test_the_command_module_loads_no_numerical_code():
+    # magcal's command line loads it for every `magcal --help`; the experiments load when run.
+    code = (
+        "import sys, magcal_evaluation.study.command\n"
+        "print(' '.join(m for m in ('numpy', 'scipy', 'matplotlib') if m in sys.modules))"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == []
 
 
 def test_study_is_registered_in_the_magcal_commands_entry_point_group():

@@ -102,8 +102,8 @@ def _command(args, settings) -> str:
 def run(args, out=None) -> int:
     # Imported here, not at the top: the CLI imports every command module at start-up, and
     # the study's modules (simulation, calibration, plots) take a second to load.
-    from magcal_evaluation.study import make_settings, run_study
     from magcal_evaluation.study.experiments import DEFAULT_SCENARIOS
+    from magcal_evaluation.study.run import make_settings, run_study
 
     out = out or sys.stdout
     settings, notes = make_settings(

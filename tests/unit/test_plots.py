@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import subprocess
 import sys
 
 import numpy as np
@@ -79,6 +80,21 @@ def test_pyplot_is_not_used(tmp_path, rng):
     raw, cal = sphere_data(rng, 50)
     plot_ellipsoid_sphere(raw, cal, tmp_path / "a.png")
     assert "matplotlib.pyplot" not in sys.modules
+
+
+def test_matplotlib_is_loaded_only_to_draw(tmp_path, rng):
+    # The report's modules import this one; matplotlib takes most of a second to load.
+    code = (
+        "import sys, numpy as np\n"
+        "from magcal.report import contents, html, plots\n"
+        "print('matplotlib' in sys.modules)\n"
+        f"plots.plot_norms(np.arange(9.0), np.ones(9), np.ones(9), {str(tmp_path / 'n.png')!r})\n"
+        "print('matplotlib' in sys.modules)"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["False", "True"]
+    assert_png(tmp_path / "n.png")
 
 
 @pytest.mark.parametrize(

@@ -13,10 +13,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
+
+if TYPE_CHECKING:
+    from matplotlib.figure import Figure
 
 RAW_COLOR = "tab:red"
 CALIBRATED_COLOR = "tab:blue"
@@ -247,6 +249,11 @@ def plot_heading_rmse_histograms(
 
 
 def _new_figure(size_in: tuple[float, float]) -> Figure:
+    # matplotlib is imported here, where a figure is drawn: it takes most of a second to load,
+    # and the modules that import this one (the report's) need it only once they draw.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
     fig = Figure(figsize=size_in)
     FigureCanvasAgg(fig)  # attaches itself to fig: render with Agg, no pyplot, no backend switch
     return fig

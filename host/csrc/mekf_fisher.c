@@ -112,6 +112,7 @@ typedef struct {
     double H[18];      /* (6, 3) rows of H for every row (the absent ones unused)       */
     double S[36];      /* (ny, ny) innovation covariance                                */
     double L[36];      /* its Cholesky factor                                           */
+    double Linv[36];   /* L⁻¹ (lower triangular)                                        */
     double M[18];      /* (3, ny) Pp Hᵀ                                                 */
     double K[18];      /* (3, ny) the gain M S⁻¹                                        */
     double eps[6], w[6], z[6]; /* ε, L⁻¹ε, S⁻¹ε                                          */
@@ -212,6 +213,12 @@ static int prepare_update(const pass_t *p, const step_t *s, size_t k, int ha, in
         }
         for (int i = 0; i < j; ++i) L[ny * i + j] = 0.0;
     }
+    for (int j = 0; j < ny; ++j) { /* L⁻¹, column by column */
+        double e[6] = {0.0, 0.0, 0.0, 0.0, 0.0, 0.0};
+        e[j] = 1.0;
+        forward_solve(L, ny, e);
+        for (int i = 0; i < ny; ++i) u->Linv[ny * i + j] = e[i];
+    }
     memcpy(u->w, u->eps, sizeof u->w);
     forward_solve(L, ny, u->w);
     memcpy(u->z, u->w, sizeof u->z);
@@ -228,7 +235,7 @@ static int prepare_update(const pass_t *p, const step_t *s, size_t k, int ha, in
 
 /* dH (rows of H, 6 × 3; only the measured rows are set) and dŷ (6) of one direction, from
  * the orientation tangent dφ₁ of the predicted attitude. */
-static void measurement_tangent(const pass_t *p, const step_t *s, const update_t *u, int ha,
+static ALWAYS_INLINE void measurement_tangent(const pass_t *p, const step_t *s, const update_t *u, int ha,
                                 int hm, const tangent_t *t, const double *restrict dphi1,
                                 double *restrict dH, double *restrict dy)
 {
@@ -300,12 +307,12 @@ static const double SQRT_HALF = 0.70710678118654752440;
 
 /* One sample's update along every direction: the features, the gradient, and the state
  * tangents carried through the update (dphi, dP: in, the predicted; out, the updated). */
-static void update_tangents(const pass_t *p, const step_t *s, const update_t *u, int ha,
-                            int hm, const tangent_t *tan, double *dphi, double *dP,
-                            fisher_acc_t *acc)
+static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
+                                          int ha, int hm, const tangent_t *tan, double *dphi,
+                                          double *dP, fisher_acc_t *acc, const int ny,
+                                          const int r0)
 {
     const size_t nd = acc->k;
-    const int ny = u->ny;
     const int nf = ny + ny * (ny + 1) / 2;
     double phi_buf[MC_MEKF_FISHER_MAX_DIRECTIONS * FEATURES];
     rotvec_coef_t eta_c;
@@ -316,20 +323,20 @@ static void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
         double dH[18], dy[6];
         measurement_tangent(p, s, u, ha, hm, t, dphi1, dH, dy);
         double de[6], dHM[36], dS[36], G[18];
-        for (int i = 0; i < ny; ++i) de[i] = -dy[u->rows[i]];
+        for (int i = 0; i < ny; ++i) de[i] = -dy[(r0 + i)];
         /* dH M (ny × ny), then dS. */
         for (int i = 0; i < ny; ++i) {
-            const double *h = dH + 3 * u->rows[i];
+            const double *h = dH + 3 * (r0 + i);
             for (int j = 0; j < ny; ++j)
                 dHM[ny * i + j] = h[0] * u->M[j] + h[1] * u->M[ny + j] + h[2] * u->M[2 * ny + j];
         }
         for (int i = 0; i < ny; ++i) {
-            const int ri = u->rows[i];
+            const int ri = (r0 + i);
             const double *h = u->H + 3 * ri;
             double hp[3]; /* row of H dPp */
             for (int b = 0; b < 3; ++b) hp[b] = h[0] * dPp[b] + h[1] * dPp[3 + b] + h[2] * dPp[6 + b];
             for (int j = i; j < ny; ++j) {
-                const int rj = u->rows[j];
+                const int rj = (r0 + j);
                 const double *h2 = u->H + 3 * rj;
                 double v = dHM[ny * i + j] + dHM[ny * j + i] + hp[0] * h2[0] + hp[1] * h2[1] +
                            hp[2] * h2[2];
@@ -341,27 +348,32 @@ static void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
         /* G = dPp Hᵀ + Pp dHᵀ (3 × ny). */
         for (int b = 0; b < 3; ++b)
             for (int i = 0; i < ny; ++i) {
-                const int r = u->rows[i];
+                const int r = (r0 + i);
                 const double *h = u->H + 3 * r, *dh = dH + 3 * r;
                 G[ny * b + i] = dPp[3 * b] * h[0] + dPp[3 * b + 1] * h[1] + dPp[3 * b + 2] * h[2] +
                                 s->Pp[3 * b] * dh[0] + s->Pp[3 * b + 1] * dh[1] + s->Pp[3 * b + 2] * dh[2];
             }
-        /* Features and gradient: a = L⁻¹ dε, W = L⁻¹ dS L⁻ᵀ. */
+        /* Features and gradient: a = L⁻¹ dε, W = L⁻¹ dS L⁻ᵀ, with L⁻¹ formed once per
+         * sample (products instead of triangular solves: no divisions, no chains). */
+        const double *Li = u->Linv;
         double a[6], X[36], W[36];
-        memcpy(a, de, sizeof a);
-        forward_solve(u->L, ny, a);
-        for (int j = 0; j < ny; ++j) { /* columns of L⁻¹ dS */
-            double c[6];
-            for (int i = 0; i < ny; ++i) c[i] = dS[ny * i + j];
-            forward_solve(u->L, ny, c);
-            for (int i = 0; i < ny; ++i) X[ny * i + j] = c[i];
+        for (int i = 0; i < ny; ++i) {
+            double v = 0.0;
+            for (int k = 0; k <= i; ++k) v += Li[ny * i + k] * de[k];
+            a[i] = v;
         }
-        for (int i = 0; i < ny; ++i) { /* W = X L⁻ᵀ: row i of W is L⁻¹ (row i of X) */
-            double r[6];
-            for (int j = 0; j < ny; ++j) r[j] = X[ny * i + j];
-            forward_solve(u->L, ny, r);
-            for (int j = 0; j < ny; ++j) W[ny * i + j] = r[j];
-        }
+        for (int i = 0; i < ny; ++i) /* X = L⁻¹ dS */
+            for (int j = 0; j < ny; ++j) {
+                double v = 0.0;
+                for (int k = 0; k <= i; ++k) v += Li[ny * i + k] * dS[ny * k + j];
+                X[ny * i + j] = v;
+            }
+        for (int i = 0; i < ny; ++i) /* W = X L⁻ᵀ, upper triangle */
+            for (int j = i; j < ny; ++j) {
+                double v = 0.0;
+                for (int k = 0; k <= j; ++k) v += X[ny * i + k] * Li[ny * j + k];
+                W[ny * i + j] = v;
+            }
         /* Feature c of direction d at phi_buf[MAX · c + d]: feature-major, so that the
          * accumulation below runs along contiguous directions. */
         double *f = phi_buf + d;
@@ -377,7 +389,7 @@ static void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
             tr += wii;
             gw += wii * u->w[i] * u->w[i];
             for (int j = i + 1; j < ny; ++j) {
-                const double wij = 0.5 * (W[ny * i + j] + W[ny * j + i]);
+                const double wij = W[ny * i + j];
                 f[MC_MEKF_FISHER_MAX_DIRECTIONS * c++] = wij;
                 gw += 2.0 * wij * u->w[i] * u->w[j];
             }
@@ -426,6 +438,30 @@ static void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
             for (size_t j = i; j < nd; ++j) row[j] += fi * fc[j];
         }
     }
+}
+
+/* update_tangents with the number of measured rows and the first one as constants, so that
+ * the small loops over them unroll: both sensors (6 rows), the accelerometer alone (rows
+ * 0–2) or the magnetometer alone (rows 3–5). */
+static NOINLINE void update_tangents_both(const pass_t *p, const step_t *s, const update_t *u,
+                                          const tangent_t *tan, double *dphi, double *dP,
+                                          fisher_acc_t *acc)
+{
+    update_tangents(p, s, u, 1, 1, tan, dphi, dP, acc, 6, 0);
+}
+
+static NOINLINE void update_tangents_acc(const pass_t *p, const step_t *s, const update_t *u,
+                                         const tangent_t *tan, double *dphi, double *dP,
+                                         fisher_acc_t *acc)
+{
+    update_tangents(p, s, u, 1, 0, tan, dphi, dP, acc, 3, 0);
+}
+
+static NOINLINE void update_tangents_mag(const pass_t *p, const step_t *s, const update_t *u,
+                                         const tangent_t *tan, double *dphi, double *dP,
+                                         fisher_acc_t *acc)
+{
+    update_tangents(p, s, u, 0, 1, tan, dphi, dP, acc, 3, 3);
 }
 
 /* The time update of every direction's tangents, sample k − 1 → k (k > 0). */
@@ -480,7 +516,12 @@ static ALWAYS_INLINE double fisher_loop(const pass_t *p, const tangent_t *tan, d
         if (k > 0) predict_tangents(p, &s, k, tan, acc->k, dphi, dP);
         if (ha || hm) {
             if (!prepare_update(p, &s, k, ha, hm, &u)) return NAN;
-            update_tangents(p, &s, &u, ha, hm, tan, dphi, dP, acc);
+            if (ha && hm)
+                update_tangents_both(p, &s, &u, tan, dphi, dP, acc);
+            else if (ha)
+                update_tangents_acc(p, &s, &u, tan, dphi, dP, acc);
+            else
+                update_tangents_mag(p, &s, &u, tan, dphi, dP, acc);
         }
         cost += s.cost;
         logdet_add(&ld, s.det);

@@ -10,6 +10,7 @@ import json
 import pytest
 
 from magcal.calib import calibrate
+from magcal.calib.likelihood import ml
 from magcal.cli import EXIT_ERROR, main
 from magcal.commands import calibrate as calibrate_command
 from magcal.io.result import REQUIRED_KEYS, read_result
@@ -60,6 +61,7 @@ def test_unobservable_session_is_refused_unless_forced(sessions, tmp_path, capsy
 
 def test_method_help_lists_every_method(capsys):
     assert calibrate_command.CALIBRATION_METHODS == calibrate.METHODS
+    assert calibrate_command.ML_OPTIMIZERS == ml.OPTIMIZERS
     with pytest.raises(SystemExit):
         main(["calibrate", "--help"])
     text = " ".join(capsys.readouterr().out.split())

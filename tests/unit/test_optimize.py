@@ -4,7 +4,12 @@ import warnings
 import numpy as np
 import pytest
 
-from magcal.calib.likelihood.optimize import OptimizeOptions, minimize_bfgs
+from magcal.calib.likelihood.optimize import (
+    OptimizeOptions,
+    minimize_bfgs,
+    minimize_trust_region,
+    trust_region_step,
+)
 from magcal.errors import CalibrationError
 
 
@@ -89,3 +94,109 @@ def test_a_step_that_rounds_to_nothing_ends_the_run_without_invalid_arithmetic()
         rep = minimize_bfgs(f, np.zeros(1), np.ones(1))
     assert rep.stopping_rule == "step"
     assert rep.x[0] == c
+
+
+def rosenbrock_information(x):
+    """Rosenbrock as ½‖r‖², r = (10 (x₁ − x₀²), 1 − x₀): value, gradient and the Gauss–Newton
+    matrix JᵀJ, the least-squares analogue of the Fisher information."""
+    r = np.array([10.0 * (x[1] - x[0] ** 2), 1.0 - x[0]])
+    J = np.array([[-20.0 * x[0], 10.0], [-1.0, 0.0]])
+    return 0.5 * float(r @ r), J.T @ r, J.T @ J
+
+
+def test_trust_region_converges_on_rosenbrock_in_fewer_iterations_than_bfgs():
+    rep = minimize_trust_region(
+        rosenbrock_information,
+        lambda x: rosenbrock_information(x)[:2],
+        lambda x: rosenbrock_information(x)[0],
+        np.array([-1.2, 1.0]),
+        np.ones(2),
+        np.ones(2),
+        OptimizeOptions(decrement_tol=1e-20, gradient_tol=1e-10),
+    )
+    np.testing.assert_allclose(rep.x, [1.0, 1.0], atol=1e-8)
+    assert rep.converged and rep.stopping_rule == "gradient"
+    assert rep.information_evaluations >= 1
+    bfgs = minimize_bfgs(
+        rosenbrock,
+        np.array([-1.2, 1.0]),
+        np.ones(2),
+        OptimizeOptions(decrement_tol=1e-20, gradient_tol=1e-10),
+    )
+    assert rep.iterations < bfgs.iterations
+
+
+def test_trust_region_bounds_the_first_step_by_the_typical_change():
+    # A quadratic whose minimum is 1000 typical changes away: the first accepted point moves
+    # by at most one typical change, and the region grows from there.
+    seen = []
+
+    def fgi(x):
+        seen.append(x.copy())
+        return 0.5 * float((x - 1000.0) @ (x - 1000.0)), x - 1000.0, np.eye(2)
+
+    rep = minimize_trust_region(
+        fgi, lambda x: fgi(x)[:2], lambda x: fgi(x)[0], np.zeros(2), np.ones(2), np.ones(2)
+    )
+    assert np.linalg.norm(seen[1]) <= 1.0 + 1e-9
+    np.testing.assert_allclose(rep.x, [1000.0, 1000.0], atol=1e-6)
+    assert rep.converged
+
+
+def test_trust_region_rejects_points_where_the_cost_is_not_finite():
+    # Beyond x = 2 the cost is NaN (a covariance breaking down); the minimum of the
+    # quadratic model lies there, the run must stay on the finite side.
+    def fgi(x):
+        if x[0] > 2.0:
+            return float("nan"), np.full(1, np.nan), np.eye(1)
+        return 0.5 * float((x[0] - 5.0) ** 2), np.array([x[0] - 5.0]), np.eye(1)
+
+    rep = minimize_trust_region(
+        fgi,
+        lambda x: fgi(x)[:2],
+        lambda x: fgi(x)[0],
+        np.zeros(1),
+        np.ones(1),
+        np.ones(1),
+        OptimizeOptions(max_iter=200),
+    )
+    assert np.isfinite(rep.cost) and rep.x[0] <= 2.0
+    assert not rep.converged
+
+
+def test_trust_region_reports_a_run_out_of_iterations_as_not_converged():
+    rep = minimize_trust_region(
+        rosenbrock_information,
+        lambda x: rosenbrock_information(x)[:2],
+        lambda x: rosenbrock_information(x)[0],
+        np.array([-1.2, 1.0]),
+        np.ones(2),
+        np.ones(2),
+        OptimizeOptions(max_iter=2),
+    )
+    assert rep.stopping_rule == "max_iter" and not rep.converged
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_trust_region_step_solves_the_subproblem(seed):
+    """Against a brute-force minimisation of the model on the boundary, for definite and
+    indefinite matrices, with and without weights."""
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(4, 4))
+    B = A @ A.T - (2.0 if seed % 2 else 0.0) * np.eye(4)
+    g = rng.normal(size=4)
+    weight = np.exp(rng.normal(size=4)) if seed >= 2 else None
+    radius = 0.3
+    s = trust_region_step(B, g, radius, weight)
+    w = np.ones(4) if weight is None else weight
+    assert np.linalg.norm(w * s) <= radius * (1 + 1e-6)
+
+    def model(x):
+        return float(g @ x + 0.5 * x @ B @ x)
+
+    # Random points on the (weighted) boundary and inside never do better.
+    u = rng.normal(size=(20000, 4))
+    u = radius * u / np.linalg.norm(u, axis=1)[:, None] * rng.random((20000, 1)) ** 0.25
+    candidates = u / w
+    best = min(model(c) for c in candidates)
+    assert model(s) <= best + 1e-9

@@ -172,3 +172,25 @@ def test_result_carries_the_sessions_magnetometer_unit():
         session, meta={k: v for k, v in session.meta.items() if k != "mag_unit"}
     )
     assert "mag_unit" not in calibrate(without, "init").result.extra
+
+
+def test_trust_region_reaches_bfgs_optimum_in_fewer_iterations():
+    session, _ = simulate(preset("mems", duration_s=20.0), 5)
+    runs = {opt: calibrate(session, "ml", optimizer=opt) for opt in ("bfgs", "trust-region")}
+    opts = {k: v.result.extra["optimizer"] for k, v in runs.items()}
+    assert opts["trust-region"]["method"] == "trust-region"
+    assert all(o["stopping_rule"] == "gradient" for o in opts.values())
+    assert opts["trust-region"]["final_cost"] <= opts["bfgs"]["final_cost"] + 1e-4
+    assert opts["trust-region"]["iterations"] < opts["bfgs"]["iterations"]
+    assert opts["trust-region"]["information_evaluations"] >= 1
+    np.testing.assert_allclose(
+        runs["trust-region"].result.D,
+        runs["bfgs"].result.D,
+        atol=1e-4 * np.abs(runs["bfgs"].result.D).max(),
+    )
+
+
+def test_unknown_optimizer_is_rejected():
+    session, _ = simulate(preset("mems", duration_s=10.0), 1)
+    with pytest.raises(ValueError, match="unknown optimizer"):
+        calibrate(session, "ml", optimizer="newton")

@@ -118,10 +118,11 @@ def calibrate(
     options: OptimizeOptions = OptimizeOptions(),
     progress: Callable[[int, float, float], None] | None = None,
     priors: Priors = Priors(),
+    optimizer: str = "bfgs",
 ) -> Calibration:
     """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
     or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see
-    :data:`NORM_ONLY`)."""
+    :data:`NORM_ONLY`). ``optimizer``: the ML step's (``likelihood.ml.OPTIMIZERS``)."""
     if method not in METHODS:
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     if not session.has_acc.any():
@@ -179,7 +180,7 @@ def calibrate(
     est = None
     if method == "ml":
         t0 = time.perf_counter()
-        est = maximum_likelihood(session, init, gradient, options, progress, priors)
+        est = maximum_likelihood(session, init, gradient, options, progress, priors, optimizer)
         seconds["ml"] = time.perf_counter() - t0
         p = est.params
         r = est.report
@@ -191,8 +192,10 @@ def calibrate(
         if est.gyro_gain_test is not None:
             extra["gyro_gain_test"] = est.gyro_gain_test.as_dict()
         extra["optimizer"] = {
+            "method": optimizer,
             "gradient": gradient,
             "iterations": r.iterations,
+            "information_evaluations": r.information_evaluations,
             "cost_evaluations": r.cost_evaluations,
             "gradient_evaluations": r.gradient_evaluations,
             "final_cost": r.cost,

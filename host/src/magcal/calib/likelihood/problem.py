@@ -373,6 +373,24 @@ def on_canonical_branch(theta: np.ndarray) -> np.ndarray:
     return theta
 
 
+def typical_changes() -> np.ndarray:
+    """(35,) how far one step of the trust-region optimiser may move each θ component at
+    first: a tenth of the normalised field for D and o (≈ 6° of rotation, 10 % of scale),
+    0.1 rad of dip, 1 °/s of gyroscope bias, half a unit of each noise covariance's log-scale
+    and correlation entries (σ × 1.6) and 10 ms of time offset. The region grows by doubling
+    where the model predicts well, so these only pace the first steps from a poor start."""
+    t = np.empty(params.N_PARAMS)
+    t[params.SLICE_D] = 0.1
+    t[params.SLICE_O] = 0.1
+    t[params.INDEX_DIP] = 0.1
+    t[params.SLICE_BIAS] = np.deg2rad(1.0)
+    t[params.SLICE_CHOL_GYR] = 0.5
+    t[params.SLICE_CHOL_ACC] = 0.5
+    t[params.SLICE_CHOL_MAG] = 0.5
+    t[params.INDEX_TIME_OFFSET] = 0.01
+    return t
+
+
 # --------------------------------------------------------------------------------------------
 # The problem
 
@@ -498,6 +516,12 @@ class LikelihoodProblem:
         return dataclasses.replace(
             self, data=dataclasses.replace(self.data, turn_var=turn_var), gyro_gain_error=k
         )
+
+    @property
+    def typical_changes(self) -> np.ndarray:
+        """(35,) a large but sane change of each θ component in one optimiser step
+        (:data:`TYPICAL_CHANGES`)."""
+        return typical_changes()
 
     @property
     def n_samples(self) -> int:

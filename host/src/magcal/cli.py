@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The ``magcal`` command line: builds the parser from the command modules, runs the command,
 and turns its errors into exit codes. Nothing else lives here.
 

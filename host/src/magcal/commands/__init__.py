@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The commands of the command line: one module (or small package) each, with
 ``add_parser(subparsers)`` setting ``run``; :func:`magcal.cli.build_parser` registers every
 module here that has one. A device command covers both links in its own module: ``--port``

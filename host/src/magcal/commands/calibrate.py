@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal calibrate SESSION.csv``: calibrate a recorded or simulated session
 (:func:`magcal.calib.calibrate.calibrate`), print a summary, and optionally write the result,
 the paper's figures, and the errors against a simulation's truth."""

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal collect --port URL -o SESSION.csv``: record a calibration session from the device;
 ``--mavlink URL [--compass N]``: from an ArduPilot or PX4 autopilot
 (:mod:`magcal.autopilot.collect`: the magnetometer in the autopilot's unit, mG or gauss, with

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What every device command shares: the link arguments (``--port`` for a device running
 magcal's firmware, ``--mavlink`` for an autopilot), opening a device session, and reading an
 autopilot's compass parameters. Imports no command module, and loads the device and link

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal import LOG -o SESSION.csv``: a session from an ArduPilot or PX4 flight log.
 
 Reads a DataFlash ``.bin``, a MAVLink ``.tlog`` or a PX4 ``.ulg``, undoes the autopilot's

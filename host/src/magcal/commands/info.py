@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal info --port URL``: what the device says about itself; ``--mavlink URL``: the
 autopilot, its firmware and each compass with its parameters in force.
 

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal report RESULT.json SESSION.csv -o report.html [--validate OTHER.csv]``."""
 
 from __future__ import annotations

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal simulate -o SESSION.csv``: a simulated session and its truth (the sensor's errors,
 the attitude), from a preset with optional overrides (:mod:`magcal.sim.scenarios`)."""
 

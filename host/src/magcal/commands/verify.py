@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal verify --port URL``: stream the device's corrected output and measure it.
 
 Reports the spread of the corrected field's norm and, from a raw stream (or ``--session``), the

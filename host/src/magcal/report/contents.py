@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """What the calibration report shows, computed: the uncertainty, the figures, the validation.
 
 :func:`build_report` applies a result to the session it was calibrated from (and optionally to

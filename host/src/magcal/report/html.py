@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """The calibration report as one self-contained HTML page (``magcal report``).
 
 Self-contained means the page needs nothing but itself: the CSS is inline, every figure is

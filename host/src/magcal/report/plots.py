@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """PNG figures of a calibration, after Kok & Schön (2016), Figs 1, 4, 5 and 8.
 
 Every function takes arrays and an output path, writes one PNG and returns the path. Colours

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """Step 1b of Kok & Schön (2016), Section 6.1: fit an ellipsoid to the magnetometer data.
 
 The magnetometer model ``y = D R_bn m_n + o`` with ``‖m_n‖ = 1`` puts the data on the

@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal flash``: write a calibration where it is used, reading back every step.
 
 ``--port URL`` writes to a device running magcal's firmware (:mod:`.device`: fixed-point

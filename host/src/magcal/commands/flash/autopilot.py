@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal flash RESULT.json --mavlink URL``: a calibration result as ArduPilot or PX4 compass
 parameters (:mod:`magcal.autopilot.flash`: mapping, limits, a backup of every parameter touched
 first, each write confirmed by the vehicle's echo). ``--restore BACKUP`` writes a backup back.
@@ -15,7 +16,7 @@ import numpy as np
 
 from magcal.commands.common import compass_params
 from magcal.errors import MagcalError
-from magcal.ui import EXIT_INTERRUPTED, refusal, say
+from magcal.ui import EXIT_INTERRUPTED, EXIT_MISALIGNMENT_LEFT_OUT, refusal, say
 
 
 def _say(text: str) -> None:
@@ -84,9 +85,8 @@ def _recorded(args, result, cp, session) -> dict[str, float] | None:
     return recorded
 
 
-#: Exit code of a flash that wrote the calibration but left out a misalignment costing at
-#: least LEFT_OUT_WARN_DEG of heading (the values are in force; the warning says what it costs).
-EXIT_MISALIGNMENT_LEFT_OUT = 3
+#: A misalignment left out that costs at least this much heading (degrees) ends the flash
+#: with EXIT_MISALIGNMENT_LEFT_OUT (the values are in force; the warning says what it costs).
 LEFT_OUT_WARN_DEG = 0.5
 #: Largest floor the corrected field's norm spread puts under the rotation's σ, degrees. The
 #: floor stands for model errors the curvature does not know (on SITL it turned a 0.05° custom

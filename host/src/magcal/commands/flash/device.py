@@ -1,3 +1,4 @@
+# SPDX-License-Identifier: Apache-2.0
 """``magcal flash RESULT.json --port URL``: write a calibration to the device.
 
 1. convert the result's ``D_inv`` and ``o`` to the device's fixed-point parameter set

@@ -293,11 +293,18 @@ static PyObject *py_fisher(PyObject *self, PyObject *args)
     ok = ok && (info = get_float64(info_obj, &bufs.b[B_OUT0], k * k, 1, "info")) != NULL &&
          (grad = get_float64(grad_obj, &bufs.b[B_OUT1], k, 1, "grad")) != NULL;
     double cost = NAN;
+    double *work = NULL;
+    const size_t work_len = (size_t)k * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION;
+    if (ok && !(work = PyMem_RawMalloc(work_len * sizeof *work))) {
+        PyErr_NoMemory();
+        ok = 0;
+    }
     if (ok) {
         Py_BEGIN_ALLOW_THREADS
-        cost = mc_mekf_fisher(&model, &data, dirs, (size_t)k, info, grad);
+        cost = mc_mekf_fisher(&model, &data, dirs, (size_t)k, work, work_len, info, grad);
         Py_END_ALLOW_THREADS
     }
+    PyMem_RawFree(work);
     release_all(&bufs);
     return ok ? PyFloat_FromDouble(cost) : NULL;
 }

@@ -295,14 +295,42 @@ static ALWAYS_INLINE void measurement_tangent(const pass_t *p, const step_t *s, 
     }
 }
 
+/* Samples whose features are gathered before they are multiplied out: per direction a row
+ * of FISHER_BLOCK · FEATURES values, so that F_ij gains one long contiguous dot product per
+ * block instead of a rank-one update per feature (which compiles to scalar code). */
+#define FEATURES 27 /* 6 + 21: a and the upper triangle of W at most */
+#define BLOCK_LEN (MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
+#if BLOCK_LEN % FEATURES != 0 || BLOCK_LEN < FEATURES
+#error "the Fisher workspace per direction must hold whole samples' features"
+#endif
+
 /* The accumulators of one pass. */
 typedef struct {
-    size_t k;           /* directions                                    */
-    double *info;       /* (k, k), upper triangle accumulated            */
-    double *grad;       /* (k)                                           */
+    size_t k;      /* directions                                              */
+    double *info;  /* (k, k), upper triangle accumulated                      */
+    double *grad;  /* (k)                                                     */
+    int used;      /* features gathered in `block` per direction so far       */
+    double *block; /* (k, BLOCK_LEN) the caller's workspace, direction-major  */
 } fisher_acc_t;
 
-#define FEATURES 27 /* 6 + 21: a and the upper triangle of W at most */
+/* F += Φ Φᵀ over the gathered features, upper triangle; empties the block. */
+static void flush_block(fisher_acc_t *acc)
+{
+    const size_t nd = acc->k;
+    const int len = acc->used;
+    for (size_t i = 0; i < nd; ++i) {
+        const double *restrict fi = acc->block + BLOCK_LEN * i;
+        double *restrict row = acc->info + nd * i;
+        for (size_t j = i; j < nd; ++j) {
+            const double *restrict fj = acc->block + BLOCK_LEN * j;
+            double v = 0.0;
+            for (int c = 0; c < len; ++c) v += fi[c] * fj[c];
+            row[j] += v;
+        }
+    }
+    acc->used = 0;
+}
+
 static const double SQRT_HALF = 0.70710678118654752440;
 
 /* One sample's update along every direction: the features, the gradient, and the state
@@ -314,7 +342,7 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
 {
     const size_t nd = acc->k;
     const int nf = ny + ny * (ny + 1) / 2;
-    double phi_buf[MC_MEKF_FISHER_MAX_DIRECTIONS * FEATURES];
+    if (acc->used + FEATURES > BLOCK_LEN) flush_block(acc);
     rotvec_coef_t eta_c;
     rotvec_coef(s->eta, &eta_c);
     for (size_t d = 0; d < nd; ++d) {
@@ -374,23 +402,22 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
                 for (int k = 0; k <= j; ++k) v += X[ny * i + k] * Li[ny * j + k];
                 W[ny * i + j] = v;
             }
-        /* Feature c of direction d at phi_buf[MAX · c + d]: feature-major, so that the
-         * accumulation below runs along contiguous directions. */
-        double *f = phi_buf + d;
+        /* This sample's features of direction d, appended to its row of the block. */
+        double *f = acc->block + BLOCK_LEN * d + acc->used;
         double gq = 0.0, gw = 0.0, tr = 0.0;
         int c = 0;
         for (int i = 0; i < ny; ++i) {
-            f[MC_MEKF_FISHER_MAX_DIRECTIONS * c++] = a[i];
+            f[c++] = a[i];
             gq += a[i] * u->w[i];
         }
         for (int i = 0; i < ny; ++i) {
             const double wii = W[ny * i + i];
-            f[MC_MEKF_FISHER_MAX_DIRECTIONS * c++] = wii * SQRT_HALF;
+            f[c++] = wii * SQRT_HALF;
             tr += wii;
             gw += wii * u->w[i] * u->w[i];
             for (int j = i + 1; j < ny; ++j) {
                 const double wij = W[ny * i + j];
-                f[MC_MEKF_FISHER_MAX_DIRECTIONS * c++] = wij;
+                f[c++] = wij;
                 gw += 2.0 * wij * u->w[i] * u->w[j];
             }
         }
@@ -429,15 +456,7 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
         rotvec_jac(&eta_c, 1.0, deta, r2);
         for (int i = 0; i < 3; ++i) dphi1[i] = r1[i] + r2[i];
     }
-    /* F += Φ Φᵀ on the upper triangle, one rank-one update per feature. */
-    for (int c = 0; c < nf; ++c) {
-        const double *fc = phi_buf + MC_MEKF_FISHER_MAX_DIRECTIONS * c;
-        for (size_t i = 0; i < nd; ++i) {
-            const double fi = fc[i];
-            double *restrict row = acc->info + nd * i;
-            for (size_t j = i; j < nd; ++j) row[j] += fi * fc[j];
-        }
-    }
+    acc->used += nf;
 }
 
 /* update_tangents with the number of measured rows and the first one as constants, so that
@@ -545,12 +564,14 @@ static NOINLINE double fisher_pass_masked(const pass_t *p, const tangent_t *tan,
 }
 
 double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
-                      const double *directions, size_t k, double *info, double *grad)
+                      const double *directions, size_t k, double *work, size_t work_len,
+                      double *info, double *grad)
 {
     if (info) memset(info, 0, k * k * sizeof *info);
     if (grad) memset(grad, 0, k * sizeof *grad);
     if (!valid_arguments(model, data) || !directions || !info || !grad || k < 1 ||
-        k > MC_MEKF_FISHER_MAX_DIRECTIONS)
+        k > MC_MEKF_FISHER_MAX_DIRECTIONS || !work ||
+        work_len < k * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
         return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
@@ -560,9 +581,10 @@ double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
     /* The prior (q₀, P₀) is data: its tangents are zero. */
     memset(dphi, 0, sizeof dphi);
     memset(dP, 0, sizeof dP);
-    fisher_acc_t acc = {k, info, grad};
-    const double cost = any_mask(data) ? fisher_pass_masked(&p, tan, dphi, dP, &acc)
-                                       : fisher_pass_unmasked(&p, tan, dphi, dP, &acc);
+    fisher_acc_t acc_s = {k, info, grad, 0, work}, *acc = &acc_s;
+    double cost = any_mask(data) ? fisher_pass_masked(&p, tan, dphi, dP, acc)
+                                 : fisher_pass_unmasked(&p, tan, dphi, dP, acc);
+    flush_block(acc);
     if (!isfinite(cost)) {
         memset(info, 0, k * k * sizeof *info);
         memset(grad, 0, k * sizeof *grad);

@@ -100,8 +100,11 @@ double mc_mekf_cost(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
 double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                          double *tape, size_t tape_len, mc_mekf_model_t *grad);
 
-/* Most directions mc_mekf_fisher takes in one pass (its workspace is on the stack). */
+/* Most directions mc_mekf_fisher takes in one pass (its tangents are on the stack). */
 #define MC_MEKF_FISHER_MAX_DIRECTIONS 64
+/* Doubles of mc_mekf_fisher's workspace per direction: the features of 8 samples (27 each),
+ * gathered before they are multiplied out. */
+#define MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION 216
 
 /* The cost of mc_mekf_cost and, along k directions of the model (the rows of `directions`,
  * k × MC_MEKF_MODEL_DOUBLES, in the layout of mc_mekf_model_t), the Fisher information of
@@ -111,9 +114,11 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
  * `grad` (k), both by forward sensitivities of the filter (mekf_fisher.c). A direction's
  * covariance entries are symmetrised as the model's are. Returns the cost; on NaN (the
  * arguments of mc_mekf_cost, `directions`, `info` or `grad` NULL, k = 0 or above
- * MC_MEKF_FISHER_MAX_DIRECTIONS, or a covariance not positive definite) info and grad are
- * zero. */
+ * MC_MEKF_FISHER_MAX_DIRECTIONS, `work` NULL or shorter than
+ * k · MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION (caller-owned; its contents on entry do not
+ * matter), or a covariance not positive definite) info and grad are zero. */
 double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
-                      const double *directions, size_t k, double *info, double *grad);
+                      const double *directions, size_t k, double *work, size_t work_len,
+                      double *info, double *grad);
 
 #endif

@@ -109,6 +109,77 @@ def _format_imports(imp: dict, cal: dict) -> list[str]:
     ]
 
 
+def _optimizer_row(label: str, c: dict, names: list[str]) -> str:
+    """One case of section 7: per optimiser iterations, Fisher-information and gradient
+    evaluations, the stopping rule and the ML step's seconds; the final costs' difference."""
+    cells = []
+    for name in names:
+        r = c["runs"][name]
+        if "error" in r:
+            cells.append(f"{'failed (' + r['error'].split(':')[0] + ')':>35}")
+            continue
+        rule = r["stopping_rule"] + ("*" if r["forced"] else "")
+        cells.append(
+            f"{r['iterations']:>6}{r['information_evaluations']:>5}"
+            f"{r['gradient_evaluations']:>6}{rule:>11}{r['ml_s']:>7.2f}"
+        )
+    diff = c["final_cost_diff"]
+    return (
+        f"   {label:<29}{c['samples']:>8,}"
+        + "".join(f"  {cell}" for cell in cells)
+        + f"{_fmt(diff, '{:+.2e}'):>10}"
+    )
+
+
+def _format_optimizers(opt: dict) -> list[str]:
+    """Section 7: both optimisers per case, their medians over the real recordings, the cold
+    command lines."""
+    names = list(opt["simulated"]["runs"])
+    columns = f"{'iters':>6}{'info':>5}{'grads':>6}{'rule':>11}{'ML s':>7}"
+    out = [
+        "",
+        "7. The ML step's optimisers, calibrate(session, 'ml', optimizer=...) in one process",
+        f"   {'':<37}" + "".join(f"  {name:^35}" for name in names),
+        f"   {'case':<29}{'samples':>8}" + "".join(f"  {columns}" for _ in names) + "     Δcost",
+        _optimizer_row(opt["simulated"]["case"], opt["simulated"], names),
+    ]
+    for c in opt["real"]:
+        out.append(
+            _optimizer_row(c["case"] + ("" if c["form"] == "session" else " (mr)"), c, names)
+        )
+    if opt["real_skipped"]:
+        out.append(f"   real recordings: {opt['real_skipped']}")
+    summary = opt.get("real_summary")
+    if summary:
+        for name in names:
+            s = summary[name]
+            failed = f", failed on {', '.join(s['failed'])}" if s["failed"] else ""
+            out.append(
+                f"   {name + ', real, median':<29}{s['median_iterations']:>8} iterations, "
+                f"{s['median_information_evaluations']} information and "
+                f"{s['median_gradient_evaluations']} gradient evaluations, ML "
+                f"{s['median_ml_s']:.2f} s (total {s['total_ml_s']:.1f} s); "
+                f"{s['converged']}/{s['finished']} converged{failed}"
+            )
+        out.append(
+            f"   Δcost = trust-region − bfgs final cost (nats), real: "
+            f"{_fmt(summary['final_cost_diff_min'], '{:+.2e}')} to "
+            f"{_fmt(summary['final_cost_diff_max'], '{:+.2e}')}; * forced past refusing checks, "
+            "(mr) multi-rate session"
+        )
+    cli = opt["cli"]
+    out.append(f"   cold whole process, host/magcal, 1 thread, median of {cli['reps']}:")
+    for r in cli["calibrate"].values():
+        cells = ", ".join(
+            f"{name} {r[name]['median_s']:.2f} s"
+            + ("" if set(r[name]["exit_codes"]) == {0} else f" (exit {r[name]['exit_codes']})")
+            for name in names
+        )
+        out.append(f"   {'  calibrate ' + r['session']:<44}{cells}")
+    out.append(f"   {'  --help':<44}{cli['help']['median_s']:.2f} s")
+    return out
+
+
 def format_table(res: dict) -> str:
     """The table ``run_bench.py`` prints: one section per measurement."""
     m, cal, mem = res["machine"], res["calibration"], res["memory"]
@@ -202,6 +273,8 @@ def format_table(res: dict) -> str:
                 f"   {kind:<10}{r['file']:<32}{r['size_mb']:6.1f} MB {r['seconds']:7.2f} s "
                 f"{r['mb_per_s']:7.1f} MB/s"
             )
+    if res.get("optimizers") is not None:  # results of builds without it have none
+        out += _format_optimizers(res["optimizers"])
     out += ["", f"benchmark took {res['bench_wall_s']:.0f} s"]
     return "\n".join(out)
 
@@ -226,6 +299,23 @@ HEADLINE = (
     ("cost+grad slope", ("scaling", "loglog_slope_cost_grad"), "{:.3f}"),
     ("CKF step (µs/sample)", ("ckf", "step_us_per_sample"), "{:.1f}"),
     ("log import (MB/s)", ("log_import", "largest", "mb_per_s"), "{:.1f}"),
+    ("ML iters, real, bfgs", ("optimizers", "real_summary", "bfgs", "median_iterations"), "{}"),
+    (
+        "  trust-region",
+        ("optimizers", "real_summary", "trust-region", "median_iterations"),
+        "{}",
+    ),
+    (
+        "cold calibrate broad35",
+        ("optimizers", "cli", "calibrate", "broad35_magnet4cm", "bfgs", "median_s"),
+        "{:.2f}",
+    ),
+    (
+        "  trust-region",
+        ("optimizers", "cli", "calibrate", "broad35_magnet4cm", "trust-region", "median_s"),
+        "{:.2f}",
+    ),
+    ("magcal --help (s)", ("optimizers", "cli", "help", "median_s"), "{:.2f}"),
 )
 
 

@@ -5,7 +5,7 @@
     python bench/run_bench.py --out bench/results.json     # what `make bench` runs (~35 s)
     python bench/run_bench.py --show old.json new.json     # headline figures side by side
 
-Six measurements, each in a fresh subprocess of this script (``--worker NAME``) with
+Seven measurements, each in a fresh subprocess of this script (``--worker NAME``) with
 OMP/OPENBLAS/MKL_NUM_THREADS=1 set before numpy is imported and the process pinned to one
 CPU with ``os.sched_setaffinity``:
 
@@ -27,6 +27,12 @@ CPU with ``os.sched_setaffinity``:
    reader, undoing the on-board correction, pairing, the session of the whole log, not
    written), in MB of log per second: the largest log of each format in the real logs beside
    the checkout (``../shared/reallogs``), else in the committed ones (tests/data/reallogs).
+7. ``optimizers``: the ML step's two optimisers (``calibrate(session, "ml",
+   optimizer=...)``, bfgs and trust-region) side by side on a simulated 10-minute session and
+   on every real recording of ``--realdata`` (``../shared/realdata`` beside the checkout; the
+   sessions as ``make real`` builds them), then the cold whole-process wall time of
+   ``host/magcal calibrate SESSION -o OUT --optimizer ...`` on one real recording and on the
+   simulated session, and of ``magcal --help``.
 
 Progress goes to stderr, the table (formatted by bench/report.py) to stdout, the
 machine-readable summary to ``--out``.
@@ -98,6 +104,12 @@ class BenchConfig:
     ckf_duration_s: float = 120.0
     ckf_reps: int = 3
     log_import_reps: int = 3
+    optimizers_sim_duration_s: float = 600.0
+    #: the first this many cases of the real-data set's cases.json; None: all of them
+    optimizers_real_cases: int | None = None
+    #: the real recording the cold command line calibrates; None: the set's first case
+    cli_real_case: str | None = "broad35_magnet4cm"
+    cli_reps: int = 3
 
 
 #: A few seconds in total; only checks that the code runs (tests/unit/test_bench_smoke.py).
@@ -112,6 +124,10 @@ SMOKE_CONFIG = BenchConfig(
     ckf_duration_s=15.0,
     ckf_reps=1,
     log_import_reps=1,
+    optimizers_sim_duration_s=15.0,
+    optimizers_real_cases=1,
+    cli_real_case=None,
+    cli_reps=1,
 )
 #: Real flight logs for the import throughput: the full set beside the checkout, else the
 #: committed ones.
@@ -119,6 +135,15 @@ REAL_LOG_DIRS = (
     Path(__file__).resolve().parents[1].parent / "shared" / "reallogs",
     Path(__file__).resolve().parents[1] / "tests" / "data" / "reallogs",
 )
+
+
+#: The real-data set of ``make real`` (cases.json, sessions/, truth/, raw/), beside the
+#: checkout unless ``--realdata`` names another.
+DEFAULT_REALDATA_DIR = REPO_ROOT.parent / "shared" / "realdata"
+#: The ML step's optimisers compared by section 7, in the order shown.
+OPTIMIZERS = ("bfgs", "trust-region")
+#: The command line as a user runs it from a checkout.
+MAGCAL_SCRIPT = REPO_ROOT / "host" / "magcal"
 
 
 def _log(msg: str) -> None:
@@ -533,6 +558,101 @@ def work_log_import(reps: int) -> dict:
     return out
 
 
+def _optimizer_run(session, optimizer: str) -> dict:
+    """``calibrate(session, "ml", optimizer=optimizer)``; refused by its checks, again with
+    ``force`` (as ``make real`` scores a refused case). An error is recorded, not raised."""
+    from magcal.calib import calibrate
+    from magcal.calib.likelihood.optimize import CONVERGED_RULES
+    from magcal.errors import MagcalError
+
+    forced = False
+    t0 = time.perf_counter()
+    try:
+        try:
+            cal = calibrate.calibrate(session, "ml", optimizer=optimizer)
+        except MagcalError:
+            forced = True
+            cal = calibrate.calibrate(session, "ml", optimizer=optimizer, force=True)
+    except Exception as exc:  # noqa: BLE001 -- a benchmark records a failing run and goes on
+        return {
+            "forced": forced,
+            "error": f"{type(exc).__name__}: {exc}",
+            "wall_s": time.perf_counter() - t0,
+        }
+    wall_s = time.perf_counter() - t0
+    opt = cal.result.extra["optimizer"]
+    return {
+        "forced": forced,
+        "iterations": opt["iterations"],
+        "information_evaluations": opt["information_evaluations"],
+        "gradient_evaluations": opt["gradient_evaluations"],
+        "cost_evaluations": opt["cost_evaluations"],
+        "stopping_rule": opt["stopping_rule"],
+        "converged": opt["stopping_rule"] in CONVERGED_RULES,
+        "final_cost": float(opt["final_cost"]),
+        "optimizer_s": float(opt["seconds"]),
+        "ml_s": float(cal.result.extra["seconds"]["ml"]),
+        "wall_s": wall_s,
+    }
+
+
+def _optimizer_case(name: str, session, **info) -> dict:
+    """Every optimiser of :data:`OPTIMIZERS` on one session, and the final costs' difference
+    (trust-region − bfgs, nats; negative: trust-region found the lower optimum)."""
+    runs = {}
+    for optimizer in OPTIMIZERS:
+        r = runs[optimizer] = _optimizer_run(session, optimizer)
+        if "error" in r:
+            _log(f"  {name}, {optimizer}: failed: {r['error']}")
+        else:
+            _log(
+                f"  {name}, {optimizer}: {r['iterations']} iterations, stopped on "
+                f"'{r['stopping_rule']}', ML {r['ml_s']:.2f} s"
+            )
+    b, t = runs["bfgs"], runs["trust-region"]
+    both = "error" not in b and "error" not in t
+    return {
+        "case": name,
+        "samples": len(session),
+        "mag_samples": int(session.has_mag.sum()),
+        **info,
+        "runs": runs,
+        "final_cost_diff": t["final_cost"] - b["final_cost"] if both else None,
+    }
+
+
+def work_optimizers(
+    sim_duration_s: float,
+    seed: int,
+    sim_csv: str,
+    realdata: str | None,
+    real_cases: list[str],
+) -> dict:
+    """Section 7's in-process part: the optimisers on the simulated session (written to
+    ``sim_csv`` too, for the command line) and on each case of ``real_cases`` in
+    ``realdata``, its session as ``make real`` builds it (``real.load_case``: multi-rate from
+    raw/CASE.npz where there is one)."""
+    from magcal.io.session import write_session
+
+    session = _session(sim_duration_s, seed)
+    write_session(sim_csv, session)
+    out: dict = {
+        "simulated": _optimizer_case(
+            f"simulated {sim_duration_s:g} s", session, form="simulated", preset=PRESET
+        ),
+        "real": [],
+    }
+    if real_cases:
+        from magcal_evaluation import real
+
+        for name in real_cases:
+            case = real.load_case(realdata, name)
+            out["real"].append(
+                _optimizer_case(name, case.session, form=case.form, source=case.source)
+            )
+    return out
+
+
 def _worker_main(name: str, params: dict, result_file: str) -> None:
     # Normally inherited from the parent; set again in case a worker is run by hand. Still
     # before any numpy import: the workers import it lazily.
@@ -547,6 +667,7 @@ def _worker_main(name: str, params: dict, result_file: str) -> None:
         "scaling": work_scaling,
         "ckf": work_ckf,
         "log_import": work_log_import,
+        "optimizers": work_optimizers,
     }
     out = workers[name](**params)
     out["versions"] = {
@@ -597,8 +718,8 @@ def run_worker(name: str, params: dict, cpu: int | None) -> dict:
 
 def _git(*args: str) -> str | None:
     """``git *args`` in the repository: its stdout, or None if git is missing or fails. The
-    same helper as in magcal_evaluation.accuracy_report (evaluation/ and bench/ import
-    nothing from each other): keep the two identical."""
+    same helper as in magcal_evaluation.accuracy_report (bench/ imports the evaluation's
+    real-data loader in a worker only, never its reports): keep the two identical."""
     try:
         proc = subprocess.run(
             ["git", *args],
@@ -651,7 +772,7 @@ def _median_run(runs: list[dict]) -> dict:
     return ordered[(len(ordered) - 1) // 2]
 
 
-def run_all(config: BenchConfig, cpu: int | None) -> dict:
+def run_all(config: BenchConfig, cpu: int | None, realdata: Path | None = None) -> dict:
     """Every measurement; returns the results dictionary written to ``--out``."""
     started = time.perf_counter()
     results: dict = {
@@ -671,7 +792,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
 
     runs = []
     for i in range(config.calib_runs):
-        _log(f"1/6 full calibration, cold process, run {i + 1}/{config.calib_runs}")
+        _log(f"1/7 full calibration, cold process, run {i + 1}/{config.calib_runs}")
         r = run_worker(
             "calibrate",
             {"duration_s": config.calib_duration_s, "seed": SEED, "warm": False},
@@ -680,7 +801,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         _log(f"  total {r['wall_s']:.2f} s, peak RSS {r['peak_rss_mb']:.0f} MB")
         runs.append(r)
     # In a process of its own, so that the cold runs' process times and memory stay clean.
-    _log("1/6 full calibration twice in one process (for the warm figure)")
+    _log("1/7 full calibration twice in one process (for the warm figure)")
     warm = run_worker(
         "calibrate", {"duration_s": config.calib_duration_s, "seed": SEED, "warm": True}, cpu
     )
@@ -707,14 +828,14 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         "peak_rss_before_calibrate_mb": max(r["peak_rss_before_calibrate_mb"] for r in runs),
     }
 
-    _log("2/6 import times (fresh process)")
+    _log("2/7 import times (fresh process)")
     results["imports"] = run_worker("imports", {}, cpu)
     results["imports"].pop("versions", None)
 
     per_seed = []
     for seed in config.compare_seeds:
         _log(
-            f"3/6 exact vs numeric gradient, {config.compare_duration_s:g} s session, "
+            f"3/7 exact vs numeric gradient, {config.compare_duration_s:g} s session, "
             f"seed {seed} ({len(per_seed) + 1}/{len(config.compare_seeds)})"
         )
         r = run_worker(
@@ -731,7 +852,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
         per_seed.append({"seed": seed, **r})
     results["exact_vs_numeric"] = compare_summary(per_seed, config.compare_duration_s)
 
-    _log("4/6 scaling of one cost(+gradient) evaluation")
+    _log("4/7 scaling of one cost(+gradient) evaluation")
     scal = run_worker(
         "scaling",
         {
@@ -744,7 +865,7 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
     scal.pop("versions", None)
     results["scaling"] = scal
 
-    _log("5/6 CKF time per sample")
+    _log("5/7 CKF time per sample")
     ckf = run_worker(
         "ckf",
         {"duration_s": config.ckf_duration_s, "seed": SEED, "reps": config.ckf_reps},
@@ -753,14 +874,153 @@ def run_all(config: BenchConfig, cpu: int | None) -> dict:
     ckf.pop("versions", None)
     results["ckf"] = ckf
 
-    _log("6/6 flight-log import throughput")
+    _log("6/7 flight-log import throughput")
     logs = run_worker("log_import", {"reps": config.log_import_reps}, cpu)
     logs.pop("versions", None)
     results["log_import"] = logs
 
+    _log("7/7 the ML step's optimisers, bfgs and trust-region")
+    results["optimizers"] = run_optimizers(config, realdata, cpu)
+
     results["targets"] = targets(results)
     results["bench_wall_s"] = time.perf_counter() - started
     return results
+
+
+def run_optimizers(config: BenchConfig, realdata: Path | None, cpu: int | None) -> dict:
+    """Section 7: the in-process comparison (a worker), then the cold command lines."""
+    names, skipped = real_case_names(realdata, config.optimizers_real_cases)
+    if skipped:
+        _log(f"  {skipped}")
+    out: dict = {
+        "realdata": None if realdata is None else str(realdata),
+        "real_skipped": skipped,
+    }
+    with tempfile.TemporaryDirectory(prefix="magcal-bench-sim-") as tmp:
+        sim_csv = os.path.join(tmp, "simulated.csv")
+        r = run_worker(
+            "optimizers",
+            {
+                "sim_duration_s": config.optimizers_sim_duration_s,
+                "seed": SEED,
+                "sim_csv": sim_csv,
+                "realdata": None if realdata is None else str(realdata),
+                "real_cases": names,
+            },
+            cpu,
+        )
+        out["simulated"] = r["simulated"]
+        out["real"] = r["real"]
+        out["real_summary"] = optimizer_summary(r["real"]) if r["real"] else None
+        sessions = {}
+        cli_case = config.cli_real_case or (names[0] if names else None)
+        if cli_case in names:
+            sessions[cli_case] = str(realdata / "sessions" / f"{cli_case}.csv")
+        elif not skipped:
+            _log(f"  {cli_case}: not among the real recordings; its cold calibrate is skipped")
+        sessions["simulated"] = sim_csv
+        out["cli"] = cli_timings(sessions, config.cli_reps, cpu)
+    return out
+
+
+def real_case_names(realdata: Path | None, limit: int | None) -> tuple[list[str], str | None]:
+    """The cases of ``realdata/cases.json`` (the first ``limit``), or none and why."""
+    if realdata is None:
+        return [], "no real-data folder given: the real recordings are skipped"
+    index = realdata / "cases.json"
+    if not index.is_file():
+        return [], f"no {index}: the real recordings are skipped (--realdata names the set)"
+    names = list(json.loads(index.read_text(encoding="utf-8")))
+    return (names if limit is None else names[:limit]), None
+
+
+def _pinned(cpu: int | None):
+    """A ``preexec_fn`` that pins the child to ``cpu`` (None when not pinning)."""
+    if cpu is None or not hasattr(os, "sched_setaffinity"):
+        return None
+    return lambda: os.sched_setaffinity(0, {cpu})
+
+
+def _cold_run(args: list[str], cpu: int | None) -> tuple[float, int]:
+    """Wall time of ``host/magcal *args`` as a whole process, s, and its exit status."""
+    env = {**os.environ, **SINGLE_THREAD_ENV}
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run(
+            [str(MAGCAL_SCRIPT), *args],
+            env=env,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
+            text=True,
+            timeout=WORKER_TIMEOUT_S,
+            preexec_fn=_pinned(cpu),
+            check=False,
+        )
+    except subprocess.TimeoutExpired as exc:
+        raise SystemExit(
+            f"bench: magcal {' '.join(args)} took longer than {WORKER_TIMEOUT_S:.0f} s: "
+            "run it by hand to see where it hangs"
+        ) from exc
+    seconds = time.perf_counter() - t0
+    if proc.returncode != 0:
+        _log(f"  magcal {' '.join(args)}: exit {proc.returncode}: {proc.stderr[-300:]!r}")
+    return seconds, proc.returncode
+
+
+def cli_timings(sessions: dict[str, str], reps: int, cpu: int | None) -> dict:
+    """Cold ``magcal calibrate SESSION -o OUT --optimizer ...`` per session and optimiser
+    (the optimisers alternating, so that a change in the machine's load falls on both), and
+    ``magcal --help``; each the median of ``reps`` whole processes."""
+    out: dict = {"reps": reps, "calibrate": {}}
+    with tempfile.TemporaryDirectory(prefix="magcal-bench-cli-") as tmp:
+        for label, path in sessions.items():
+            _log(f"  magcal calibrate {os.path.basename(path)}, {reps} run(s) per optimiser")
+            runs: dict = {o: {"all_s": [], "exit_codes": []} for o in OPTIMIZERS}
+            for _ in range(reps):
+                for optimizer in OPTIMIZERS:
+                    result = os.path.join(tmp, f"result-{optimizer}.json")
+                    args = ["calibrate", path, "-o", result, "--optimizer", optimizer]
+                    seconds, code = _cold_run(args, cpu)
+                    runs[optimizer]["all_s"].append(seconds)
+                    runs[optimizer]["exit_codes"].append(code)
+            for r in runs.values():
+                r["median_s"] = statistics.median(r["all_s"])
+            out["calibrate"][label] = {"session": os.path.basename(path), **runs}
+    _log(f"  magcal --help, {reps} run(s)")
+    helps = [_cold_run(["--help"], cpu) for _ in range(reps)]
+    out["help"] = {
+        "median_s": statistics.median(t for t, _ in helps),
+        "all_s": [t for t, _ in helps],
+        "exit_codes": [c for _, c in helps],
+    }
+    return out
+
+
+def optimizer_summary(cases: list[dict]) -> dict:
+    """Per optimiser over the real recordings: medians of iterations, evaluations and ML
+    seconds over the runs that finished, how many converged, which failed; and the range
+    of the final costs' differences (trust-region − bfgs, nats)."""
+    out: dict = {"cases": len(cases)}
+    for optimizer in OPTIMIZERS:
+        done = [c["runs"][optimizer] for c in cases if "error" not in c["runs"][optimizer]]
+
+        def med(key, done=done):
+            return statistics.median(r[key] for r in done) if done else None
+
+        out[optimizer] = {
+            "finished": len(done),
+            "converged": sum(r["converged"] for r in done),
+            "failed": [c["case"] for c in cases if "error" in c["runs"][optimizer]],
+            "median_iterations": med("iterations"),
+            "median_information_evaluations": med("information_evaluations"),
+            "median_gradient_evaluations": med("gradient_evaluations"),
+            "median_ml_s": med("ml_s"),
+            "total_ml_s": sum(r["ml_s"] for r in done),
+        }
+    diffs = [c["final_cost_diff"] for c in cases if c["final_cost_diff"] is not None]
+    out["final_cost_diff_min"] = min(diffs) if diffs else None
+    out["final_cost_diff_max"] = max(diffs) if diffs else None
+    return out
 
 
 def compare_summary(per_seed: list[dict], duration_s: float) -> dict:
@@ -822,6 +1082,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cpu", type=int, default=None, help="CPU to pin to (default: lowest)")
     ap.add_argument("--smoke", action="store_true", help="tiny sizes; only checks it runs")
     ap.add_argument("--show", nargs="+", metavar="JSON", help="print headline figures only")
+    ap.add_argument(
+        "--realdata",
+        type=Path,
+        default=DEFAULT_REALDATA_DIR,
+        metavar="DIR",
+        help="the real-data set (cases.json, sessions/, truth/, raw/) for the optimisers' "
+        "comparison (default: ../shared/realdata beside the checkout; skipped when absent)",
+    )
     ap.add_argument("--worker", help=argparse.SUPPRESS)
     ap.add_argument("--params", default="{}", help=argparse.SUPPRESS)
     ap.add_argument("--result-file", help=argparse.SUPPRESS)
@@ -834,7 +1102,7 @@ def main(argv: list[str] | None = None) -> int:
         print(format_headlines(args.show))
         return 0
     cpu = args.cpu if args.cpu is not None else _default_cpu()
-    results = run_all(SMOKE_CONFIG if args.smoke else BenchConfig(), cpu)
+    results = run_all(SMOKE_CONFIG if args.smoke else BenchConfig(), cpu, args.realdata)
     print(format_table(results))
     if args.out:
         Path(args.out).write_text(json.dumps(results, indent=1, sort_keys=False) + "\n")

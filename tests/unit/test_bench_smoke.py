@@ -6,6 +6,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from magcal.calib.likelihood import mekf
@@ -30,11 +31,40 @@ def bench():
         sys.path.remove(str(BENCH_DIR))
 
 
+TINY_CASE = "tiny_case"
+
+
 @pytest.fixture(scope="module")
-def smoke_results(bench, tmp_path_factory):
+def tiny_realdata(tmp_path_factory):
+    """A real-data set of one short simulated case, laid out as ``make real`` reads it
+    (cases.json, sessions/CASE.csv, truth/CASE.npz)."""
+    from magcal.io.session import write_session
+    from magcal.sim.scenarios import preset, simulate
+
+    root = tmp_path_factory.mktemp("realdata")
+    session, _ = simulate(preset("mems", duration_s=15.0), 2)
+    (root / "sessions").mkdir()
+    (root / "truth").mkdir()
+    write_session(root / "sessions" / f"{TINY_CASE}.csv", session)
+    n = len(session)
+    np.savez(
+        root / "truth" / f"{TINY_CASE}.npz",
+        trial_names=np.array([TINY_CASE]),
+        t_0=session.t,
+        mag_0=session.mag,
+        quat_wxyz_0=np.tile([1.0, 0.0, 0.0, 0.0], (n, 1)),
+        valid_0=np.ones(n, dtype=bool),
+        declination_deg=np.array([0.0]),
+    )
+    (root / "cases.json").write_text(json.dumps({TINY_CASE: {"source": "simulated"}}))
+    return root
+
+
+@pytest.fixture(scope="module")
+def smoke_results(bench, tmp_path_factory, tiny_realdata):
     out = tmp_path_factory.mktemp("bench") / "results.json"
     try:
-        assert bench.main(["--smoke", "--out", str(out)]) == 0
+        assert bench.main(["--smoke", "--realdata", str(tiny_realdata), "--out", str(out)]) == 0
     except SystemExit as exc:  # a failed worker: report its message, not pytest internals
         pytest.fail(str(exc))
     return out, json.loads(out.read_text())
@@ -100,10 +130,50 @@ def test_smoke_targets_are_reported_not_asserted(smoke_results):
         assert isinstance(row["pass"], bool)
 
 
+def test_smoke_optimizers_side_by_side_in_process_and_cold(smoke_results, bench):
+    _, res = smoke_results
+    opt = res["optimizers"]
+    assert opt["real_skipped"] is None
+    assert [c["case"] for c in opt["real"]] == [TINY_CASE]
+    for case in (opt["simulated"], *opt["real"]):
+        assert list(case["runs"]) == list(bench.OPTIMIZERS)
+        for run in case["runs"].values():
+            assert "error" not in run
+            assert run["iterations"] >= 1 and run["ml_s"] > 0
+        b, t = case["runs"]["bfgs"], case["runs"]["trust-region"]
+        assert b["information_evaluations"] == 0 < t["information_evaluations"]
+        assert case["final_cost_diff"] == pytest.approx(t["final_cost"] - b["final_cost"])
+    summary = opt["real_summary"]
+    assert summary["cases"] == 1
+    assert summary["bfgs"]["median_iterations"] == opt["real"][0]["runs"]["bfgs"]["iterations"]
+    # The cold command lines: the case's CSV and the simulated session, each optimiser.
+    cli = opt["cli"]
+    assert list(cli["calibrate"]) == [TINY_CASE, "simulated"]
+    for per_session in cli["calibrate"].values():
+        for name in bench.OPTIMIZERS:
+            assert per_session[name]["exit_codes"] == [0] * cli["reps"]
+            assert per_session[name]["median_s"] > 0
+    assert cli["help"]["exit_codes"] == [0] * cli["reps"]
+
+
+def test_missing_realdata_is_skipped_with_the_reason(bench, tmp_path):
+    names, skipped = bench.real_case_names(tmp_path / "absent", None)
+    assert names == []
+    assert skipped.startswith(f"no {tmp_path / 'absent' / 'cases.json'}")
+    names, skipped = bench.real_case_names(None, None)
+    assert names == [] and "skipped" in skipped
+
+
 def test_table_and_show_print_the_results(smoke_results, bench, capsys):
     path, res = smoke_results
     table = bench.format_table(res)
-    for heading in ("1. Full ML calibration", "2. Peak memory", "3. Exact vs numeric", "4. One"):
+    for heading in (
+        "1. Full ML calibration",
+        "2. Peak memory",
+        "3. Exact vs numeric",
+        "4. One",
+        "7. The ML step's optimisers",
+    ):
         assert heading in table
     assert bench.main(["--show", str(path), str(path)]) == 0
     shown = capsys.readouterr().out

@@ -253,6 +253,31 @@ def trust_region_step(
         s = -gq / lam
         if np.linalg.norm(s) <= radius:
             return Q @ s
+    # μ is kept in a bracket [lo, hi] with ‖s(μ)‖ ≥ radius at lo and ≤ radius at hi; for
+    # μ ≥ max(0, −λ_min) + ‖g‖/radius every denominator is at least ‖g‖/radius, so hi starts
+    # feasible. Newton steps on φ(μ) = 1/‖s(μ)‖ − 1/radius (nearly linear in μ) where they
+    # stay inside, bisection where they do not or where rounding makes them meaningless.
+    lo = max(0.0, -float(lam[0]))
+    hi = lo + float(np.linalg.norm(gq)) / radius
+    mu = hi
+    with np.errstate(all="ignore"):
+        for _ in range(100):
+            d = lam + mu
+            s = -gq / d
+            norm = float(np.linalg.norm(s))
+            if norm > radius:
+                lo = mu
+            else:
+                hi = mu
+            if abs(norm - radius) <= 1e-6 * radius:
+                return Q @ (s * min(1.0, radius / norm))
+            if hi - lo <= 1e-15 * max(hi, 1.0):
+                break
+            dphi = float(np.sum(gq**2 / d**3)) / norm**3
+            mu_next = mu - (1.0 / norm - 1.0 / radius) / dphi
+            mu = mu_next if np.isfinite(mu_next) and lo < mu_next < hi else 0.5 * (lo + hi)
+        s = -gq / (lam + hi)  # the feasible end of the bracket
+    return Q @ s
     lo = max(0.0, -float(lam[0]))
     # μ starts just above the lowest admissible value, where ‖s(μ)‖ is largest; a start
     # below rounding of the largest eigenvalue would divide by zero.
@@ -351,7 +376,13 @@ def minimize_trust_region(
             rule = "gradient"
             iteration -= 1
             break
-        s = trust_region_step(B, g, radius, weight)
+        with np.errstate(all="ignore"):
+            s = trust_region_step(B, g, radius, weight)
+        if not np.all(np.isfinite(s)):
+            # The model overflowed (curvatures beyond the floating-point range far from any
+            # optimum): nothing to try at this radius.
+            rule = "radius"
+            break
         norm_s = float(np.linalg.norm(weight * s))
         predicted = -float(g @ s + 0.5 * s @ B @ s)
         v_new = f_only(z + s)

@@ -116,12 +116,12 @@ def _optimizer_row(label: str, c: dict, names: list[str]) -> str:
     for name in names:
         r = c["runs"][name]
         if "error" in r:
-            cells.append(f"{'failed (' + r['error'].split(':')[0] + ')':>35}")
+            cells.append(f"{'failed (' + r['error'].split(':')[0] + ')':>37}")
             continue
         rule = r["stopping_rule"] + ("*" if r["forced"] else "")
         cells.append(
             f"{r['iterations']:>6}{r['information_evaluations']:>5}"
-            f"{r['gradient_evaluations']:>6}{rule:>11}{r['ml_s']:>7.2f}"
+            f"{r['gradient_evaluations']:>6}{rule:>13}{r['ml_s']:>7.2f}"
         )
     diff = c["final_cost_diff"]
     return (
@@ -135,11 +135,11 @@ def _format_optimizers(opt: dict) -> list[str]:
     """Section 7: both optimisers per case, their medians over the real recordings, the cold
     command lines."""
     names = list(opt["simulated"]["runs"])
-    columns = f"{'iters':>6}{'info':>5}{'grads':>6}{'rule':>11}{'ML s':>7}"
+    columns = f"{'iters':>6}{'info':>5}{'grads':>6}{'rule':>13}{'ML s':>7}"
     out = [
         "",
         "7. The ML step's optimisers, calibrate(session, 'ml', optimizer=...) in one process",
-        f"   {'':<37}" + "".join(f"  {name:^35}" for name in names),
+        f"   {'':<37}" + "".join(f"  {name:^37}" for name in names).rstrip(),
         f"   {'case':<29}{'samples':>8}" + "".join(f"  {columns}" for _ in names) + "     Δcost",
         _optimizer_row(opt["simulated"]["case"], opt["simulated"], names),
     ]
@@ -155,9 +155,9 @@ def _format_optimizers(opt: dict) -> list[str]:
             s = summary[name]
             failed = f", failed on {', '.join(s['failed'])}" if s["failed"] else ""
             out.append(
-                f"   {name + ', real, median':<29}{s['median_iterations']:>8} iterations, "
-                f"{s['median_information_evaluations']} information and "
-                f"{s['median_gradient_evaluations']} gradient evaluations, ML "
+                f"   {name + ', real, median':<29}{s['median_iterations']:>8g} iterations, "
+                f"{s['median_information_evaluations']:g} information and "
+                f"{s['median_gradient_evaluations']:g} gradient evaluations, ML "
                 f"{s['median_ml_s']:.2f} s (total {s['total_ml_s']:.1f} s); "
                 f"{s['converged']}/{s['finished']} converged{failed}"
             )

@@ -227,9 +227,12 @@ def minimize_bfgs(
 TR_ACCEPT = 1e-4
 TR_SHRINK_BELOW = 0.25
 TR_GROW_ABOVE = 0.75
-#: Accepted steps between two evaluations of the Fisher information. Each costs about
-#: fourteen cost+gradient evaluations; on the real recordings of `make real` a reset every
-#: ten steps took 12–42 iterations where BFGS from the identity took 219–728.
+#: Accepted steps between two evaluations of the Fisher information, each of which costs
+#: about ten to fourteen cost+gradient evaluations. On five real recordings of `make real`
+#: (broad35, broad21, fiumarg_rec11_undist, tyrex_iphone5_d3, tyrex_iphone4s_d3; the three
+#: fits of the ML step together) an evaluation every 5 steps took 24–63 iterations, every
+#: 10 26–59, every 20 35–70, and only at the start of each fit 44–154; BFGS from the
+#: identity takes 281–669 there.
 INFORMATION_EVERY = 10
 #: Radius below which no step can change the cost (scaled variables): the run ends there.
 TR_MIN_RADIUS = 1e-10

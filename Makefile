@@ -60,10 +60,10 @@ FW_TESTS := $(patsubst tests/native/%.c,build/native/%,$(wildcard tests/native/t
 test-native: build/native/test_mekf_sanitizers $(FW_TESTS)
 	@set -e; for t in $^; do echo "== $$t"; $$t; done
 
-build/native/test_mekf_sanitizers: tests/native/test_mekf_sanitizers.c host/csrc/mekf_likelihood.c host/csrc/mekf_likelihood.h host/csrc/mekf_step.h
+build/native/test_mekf_sanitizers: tests/native/test_mekf_sanitizers.c host/csrc/mekf_likelihood.c host/csrc/mekf_fisher.c host/csrc/mekf_likelihood.h host/csrc/mekf_step.h
 	@mkdir -p $(@D)
 	gcc $(NATIVE_CFLAGS) -Ihost/csrc tests/native/test_mekf_sanitizers.c \
-		host/csrc/mekf_likelihood.c -lm -o $@
+		host/csrc/mekf_likelihood.c host/csrc/mekf_fisher.c -lm -o $@
 
 # Tests of the POSIX port #include its .c files, so those are prerequisites too.
 build/native/test_fw_%: tests/native/test_fw_%.c tests/native/check.h $(wildcard tests/native/*.h) \

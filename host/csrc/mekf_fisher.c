@@ -567,10 +567,12 @@ double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                       const double *directions, size_t k, double *work, size_t work_len,
                       double *info, double *grad)
 {
-    if (info) memset(info, 0, k * k * sizeof *info);
-    if (grad) memset(grad, 0, k * sizeof *grad);
-    if (!valid_arguments(model, data) || !directions || !info || !grad || k < 1 ||
-        k > MC_MEKF_FISHER_MAX_DIRECTIONS || !work ||
+    /* Zeroed first, so that callers testing only the cost never see garbage; a k out of
+     * range says nothing about the buffers' sizes, so nothing is written then. */
+    const int k_valid = k >= 1 && k <= MC_MEKF_FISHER_MAX_DIRECTIONS;
+    if (k_valid && info) memset(info, 0, k * k * sizeof *info);
+    if (k_valid && grad) memset(grad, 0, k * sizeof *grad);
+    if (!k_valid || !valid_arguments(model, data) || !directions || !info || !grad || !work ||
         work_len < k * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
         return NAN;
     pass_t p;

@@ -116,7 +116,8 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
  * arguments of mc_mekf_cost, `directions`, `info` or `grad` NULL, k = 0 or above
  * MC_MEKF_FISHER_MAX_DIRECTIONS, `work` NULL or shorter than
  * k · MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION (caller-owned; its contents on entry do not
- * matter), or a covariance not positive definite) info and grad are zero. */
+ * matter), or a covariance not positive definite) info and grad are zero, except for a k
+ * out of range, where nothing is written. */
 double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
                       const double *directions, size_t k, double *work, size_t work_len,
                       double *info, double *grad);

@@ -1,6 +1,6 @@
 /* SPDX-License-Identifier: Apache-2.0 */
 /*
- * The EKF likelihood kernel (host/csrc/mekf_likelihood.c) on its own, no Python: built and
+ * The EKF likelihood kernel (host/csrc/mekf_likelihood.c, mekf_fisher.c) on its own, no Python: built and
  * run by `make test-native` under AddressSanitizer and UndefinedBehaviorSanitizer with
  * -std=c99 -Wall -Wextra -Wpedantic -Werror.
  *
@@ -16,7 +16,9 @@
  *   samples lacking the accelerometer, the magnetometer or both (their values NaN, which
  *   must not be read) the two entry points agree, the outputs are NaN exactly for the
  *   absent measurements and the gradient matches central differences; with no
- *   measurement anywhere the cost and the gradient are zero.
+ *   measurement anywhere the cost and the gradient are zero;
+ * - the Fisher pass (mekf_fisher.c): its cost and its derivatives along the model's unit
+ *   directions equal mc_mekf_cost_grad's, unmasked and masked, with and without a delay.
  * Prints "<passed> passed, <failed> failed" last and exits non-zero on any failure.
  */
 #include "mekf_likelihood.h"
@@ -423,6 +425,65 @@ static void test_argument_errors(const mc_mekf_model_t *model, const mc_mekf_dat
 #undef EXPECT_NAN_AND_ZERO_GRAD
 }
 
+/* mc_mekf_fisher along the 46 unit directions of the model: the same cost as mc_mekf_cost,
+ * the derivative along each direction equal to mc_mekf_cost_grad's gradient to 1e-9 of its
+ * largest component, a symmetric information with a non-negative diagonal; and NaN for every
+ * argument error, with info and grad zeroed where k itself is valid. */
+static double fisher_work[MC_MEKF_MODEL_DOUBLES * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION];
+static double fisher_info[MC_MEKF_MODEL_DOUBLES * MC_MEKF_MODEL_DOUBLES];
+
+static void test_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data)
+{
+    enum { K = MC_MEKF_MODEL_DOUBLES };
+    static double dirs[K * K];
+    memset(dirs, 0, sizeof dirs);
+    for (int i = 0; i < K; ++i) dirs[K * i + i] = 1.0;
+    double fgrad[K], rgrad[K];
+    const size_t work_len = sizeof fisher_work / sizeof fisher_work[0];
+    const double c = mc_mekf_fisher(model, data, dirs, K, fisher_work, work_len, fisher_info,
+                                    fgrad);
+    mc_mekf_model_t grad;
+    const double cg = mc_mekf_cost_grad(model, data, tape, sizeof tape / sizeof tape[0], &grad);
+    flat(&grad, rgrad);
+    CHECK(isfinite(c) && c == cg);
+    double largest = 0.0, worst = 0.0;
+    for (int i = 0; i < K; ++i) largest = fmax(largest, fabs(rgrad[i]));
+    for (int i = 0; i < K; ++i) worst = fmax(worst, fabs(fgrad[i] - rgrad[i]));
+    CHECK(worst <= 1e-9 * largest);
+    int symmetric = 1, diagonal = 1;
+    for (int i = 0; i < K; ++i) {
+        diagonal &= fisher_info[K * i + i] >= 0.0;
+        for (int j = 0; j < K; ++j) symmetric &= fisher_info[K * i + j] == fisher_info[K * j + i];
+    }
+    CHECK(symmetric && diagonal);
+
+    /* Argument errors: NaN, and info and grad zeroed. */
+    const size_t need = (size_t)K * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION;
+    const struct {
+        const double *dirs;
+        size_t k;
+        double *work;
+        size_t len;
+    } bad[] = {
+        {NULL, K, fisher_work, need},
+        {dirs, 0, fisher_work, need},
+        {dirs, MC_MEKF_FISHER_MAX_DIRECTIONS + 1, fisher_work, need},
+        {dirs, K, NULL, need},
+        {dirs, K, fisher_work, need - 1},
+    };
+    for (size_t b = 0; b < sizeof bad / sizeof bad[0]; ++b) {
+        const size_t k = bad[b].k <= K ? bad[b].k : 0; /* a k out of range: nothing written */
+        for (size_t i = 0; i < k * k; ++i) fisher_info[i] = 1.0;
+        for (size_t i = 0; i < k; ++i) fgrad[i] = 1.0;
+        const double v = mc_mekf_fisher(model, data, bad[b].dirs, bad[b].k, bad[b].work,
+                                        bad[b].len, fisher_info, fgrad);
+        int zero = 1;
+        for (size_t i = 0; i < k * k; ++i) zero &= fisher_info[i] == 0.0;
+        for (size_t i = 0; i < k; ++i) zero &= fgrad[i] == 0.0;
+        CHECK(isnan(v) && zero);
+    }
+}
+
 int main(void)
 {
     mc_mekf_model_t truth, model;
@@ -464,12 +525,15 @@ int main(void)
                    (int)(sizeof without_mag / sizeof without_mag[0]));
 
     test_argument_errors(&model, &data);
+    test_fisher(&model, &data);
+    test_fisher(&delayed, &data);
 
     mc_mekf_data_t masked;
     make_masks(&data, &masked);
     test_masks(&model, &data, &masked);
     check_gradient(&model, &masked, with_mag, (int)(sizeof with_mag / sizeof with_mag[0]));
     check_gradient(&delayed, &masked, with_mag, (int)(sizeof with_mag / sizeof with_mag[0]));
+    test_fisher(&delayed, &masked);
     masked.use_mag = 0;
     check_gradient(&model, &masked, without_mag,
                    (int)(sizeof without_mag / sizeof without_mag[0]));

@@ -4,7 +4,7 @@
  * protocol (no numpy headers needed to build this) and must be C-contiguous native float64:
  * the format and item size are checked, not just the byte count, so an int64 or float32
  * array is an error rather than a wrong result. The Python wrapper in
- * magcal/calib/likelihood/mekf.py prepares them.
+ * host/src/magcal/calib/likelihood/mekf.py prepares them.
  */
 #define PY_SSIZE_T_CLEAN
 #include <Python.h>

@@ -1,7 +1,7 @@
 /* SPDX-License-Identifier: Apache-2.0 */
 /*
  * Multiplicative EKF likelihood and its reverse-mode gradient. See mekf_likelihood.h and
- * magcal/calib/ekf.py for the model.
+ * host/src/magcal/calib/likelihood/mekf.py for the model.
  *
  * Numerical choices:
  * - Information form of the update. With R_t = blockdiag(Sa_t, Sm) and the 3-dimensional

@@ -2,7 +2,8 @@
 /*
  * Negative log-likelihood of the multiplicative EKF (Kok & Schön 2016, eq. 6) and its exact
  * gradient by a reverse (adjoint) pass. Plain C99, no Python: the CPython glue is
- * _mekf_module.c. The model and conventions are documented in magcal/calib/ekf.py.
+ * _mekf_module.c. The model and conventions are documented in
+ * host/src/magcal/calib/likelihood/mekf.py.
  */
 #ifndef MAGCAL_MEKF_LIKELIHOOD_H
 #define MAGCAL_MEKF_LIKELIHOOD_H

@@ -54,8 +54,8 @@
  *   decimal too large for a double, like 1e999) is refused with MC_E_RANGE; any other text
  *   that is not a decimal real (hexadecimal, '+' first, "1.2.3", "1e", ",") with MC_E_FRAME.
  *   The refused line is not applied (the SIL device reports and skips it).
- *   tests/sil/world.py (device_counts) mirrors this rule operation for operation, so the
- *   tests predict the counts exactly.
+ *   evaluation/src/magcal_evaluation/world.py (device_counts) mirrors this rule operation
+ *   for operation, so the tests predict the counts exactly.
  *
  * Not interrupt-safe: the SIL device calls put/apply and mc_acquire_poll from one thread.
  */

@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """Algorithm 1, step 2: minimise V(θ) (eq. 6) plus the priors (gyroscope noise and bias, and
-the misalignment when asked) from θ₀ with damped BFGS: a MAP estimate.
+the misalignment when asked) from θ₀: a MAP estimate, with damped BFGS (the paper's method,
+the default) or a trust region on the Fisher information (:data:`OPTIMIZERS`).
 
 The magnetometer's time offset τ is fitted last: first the paper's model (τ = 0), then, from
 there, with τ free. The delay is kept only when it explains the data better than chance

@@ -520,7 +520,7 @@ class LikelihoodProblem:
     @property
     def typical_changes(self) -> np.ndarray:
         """(35,) a large but sane change of each θ component in one optimiser step
-        (:data:`TYPICAL_CHANGES`)."""
+        (:func:`typical_changes`)."""
         return typical_changes()
 
     @property

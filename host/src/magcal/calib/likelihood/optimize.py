@@ -281,25 +281,6 @@ def trust_region_step(
             mu = mu_next if np.isfinite(mu_next) and lo < mu_next < hi else 0.5 * (lo + hi)
         s = -gq / (lam + hi)  # the feasible end of the bracket
     return Q @ s
-    lo = max(0.0, -float(lam[0]))
-    # μ starts just above the lowest admissible value, where ‖s(μ)‖ is largest; a start
-    # below rounding of the largest eigenvalue would divide by zero.
-    mu = lo + 1e-10 * max(1.0, float(np.abs(lam).max()))
-    s = -gq / (lam + mu)
-    for _ in range(100):
-        norm = float(np.linalg.norm(s))
-        if norm <= radius * (1.0 + 1e-6) and (norm >= radius * (1.0 - 1e-6) or mu == lo):
-            break
-        # φ(μ) = 1/‖s‖ − 1/radius is nearly linear in μ; its derivative is
-        # ‖s‖⁻³ Σ gq²/d³.
-        d = lam + mu
-        dphi = float(np.sum(gq**2 / d**3)) / norm**3
-        mu_next = mu - (1.0 / norm - 1.0 / radius) / dphi
-        mu = mu_next if mu_next > lo else 0.5 * (mu + lo)
-        s = -gq / (lam + mu)
-    if float(np.linalg.norm(s)) > radius:  # not converged: the boundary by scaling
-        s *= radius / float(np.linalg.norm(s))
-    return Q @ s
 
 
 def minimize_trust_region(
@@ -323,11 +304,12 @@ def minimize_trust_region(
     ``fun_grad_info(x)`` gives f, its gradient and a positive semi-definite curvature (the
     Fisher information with the priors' Hessian); ``fun_and_grad`` and ``fun`` the cheaper
     parts. The model's matrix is that curvature at the start, at every
-    :data:`INFORMATION_EVERY`-th accepted step and after a rejected step, and a damped BFGS
-    update of it in between. Converged ("gradient") only when the largest scaled gradient
-    component is below ``gradient_tol`` *and* the predicted decrease ½ gᵀB⁻¹g below
-    ``decrement_tol``; "max_iter" and "radius" (the trust region shrank to nothing without
-    meeting them) are reported as not converged."""
+    :data:`INFORMATION_EVERY`-th accepted step and where the updates lost definiteness to
+    rounding, and a damped BFGS update of it in between. Converged ("gradient") only when
+    the largest scaled gradient component is below ``gradient_tol`` *and* the predicted
+    decrease ½ gᵀB⁻¹g below ``decrement_tol``; "max_iter" and "radius" (the trust region
+    shrank to nothing, or the model overflowed, without meeting them) are reported as not
+    converged."""
     t_start = time.perf_counter()
     x0 = np.asarray(x0, dtype=float)
     scale = np.asarray(scale, dtype=float)

@@ -68,3 +68,12 @@ def test_method_help_lists_every_method(capsys):
     assert "{ml,init,ckf,two-step}" in text
     for phrase in ("ml: maximum likelihood", "init: its initial", "ckf: Zhao", "two-step: Alonso"):
         assert phrase in text
+
+
+def test_trust_region_with_numeric_gradients_is_refused_before_reading(tmp_path, capsys):
+    out = tmp_path / "r.json"
+    argv = ["calibrate", str(tmp_path / "absent.csv"), "--optimizer", "trust-region"]
+    assert main([*argv, "--gradient", "numeric", "-o", str(out)]) == EXIT_ERROR
+    err = capsys.readouterr().err
+    assert "needs the exact gradient" in err and err.count("\n") == 1
+    assert not out.exists()

@@ -289,6 +289,11 @@ def run(args) -> int:
     from magcal.io.session import os_error_advice, read_session
 
     # Everything a typo can break is checked before calibrating: an ML run takes a while.
+    if args.optimizer == "trust-region" and args.gradient != "exact":
+        raise MagcalError(
+            "--optimizer trust-region needs the exact gradient (its curvature comes from the "
+            "same pass): drop --gradient numeric, or use --optimizer bfgs"
+        )
     if args.output:
         check_result_writable(args.output)
     if args.plot:

@@ -23,6 +23,15 @@ def _away_from_truth(p, seed):
     )
 
 
+def test_the_model_vector_of_theta_is_the_kernels_layout():
+    """params.model_vector (complex-capable, for the Jacobian) and the kernel's own packing
+    of the same parameters agree entry by entry."""
+    p, _, _ = synthetic_filter_problem(n=20)
+    theta = _away_from_truth(p, 0)
+    packed = mekf._model_buffer(params.unpack(theta))
+    np.testing.assert_allclose(params.model_vector(theta), packed, rtol=1e-14, atol=1e-16)
+
+
 @pytest.mark.parametrize("masked", [False, True])
 @pytest.mark.parametrize(("seed", "inflation"), [(0, "mixed"), (1, "none")])
 def test_forward_derivatives_equal_the_reverse_gradient(seed, inflation, masked):

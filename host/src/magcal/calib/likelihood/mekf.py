@@ -329,16 +329,11 @@ def cost_and_model_gradient(
 FISHER_MAX_DIRECTIONS: int = _mekf.FISHER_MAX_DIRECTIONS
 
 
-def model_vector(p: ModelParams) -> np.ndarray:
-    """The model as the kernel's flat vector (MODEL_DOUBLES,): the layout of directions."""
-    return _model_buffer(p)
-
-
 def fisher_information(
     p: ModelParams, data: FilterData, directions: np.ndarray
 ) -> tuple[float, np.ndarray, np.ndarray]:
     """V(θ), the Fisher information (k, k) and ∂V (k,) along the k rows of ``directions``
-    (k, MODEL_DOUBLES) in the model's flat layout (:func:`model_vector`), by forward
+    (k, MODEL_DOUBLES) in the model's flat layout (``params.model_vector``), by forward
     sensitivities of the filter (``host/csrc/mekf_fisher.c``), with the magnetometer.
     On a non-finite V both are zero."""
     directions = np.ascontiguousarray(directions, dtype=float)

@@ -216,7 +216,7 @@ def model_vector(theta: np.ndarray) -> np.ndarray:
 
 
 #: Imaginary step of the complex-step derivative: far below rounding, exact to it.
-_COMPLEX_STEP = 1e-30
+COMPLEX_STEP = 1e-30
 
 
 def model_jacobian(theta: np.ndarray) -> np.ndarray:
@@ -226,8 +226,8 @@ def model_jacobian(theta: np.ndarray) -> np.ndarray:
     J = np.empty((46, N_PARAMS))
     for k in range(N_PARAMS):
         z = theta.astype(complex)
-        z[k] += 1j * _COMPLEX_STEP
-        J[:, k] = model_vector(z).imag / _COMPLEX_STEP
+        z[k] += 1j * COMPLEX_STEP
+        J[:, k] = model_vector(z).imag / COMPLEX_STEP
     return J
 
 

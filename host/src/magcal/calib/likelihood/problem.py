@@ -329,10 +329,6 @@ def misalignment_vector(D: np.ndarray, reference: np.ndarray) -> np.ndarray:
     return 2.0 * np.linalg.solve(np.trace(P) * np.eye(3) - P, vex)
 
 
-#: Imaginary step of the complex-step derivative: far below rounding, exact to it.
-_COMPLEX_STEP = 1e-30
-
-
 def misalignment_penalty(
     D_flat: np.ndarray, reference: np.ndarray, sigma_rad: float
 ) -> tuple[float, np.ndarray]:
@@ -348,8 +344,8 @@ def misalignment_penalty(
     grad = np.empty(9)
     for k in range(9):
         x = D_flat.astype(complex)
-        x[k] += 1j * _COMPLEX_STEP
-        grad[k] = half_square(x).imag / _COMPLEX_STEP
+        x[k] += 1j * params.COMPLEX_STEP
+        grad[k] = half_square(x).imag / params.COMPLEX_STEP
     return float(half_square(D_flat)), grad
 
 

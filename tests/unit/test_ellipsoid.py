@@ -9,6 +9,7 @@ import clarabel
 import cvxpy as cp
 import numpy as np
 import pytest
+import scipy.sparse
 
 from magcal.calib.initial import ellipsoid
 from magcal.calib.initial.ellipsoid import (
@@ -212,6 +213,17 @@ def test_solver_bad_status_raises(monkeypatch, status, pattern):
     y = _ellipsoid_data(np.random.default_rng(0), 100, np.eye(3), np.zeros(3))
     with pytest.raises(CalibrationError, match=pattern):
         fit_ellipsoid_sdp(y)
+
+
+def test_csc_matrix_is_scipy_csc_matrix():
+    # What the solver is handed is what scipy.sparse would hand it, entry for entry.
+    rng = np.random.default_rng(5)
+    for shape in [(10, 10), (7, 10), (1, 3), (4, 1)]:
+        a = rng.normal(size=shape) * (rng.uniform(size=shape) < 0.4)
+        ours, theirs = ellipsoid._CscMatrix.from_dense(a), scipy.sparse.csc_matrix(a)
+        assert ours.shape == theirs.shape and ours.nnz == theirs.nnz
+        for name in ("data", "indices", "indptr"):
+            assert np.array_equal(getattr(ours, name), getattr(theirs, name)), name
 
 
 def _cvxpy_sdp(r: np.ndarray, ridge: float = 0.0) -> np.ndarray:

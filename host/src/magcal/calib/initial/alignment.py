@@ -31,7 +31,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
 from magcal.calib.frames import (
     GRAVITY_M_S2,
@@ -221,8 +220,9 @@ def estimate_alignment_from_vertical(
             )
         w = w / w.sum()
 
-    m_tilde = scipy.linalg.solve_triangular(
-        np.asarray(D_tilde, dtype=float), (mag - np.asarray(o, dtype=float)).T, lower=True
+    # D̃ is lower-triangular; at 3 × 3 numpy's general solve is as exact as a triangular one.
+    m_tilde = np.linalg.solve(
+        np.asarray(D_tilde, dtype=float), (mag - np.asarray(o, dtype=float)).T
     ).T
     # p_t = vec(m̃_t v_tᵀ), row-major; cost(R) = rᵀ C r with C the weighted covariance.
     p = (m_tilde[:, :, None] * v_b[:, None, :]).reshape(n, 9)

@@ -32,11 +32,10 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import clarabel
 import numpy as np
-import scipy.linalg
-import scipy.sparse
 
 from magcal.errors import CalibrationError, InsufficientDataError
 
@@ -202,6 +201,12 @@ def _trace_vector() -> np.ndarray:
     return t
 
 
+def _cho_solve(L: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """``A⁻¹ rhs`` from the Cholesky factor ``L`` (3, 3) of ``A``: two triangular solves
+    (numpy's general solve: at 3 × 3 as exact as a triangular one)."""
+    return np.linalg.solve(L.T, np.linalg.solve(L, rhs))
+
+
 def _centre_shape(A: np.ndarray, b: np.ndarray, c: float) -> tuple[np.ndarray, np.ndarray] | None:
     """``o = −½ A⁻¹ b`` and lower-triangular ``D̃`` with ``D̃D̃ᵀ = (¼ bᵀA⁻¹b − c) A⁻¹``.
 
@@ -209,15 +214,15 @@ def _centre_shape(A: np.ndarray, b: np.ndarray, c: float) -> tuple[np.ndarray, n
     ``β = ¼ bᵀA⁻¹b − c ≤ 0``: the quadric is then not a real ellipsoid.
     """
     try:
-        cf = scipy.linalg.cho_factor(A, lower=True)  # cho_solve rather than inv
+        L = np.linalg.cholesky(A)  # solves with the factor rather than inv
     except np.linalg.LinAlgError:
         return None
-    a_inv_b = scipy.linalg.cho_solve(cf, b)
+    a_inv_b = _cho_solve(L, b)
     o = -0.5 * a_inv_b
     beta = 0.25 * float(b @ a_inv_b) - c
     if not beta > 0.0:
         return None
-    a_inv = scipy.linalg.cho_solve(cf, np.eye(3))
+    a_inv = _cho_solve(L, np.eye(3))
     dd = beta * 0.5 * (a_inv + a_inv.T)
     try:
         D_tilde = np.linalg.cholesky(dd)
@@ -266,7 +271,7 @@ def _finish(
     c = float(mu @ A @ mu - b_s @ mu / s + c_s)
     tr = np.trace(A)
     A, b, c = A / tr, b / tr, c / tr
-    u = scipy.linalg.solve_triangular(D_tilde, (mag - o).T, lower=True)
+    u = np.linalg.solve(D_tilde, (mag - o).T)  # 3 × 3: a general solve is as exact
     radius_rms = float(np.sqrt(np.mean((np.linalg.norm(u, axis=0) - 1.0) ** 2)))
     fit = EllipsoidFit(
         A=0.5 * (A + A.T),
@@ -279,6 +284,38 @@ def _finish(
         a_eig_ratio=ratio,
     )
     return fit, problem
+
+
+class _CscMatrix(NamedTuple):
+    """A matrix in compressed sparse column form, with the attributes Clarabel's Python
+    interface reads from a ``scipy.sparse.csc_matrix`` (built here: scipy.sparse takes
+    longer to import than the whole fit). Column by column, rows ascending within a column,
+    no duplicates, zeros left out.
+
+    data    : (nnz,) float, the stored entries
+    indices : (nnz,) int64, their rows
+    indptr  : (ncols + 1,) int64, where each column's entries start in ``data``
+    shape   : (nrows, ncols)
+    """
+
+    data: np.ndarray
+    indices: np.ndarray
+    indptr: np.ndarray
+    shape: tuple[int, int]
+    #: Sorted and without duplicates by construction; Clarabel checks it.
+    has_canonical_format: bool = True
+
+    @property
+    def nnz(self) -> int:
+        return int(self.data.size)
+
+    @classmethod
+    def from_dense(cls, a: np.ndarray) -> _CscMatrix:
+        """The non-zero entries of ``a`` (nrows, ncols)."""
+        a = np.asarray(a, dtype=float)
+        cols, rows = np.nonzero(a.T)  # row-major over aᵀ: column by column, rows ascending
+        indptr = np.searchsorted(cols, np.arange(a.shape[1] + 1))
+        return cls(a.T[cols, rows], rows.astype(np.int64), indptr.astype(np.int64), tuple(a.shape))
 
 
 def _solve_sdp(r: np.ndarray, ridge: float = 0.0) -> np.ndarray:
@@ -302,9 +339,9 @@ def _solve_sdp(r: np.ndarray, ridge: float = 0.0) -> np.ndarray:
     settings.verbose = False
     try:
         solver = clarabel.DefaultSolver(
-            scipy.sparse.csc_matrix(np.triu(p)),  # Clarabel reads P's upper triangle
+            _CscMatrix.from_dense(np.triu(p)),  # Clarabel reads P's upper triangle
             q,
-            scipy.sparse.csc_matrix(a_con),
+            _CscMatrix.from_dense(a_con),
             b_con,
             [clarabel.ZeroConeT(1), clarabel.PSDTriangleConeT(3)],
             settings,

@@ -38,7 +38,6 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
 from magcal.calib import frames
 from magcal.calib.likelihood.params import ModelParams
@@ -386,8 +385,9 @@ def _reference_steps(p: ModelParams, data: FilterData, use_mag: bool):
         eps = y - y_pred
         S = H @ P @ H.T + Rm
         L = np.linalg.cholesky(S)
-        # K = P Hᵀ S⁻¹ with the Cholesky factor already at hand, not an explicit inverse.
-        K = scipy.linalg.cho_solve((L, True), H @ P).T
+        # K = P Hᵀ S⁻¹ by two triangular solves with the Cholesky factor already at hand, not
+        # an explicit inverse (numpy's general solve: at 6 × 6 as exact as a triangular one).
+        K = np.linalg.solve(L.T, np.linalg.solve(L, H @ P)).T
         eta = K @ eps
         # Joseph form keeps P symmetric positive definite in finite precision.
         IKH = np.eye(3) - K @ H
@@ -412,7 +412,7 @@ def run_filter_reference(p: ModelParams, data: FilterData, use_mag: bool = True)
         if rows.size == 0:
             continue
         L = np.linalg.cholesky(S)
-        w = scipy.linalg.solve_triangular(L, eps, lower=True)
+        w = np.linalg.solve(L, eps)  # L⁻¹ε; L is lower-triangular, a general solve as exact
         cost += 0.5 * (w @ w + 2.0 * np.sum(np.log(np.diag(L))))
         innov[t, rows] = eps
         normed[t, rows] = w

@@ -77,7 +77,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.linalg.lapack import dpotrf as _potrf
 
 from magcal.calib.initial import rest
 from magcal.calib.initial.ellipsoid import EllipsoidFit
@@ -425,6 +424,12 @@ class CubatureCalibrator:
         self._x = np.empty(N_STATE)
         self._S = np.empty((N_STATE, N_STATE))
         self._pts = np.empty((2 * N_STATE, N_STATE))
+        # LAPACK's Cholesky for the update (see _update), imported here rather than with the
+        # module: scipy takes a noticeable part of a second to load, and a calibration that
+        # does not run this filter should not pay for it.
+        from scipy.linalg.lapack import dpotrf
+
+        self._potrf = dpotrf
         self._centre = np.zeros(3)
         self._scale = 1.0
         self._sigma2 = 0.0  # normalised noise variance
@@ -572,7 +577,7 @@ class CubatureCalibrator:
         S -= p_xz[:, None] * (w / (p_zz * (1.0 + np.sqrt(1.0 - ratio))))
         # Back to the lower-triangular (Cholesky) root, the paper's √P (see the module doc).
         # (LAPACK's dpotrf directly: numpy's wrapper costs more than the 9 × 9 factorisation.)
-        root, info = _potrf(S @ S.T, lower=1, clean=1)
+        root, info = self._potrf(S @ S.T, lower=1, clean=1)
         if info == 0:
             S[:] = root
         # else: the product form is a valid root too, and positive definite

@@ -310,7 +310,7 @@ def work_compare(duration_s: float, seed: int, max_iter: int) -> dict:
                 _log(f"    {key} iteration {it}: cost {v:.6f}, decrement {dec:.2e}")
 
         t0, c0 = time.perf_counter(), time.process_time()
-        est = ml.maximum_likelihood(session, init, gradient, options, progress)
+        est = ml.maximum_likelihood(session, init, gradient, options, progress, optimizer="bfgs")
         wall_s, cpu_s = time.perf_counter() - t0, time.process_time() - c0
         r = est.report
         thetas[key] = est.theta

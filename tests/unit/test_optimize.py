@@ -177,6 +177,42 @@ def test_trust_region_reports_a_run_out_of_iterations_as_not_converged():
     assert rep.stopping_rule == "max_iter" and not rep.converged
 
 
+def coupled_quadratic(x):
+    """½ (x − c)ᵀ A (x − c) with strong coupling between the two variables."""
+    A = np.array([[2.0, 1.5], [1.5, 2.0]])
+    r = x - np.array([3.0, -1.0])
+    return 0.5 * float(r @ A @ r), A @ r, A
+
+
+def test_trust_region_keeps_held_variables_and_hands_its_model_on():
+    held = minimize_trust_region(
+        coupled_quadratic,
+        lambda x: coupled_quadratic(x)[:2],
+        lambda x: coupled_quadratic(x)[0],
+        np.zeros(2),
+        np.ones(2),
+        np.ones(2),
+        held=np.array([False, True]),
+    )
+    # x₁ stays exactly at its start; x₀ reaches the minimum along it, 3 + 1.5/2 · (−1).
+    assert held.x[1] == 0.0
+    assert held.x[0] == pytest.approx(3.0 - 0.75, abs=1e-6)
+    assert held.converged
+    np.testing.assert_allclose(held.curvature, coupled_quadratic(held.x)[2])
+    # Freed, from the held fit's model: no new evaluation of the information.
+    freed = minimize_trust_region(
+        coupled_quadratic,
+        lambda x: coupled_quadratic(x)[:2],
+        lambda x: coupled_quadratic(x)[0],
+        held.x,
+        np.ones(2),
+        np.ones(2),
+        curvature=held.curvature,
+    )
+    np.testing.assert_allclose(freed.x, [3.0, -1.0], atol=1e-6)
+    assert freed.converged and freed.information_evaluations == 0
+
+
 @pytest.mark.parametrize("seed", range(5))
 def test_trust_region_step_solves_the_subproblem(seed):
     """Against a brute-force minimisation of the model on the boundary, for definite and

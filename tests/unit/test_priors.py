@@ -104,6 +104,7 @@ def test_a_tight_bias_prior_pulls_the_estimate_to_zero(short_session):
         "gyro_bias_deg_s": pytest.approx(0.001),
         "misalignment_deg": None,
         "time_offset_s": pytest.approx(0.1),
+        "noise_coupling": pytest.approx(10.0),
     }
     assert Priors.from_dict(tight.extra["priors"]) == Priors(
         gyro_bias_rad_s=pytest.approx(np.deg2rad(0.001)), misalignment_rad=None

@@ -47,3 +47,12 @@ def test_a_lagging_magnetometer_is_calibrated_about_as_well_as_one_without_lag()
         errors.append(np.linalg.norm(D - truth.sensor.D) / np.linalg.norm(truth.sensor.D))
     # Unmodelled (the paper's model), this 40 ms lag gives a D error of 1.3e-2; modelled 3.5e-4.
     assert errors[1] < 1.5 * errors[0]
+
+
+@pytest.mark.parametrize("level", [0.01, 0.05, 1e-4])
+def test_the_tests_threshold_is_the_chi2_quantile(level):
+    from scipy.special import chdtri
+
+    from magcal.calib.likelihood.ml import chi2_one_dof_quantile
+
+    assert chi2_one_dof_quantile(level) == pytest.approx(chdtri(1, level), rel=1e-12)

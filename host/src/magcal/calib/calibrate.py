@@ -26,7 +26,7 @@ from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
 from magcal.calib.initial.estimate import InitialEstimate, initial_estimate
 from magcal.calib.initial.sensor_levels import measure_sensor_levels
 from magcal.calib.likelihood import mekf
-from magcal.calib.likelihood.ml import MLEstimate, maximum_likelihood
+from magcal.calib.likelihood.ml import OPTIMIZERS, MLEstimate, maximum_likelihood
 from magcal.calib.likelihood.optimize import OptimizeOptions
 from magcal.calib.likelihood.params import ModelParams
 from magcal.calib.likelihood.problem import LikelihoodProblem, Priors
@@ -118,7 +118,7 @@ def calibrate(
     options: OptimizeOptions = OptimizeOptions(),
     progress: Callable[[int, float, float], None] | None = None,
     priors: Priors = Priors(),
-    optimizer: str = "bfgs",
+    optimizer: str = OPTIMIZERS[0],
 ) -> Calibration:
     """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
     or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see

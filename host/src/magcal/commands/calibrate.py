@@ -16,7 +16,7 @@ from magcal.errors import MagcalError
 #: parser is built for every command, and the pipeline loads the numerical stack).
 CALIBRATION_METHODS = ("ml", "init", "ckf", "two-step")
 #: The ML step's optimisers (magcal.calib.likelihood.ml.OPTIMIZERS), the default first.
-ML_OPTIMIZERS = ("bfgs", "trust-region")
+ML_OPTIMIZERS = ("trust-region", "bfgs")
 
 
 def add_parser(sub) -> None:
@@ -49,12 +49,14 @@ def add_parser(sub) -> None:
     )
     p.add_argument(
         "--optimizer",
-        default=ML_OPTIMIZERS[0],
+        default=None,
         choices=ML_OPTIMIZERS,
-        help="the ML step's optimiser: bfgs, damped BFGS from the identity (the paper's; "
-        "default), or trust-region, a trust region on the likelihood's Fisher information "
-        "refined by BFGS updates, which converges in tens of iterations where BFGS takes "
-        "hundreds (real hand-held recordings) at the price of a costlier iteration",
+        help="the ML step's optimiser: trust-region (the default; bfgs with --gradient "
+        "numeric, as the trust region needs the exact gradient), a trust region on the "
+        "likelihood's Fisher information refined by BFGS updates, which converges in tens of "
+        "iterations where BFGS takes hundreds on real hand-held recordings; or bfgs, damped "
+        "BFGS from the identity (the paper's), cheaper per iteration on long simulated "
+        "sessions",
     )
     p.add_argument(
         "--gyro-bias-prior",
@@ -289,6 +291,8 @@ def run(args) -> int:
     from magcal.io.session import os_error_advice, read_session
 
     # Everything a typo can break is checked before calibrating: an ML run takes a while.
+    if args.optimizer is None:
+        args.optimizer = ML_OPTIMIZERS[0] if args.gradient == "exact" else "bfgs"
     if args.optimizer == "trust-region" and args.gradient != "exact":
         raise MagcalError(
             "--optimizer trust-region needs the exact gradient (its curvature comes from the "

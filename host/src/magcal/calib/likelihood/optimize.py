@@ -73,6 +73,9 @@ class OptimizeReport:
 
     #: evaluations of the Fisher information (trust region only)
     information_evaluations: int = 0
+    #: the trust region's model matrix at x (in x's units): where a following fit of a
+    #: related cost can start instead of evaluating the information again
+    curvature: np.ndarray | None = None
 
     @property
     def converged(self) -> bool:
@@ -292,6 +295,8 @@ def minimize_trust_region(
     typical_change: np.ndarray,
     options: OptimizeOptions = OptimizeOptions(),
     progress: Callable[[int, float, float], None] | None = None,
+    held: np.ndarray | None = None,
+    curvature: np.ndarray | None = None,
 ) -> OptimizeReport:
     """Minimise f from x0 in the scaled variables z = (x − x₀)/scale.
 
@@ -309,13 +314,29 @@ def minimize_trust_region(
     the largest scaled gradient component is below ``gradient_tol`` *and* the predicted
     decrease ½ gᵀB⁻¹g below ``decrement_tol``; "max_iter" and "radius" (the trust region
     shrank to nothing, or the model overflowed, without meeting them) are reported as not
-    converged."""
+    converged.
+
+    ``held`` (n,) bool: variables kept at x0. The steps and the convergence test see only
+    the others, while the model keeps its curvature along the held ones, learnt from their
+    gradient, so that a following fit that frees them starts from the whole model
+    (``curvature``: that fit's :attr:`OptimizeReport.curvature`, used at x0 in place of a
+    first evaluation of the information)."""
     t_start = time.perf_counter()
     x0 = np.asarray(x0, dtype=float)
     scale = np.asarray(scale, dtype=float)
     n = x0.size
     counts = {"f": 0, "g": 0, "i": 0}
     S = np.outer(scale, scale)
+    free = np.ones(n, dtype=bool) if held is None else ~np.asarray(held, dtype=bool)
+
+    def on_free(B: np.ndarray, g: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # A held variable: no gradient, no coupling, unit curvature, so that the model is
+        # definite and its steps are exactly zero there.
+        if free.all():
+            return B, g
+        B = np.where(np.outer(free, free), B, 0.0)
+        B[~free, ~free] = 1.0
+        return B, np.where(free, g, 0.0)
 
     def fgi(z):
         counts["f"] += 1
@@ -335,7 +356,10 @@ def minimize_trust_region(
         return fun(x0 + scale * z)
 
     z = np.zeros(n)
-    v, g, B = fgi(z)
+    if curvature is None:
+        v, g, B = fgi(z)
+    else:
+        (v, g), B = fg(z), np.asarray(curvature, dtype=float) * S
     if not np.isfinite(v) or not np.all(np.isfinite(g)):
         raise CalibrationError(
             "the ML cost is not finite at the initial estimate: the initial calibration is "
@@ -348,28 +372,30 @@ def minimize_trust_region(
     rule = "max_iter"
     iteration = 0
     for iteration in range(1, options.max_iter + 1):
-        decrement = _decrement(B, g)
+        B_free, g_free = on_free(B, g)
+        decrement = _decrement(B_free, g_free)
         if not np.isfinite(decrement) and since_information > 0:
             # The updates lost B's definiteness to rounding (curvatures spanning many
             # orders of magnitude): start again from the information here.
             v, g, B = fgi(z)
             since_information = 0
-            decrement = _decrement(B, g)
+            B_free, g_free = on_free(B, g)
+            decrement = _decrement(B_free, g_free)
         if progress:
             progress(iteration, v, decrement)
-        if decrement < options.decrement_tol and np.max(np.abs(g)) < options.gradient_tol:
+        if decrement < options.decrement_tol and np.max(np.abs(g_free)) < options.gradient_tol:
             rule = "gradient"
             iteration -= 1
             break
         with np.errstate(all="ignore"):
-            s = trust_region_step(B, g, radius, weight)
+            s = trust_region_step(B_free, g_free, radius, weight)
         if not np.all(np.isfinite(s)):
             # The model overflowed (curvatures beyond the floating-point range far from any
             # optimum): nothing to try at this radius.
             rule = "radius"
             break
         norm_s = float(np.linalg.norm(weight * s))
-        predicted = -float(g @ s + 0.5 * s @ B @ s)
+        predicted = -float(g_free @ s + 0.5 * s @ B_free @ s)
         v_new = f_only(z + s)
         rho = (v - v_new) / predicted if np.isfinite(v_new) and predicted > 0.0 else -np.inf
         accepted = rho >= TR_ACCEPT
@@ -407,6 +433,7 @@ def minimize_trust_region(
         seconds=time.perf_counter() - t_start,
         history=history,
         information_evaluations=counts["i"],
+        curvature=B / S,
     )
 
 

@@ -194,7 +194,7 @@ def test_solver_failure_raises(monkeypatch):
         raise Exception("simulated failure")  # how clarabel refuses its input
 
     monkeypatch.setattr(clarabel, "DefaultSolver", fail)
-    y = _ellipsoid_data(np.random.default_rng(0), 100, np.eye(3), np.zeros(3))
+    y = _hyperboloid(np.random.default_rng(0), 300)  # A ⪰ 0 binds: the solver runs
     with pytest.raises(CalibrationError, match=r"CLARABEL failed \(simulated failure\)"):
         fit_ellipsoid_sdp(y)
 
@@ -210,9 +210,27 @@ def test_solver_failure_raises(monkeypatch):
 )
 def test_solver_bad_status_raises(monkeypatch, status, pattern):
     monkeypatch.setattr(clarabel, "DefaultSolver", type("S", (_FakeSolver,), {"status": status}))
-    y = _ellipsoid_data(np.random.default_rng(0), 100, np.eye(3), np.zeros(3))
+    y = _hyperboloid(np.random.default_rng(0), 300)
     with pytest.raises(CalibrationError, match=pattern):
         fit_ellipsoid_sdp(y)
+
+
+def test_inactive_constraint_gives_the_polished_sdp_solution_without_the_solver(monkeypatch):
+    # Noisy data all round an ellipsoid: A ⪰ 0 is inactive, so the optimum is the
+    # trace-constrained least squares, exactly what polishing the solver's solution gives.
+    rng = np.random.default_rng(4)
+    y = _ellipsoid_data(rng, 3000, _random_D(rng), rng.normal(size=3), noise=0.05)
+    z, mu, s = ellipsoid._normalise(y)
+    g = ellipsoid._gram(z, off_diag_weight=2.0)
+    polished = ellipsoid._polish(g, ellipsoid._solve_sdp(ellipsoid._gram_factor(g)))
+    expected, _ = ellipsoid._finish(polished, y, mu, s, "sdp")
+
+    def no_solver(*args):
+        raise AssertionError("the interior-point solver ran")
+
+    monkeypatch.setattr(clarabel, "DefaultSolver", no_solver)
+    fit = fit_ellipsoid_sdp(y)
+    assert np.array_equal(fit.o, expected.o) and np.array_equal(fit.D_tilde, expected.D_tilde)
 
 
 def test_csc_matrix_is_scipy_csc_matrix():

@@ -26,6 +26,12 @@ Numerical choices:
   passed instead and the solve time does not depend on N.
 * Symmetric ``A`` has 6 unknowns; the off-diagonal columns of ``M`` are doubled so that
   ``M ξ`` is exactly ``yᵀAy + bᵀy + c``.
+* Where the constraint ``A ⪰ 0`` is inactive (data all round the ellipsoid: the usual case)
+  the SDP's optimum is the least-squares solution under ``tr A = 1`` alone, one 11 × 11
+  linear system, and the interior-point solver is not run. It runs when that solution's
+  ``A`` is not safely positive definite (readings over too few directions) and for forced
+  fits; its positive semidefinite cone then also loads scipy's LAPACK, which takes longer
+  than the rest of the calibration's imports.
 """
 
 from __future__ import annotations
@@ -66,7 +72,8 @@ FORCED_RIDGE_B = 1e-3
 
 #: Relative size of the smallest eigenvalue of ``A`` (trace 1) above which the PSD
 #: constraint of the SDP counts as inactive, so that the equality-constrained least-squares
-#: solution may be used to polish the interior-point solution to full precision.
+#: solution is the SDP's optimum: taken as it is, or used to polish an interior-point
+#: solution to full precision.
 PD_INACTIVE_EIG = 1e-6
 
 #: Rows per block when accumulating the Gram matrix (bounds the temporary memory to
@@ -379,17 +386,14 @@ def _sdp_objective(r: np.ndarray, ridge: float) -> tuple[np.ndarray, np.ndarray]
     return 0.5 * (p + p.T), q
 
 
-def _polish(g: np.ndarray, xi: np.ndarray) -> np.ndarray:
-    """Polish an SDP solution whose PSD constraint is inactive.
+def _trace_constrained_minimiser(g: np.ndarray) -> np.ndarray | None:
+    """The minimiser (10,) of ``ξᵀGξ`` subject only to ``tr A = 1``, from its linear KKT
+    system; None when that system is singular or its solution not finite.
 
-    If the minimiser of ``ξᵀGξ`` subject only to ``tr A = 1`` (a linear KKT system) has
-    ``A ≻ 0``, it is feasible for the SDP and, by convexity, its exact optimum; the
-    interior-point solution only approximates it (to about the solver tolerance). Returns
-    the polished ξ, or the given one when the constraint is (nearly) active.
+    If its ``A`` is positive definite it is feasible for the SDP and, by convexity, the
+    SDP's exact optimum (an interior-point solution only approximates it, to about the
+    solver's tolerance).
     """
-    A, _, _ = _unpack(xi)
-    if np.linalg.eigvalsh(A)[0] < PD_INACTIVE_EIG * np.trace(A):
-        return xi
     t = _trace_vector()
     kkt = np.zeros((11, 11))
     kkt[:10, :10] = g
@@ -400,9 +404,35 @@ def _polish(g: np.ndarray, xi: np.ndarray) -> np.ndarray:
     try:
         sol = np.linalg.solve(kkt, rhs)
     except np.linalg.LinAlgError:
-        return xi
+        return None
     cand = sol[:10]
     if not np.all(np.isfinite(cand)):
+        return None
+    return cand
+
+
+def _inactive_constraint_optimum(g: np.ndarray) -> np.ndarray | None:
+    """The SDP's optimum ξ (10,) without the interior-point solver, when the constraint
+    ``A ⪰ 0`` is inactive: :func:`_trace_constrained_minimiser` if its ``A`` has a smallest
+    eigenvalue of at least :data:`PD_INACTIVE_EIG` (trace 1), else None."""
+    cand = _trace_constrained_minimiser(g)
+    if cand is None:
+        return None
+    A, _, _ = _unpack(cand)
+    if np.linalg.eigvalsh(A)[0] < PD_INACTIVE_EIG * np.trace(A):
+        return None
+    return cand
+
+
+def _polish(g: np.ndarray, xi: np.ndarray) -> np.ndarray:
+    """Polish an interior-point SDP solution whose PSD constraint is inactive: returns
+    :func:`_trace_constrained_minimiser` where that is the optimum and no worse than ``xi``,
+    or ``xi`` itself when the constraint is (nearly) active."""
+    A, _, _ = _unpack(xi)
+    if np.linalg.eigvalsh(A)[0] < PD_INACTIVE_EIG * np.trace(A):
+        return xi
+    cand = _trace_constrained_minimiser(g)
+    if cand is None:
         return xi
     A_c, _, _ = _unpack(cand)
     if np.linalg.eigvalsh(A_c)[0] <= 0.0:
@@ -425,7 +455,9 @@ def fit_ellipsoid_sdp(mag: np.ndarray, *, force: bool = False) -> EllipsoidFit:
             ``--force`` on a session the observability check refused.
 
     Returns an :class:`EllipsoidFit` in raw units; ``D_tilde`` is lower-triangular and
-    ``D_tilde⁻¹ (y − o)`` lies on the unit sphere up to noise.
+    ``D_tilde⁻¹ (y − o)`` lies on the unit sphere up to noise. Where ``A ⪰ 0`` is inactive
+    the optimum comes from a linear system, without the interior-point solver (see the
+    module's numerical choices).
 
     Raises :class:`InsufficientDataError` when the data do not determine an ellipsoid
     (data on or near a plane or a line, a near-singular ``A``, not a real ellipsoid: too
@@ -438,7 +470,9 @@ def fit_ellipsoid_sdp(mag: np.ndarray, *, force: bool = False) -> EllipsoidFit:
     r = _gram_factor(g)
     problem = _planarity_problem(z)
     if problem is None:
-        xi = _polish(g, _solve_sdp(r))
+        xi = _inactive_constraint_optimum(g)
+        if xi is None:  # A ⪰ 0 binds, or nearly: the interior-point solver
+            xi = _polish(g, _solve_sdp(r))
         fit, problem = _finish(xi, mag, mu, s, "sdp")
         if problem is None:
             return fit

@@ -108,9 +108,9 @@ def test_a_plugin_cannot_replace_a_product_command(monkeypatch, capsys):
 HEAVY = ("numpy", "scipy", "matplotlib", "cvxpy", "clarabel", "pymavlink", "pyulog", "serial")
 
 
-def _loaded_after(argvs: list[list[str]]) -> list[str]:
-    """The HEAVY libraries a fresh interpreter holds after ``magcal ARGV`` for each of
-    ``argvs`` (the product's commands only: no entry points; their output dropped)."""
+def _loaded_after(argvs: list[list[str]], modules: tuple[str, ...] = HEAVY) -> list[str]:
+    """The ``modules`` a fresh interpreter holds after ``magcal ARGV`` for each of ``argvs``
+    (the product's commands only: no entry points; their output dropped)."""
     code = "\n".join(
         [
             "import contextlib, importlib.metadata, io, sys",
@@ -122,7 +122,7 @@ def _loaded_after(argvs: list[list[str]]) -> list[str]:
             "            assert main(argv) == 0, argv",
             "        except SystemExit as exc:",  # --help
             "            assert exc.code == 0, argv",
-            f"print(' '.join(m for m in {HEAVY!r} if m in sys.modules))",
+            f"print(' '.join(m for m in {modules!r} if m in sys.modules))",
         ]
     )
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
@@ -142,6 +142,17 @@ def test_calibrate_loads_neither_cvxpy_nor_matplotlib_without_plots(tmp_path):
     loaded = _loaded_after([["calibrate", str(session), "--method", "init"]])
     assert "numpy" in loaded and "clarabel" in loaded  # it did calibrate
     assert "cvxpy" not in loaded and "matplotlib" not in loaded
+
+
+def test_calibrate_loads_no_scipy(tmp_path):
+    # scipy's import alone takes a good part of a cold calibration's time budget; the whole
+    # default pipeline runs on numpy (and the ellipsoid fit's solver, where A ⪰ 0 binds).
+    session = tmp_path / "s.csv"
+    argv = ["simulate", "--duration", "20", "--seed", "1", "-o", str(session)]
+    assert main(argv) == 0
+    out = tmp_path / "out.json"
+    loaded = _loaded_after([["calibrate", str(session), "-o", str(out)]], ("numpy", "scipy"))
+    assert out.exists() and loaded == ["numpy"]
 
 
 # ----------------------------------------------------------------------- negative values

@@ -12,6 +12,7 @@ import re
 import pytest
 
 from magcal.calib.calibrate import METHODS
+from magcal.errors import MagcalError
 from magcal_evaluation import REPO_ROOT, real, real_report
 
 EXCERPT = REPO_ROOT / "evaluation" / "data" / "real"
@@ -88,9 +89,55 @@ def test_report_writes_markdown_and_exits_1_on_a_failed_criterion(tmp_path, exce
         assert f"| {r['case']} | {1e3 * r['reference_delay']['delay_s']:.1f} |" in text
     for name in excerpt_results:
         assert f"| {name} |" in text
+    assert "## Stability under tiny shifts of the magnetometer" in text
+    assert "| case | k = 0 | k = 1 | k = 2 | k = 3 | k = 4 | k = 5 | spread ° | verdict |" in text
+    for name in excerpt_results:
+        assert re.search(rf"^\| {name} \|( [0-9.]+ \|| refused \|){{6}} ", text, re.M), name
     verdicts = real.criteria(list(excerpt_results.values()))
     assert code == (1 if any(c.passed is False for c in verdicts) else 0)
     assert (tmp_path / "real.json").is_file()
+
+
+def test_ml_is_stable_under_tiny_shifts_of_the_magnetometer(excerpt_results):
+    for name, r in excerpt_results.items():
+        s = r["stability"]
+        assert [run["k"] for run in s["runs"]] == list(range(real.STABILITY_MAX_K + 1))
+        ml = r["methods"]["ml"]
+        assert s["runs"][0]["heading_deg"] == (None if ml["refused"] else ml["heading_deg"])
+        assert s["stable"], (name, s)
+    assert _criterion(excerpt_results, "stable under").passed
+
+
+def test_refusals_compare_by_kind_not_by_figures():
+    def kind(message: str, error: type[Exception] = MagcalError) -> str:
+        return real.refusal_kind(error(message))
+
+    assert kind("refused because X (figure 7.1)") == kind("refused because X (figure 7.2)")
+    assert kind("up to +37 % (limit ±8 %)") == kind("up to -1.5e-3 % (limit ±8 %)")
+    assert kind("refused because X (figure 7.1)") != kind("refused because Y (figure 7.1)")
+    assert kind("figure 7.1") != kind("figure 7.1", real.RealDataError)
+
+
+@pytest.mark.parametrize(
+    "runs, spread, stable",
+    [
+        ([5.0, 5.01, 5.05], 0.05, True),
+        ([5.0, 5.06, 5.0], 0.06, False),
+        (["A", "A", "A"], None, True),
+        (["A", "B", "A"], None, False),
+        ([5.0, "A", 5.0], None, False),
+    ],
+)
+def test_stability_verdict(runs, spread, stable):
+    runs = [
+        {"refused": x, "heading_deg": None}
+        if isinstance(x, str)
+        else {"refused": None, "heading_deg": x}
+        for x in runs
+    ]
+    got_spread, got_stable = real.stability_verdict(runs)
+    assert got_stable is stable
+    assert got_spread == (None if spread is None else pytest.approx(spread))
 
 
 def test_report_refuses_a_missing_folder(tmp_path, capsys):

@@ -43,6 +43,13 @@ is solved around it (:func:`known_attitude_floor`). magcal's navigation frame (x
 north, y west, z up) is that world frame turned about the vertical:
 ``v_n = Rz(90° − ψ_m) v_world`` with ``ψ_m`` the field's heading (east of north), which the
 metric never needs, since it compares headings in the world frame.
+
+**Stability** (:func:`stability`): ML calibrated again with the session's magnetometer
+moved by ``k ·`` :data:`STABILITY_STEP` of the field's magnitude on every axis (k = 1 …
+:data:`STABILITY_MAX_K`; far below any magnetometer's resolution), each scored as the
+unmoved run is. The calibration is stable when every run gives the same heading error
+within :data:`STABILITY_MAX_SPREAD_DEG`, or every run refuses for the same reason (the
+refusal's class and message with its figures left out: :func:`refusal_kind`).
 """
 
 from __future__ import annotations
@@ -98,6 +105,17 @@ CHANGING_FIELD_MESSAGE = re.compile(
 )
 #: No method may be worse than this factor of the plain fit without refusing.
 ANY_METHOD_MAX_RATIO_TO_PLAIN = 2.0
+#: Stability (:func:`stability`): the magnetometer is moved by k times this fraction of the
+#: field's magnitude, k = 1 … STABILITY_MAX_K, ...
+STABILITY_STEP = 2e-6
+STABILITY_MAX_K = 5
+#: ... and the heading errors of the runs (k = 0 … STABILITY_MAX_K) may differ by at most
+#: this much, degrees (max − min): a change of the data that small must not change the
+#: calibration's heading more than its last figure shown.
+STABILITY_MAX_SPREAD_DEG = 0.05
+#: The figures a refusal's message quotes (signed integers, decimals, exponents, nan, inf),
+#: left out when refusals are compared by kind (:func:`refusal_kind`).
+_FIGURE = re.compile(r"[-+−±]?(?:\d+(?:[.,]\d+)*(?:[eE][-+]?\d+)?|\b(?:nan|inf)\b)", re.I)
 
 #: Span of the rotations compared to find the IMU's axes in the reference's body frame, s,
 #: and the smallest gyroscope rotation over it that counts, rad.
@@ -525,6 +543,8 @@ class MethodRun:
     method: str
     heading_deg: float = math.nan
     refused: str | None = None
+    #: the refusal's kind (:func:`refusal_kind`) or None
+    refusal_kind: str | None = None
     gyro_bias_deg_s: list[float] | None = None
     misalignment_deg: float | None = None
     misalignment_vec_deg: list[float] | None = None
@@ -541,7 +561,12 @@ def run_method(case: Case, method: str, *, force: bool = False) -> MethodRun:
     try:
         cal = calibrate(case.session, method, force=force)
     except MagcalError as exc:
-        return MethodRun(method, refused=str(exc), seconds=time.perf_counter() - t0)
+        return MethodRun(
+            method,
+            refused=str(exc),
+            refusal_kind=refusal_kind(exc),
+            seconds=time.perf_counter() - t0,
+        )
     seconds = time.perf_counter() - t0
     res = cal.result
     mis = misalignment_deg(res.D)
@@ -562,10 +587,64 @@ def run_method(case: Case, method: str, *, force: bool = False) -> MethodRun:
     )
 
 
+def refusal_kind(exc: BaseException) -> str:
+    """What a refusal says, without its figures: the exception's class and its message with
+    every number replaced by "#", so that refusals for the same reason compare equal
+    whatever the figures they quote."""
+    return f"{type(exc).__name__}: {_FIGURE.sub('#', str(exc))}"
+
+
+def field_magnitude(session: Session) -> float:
+    """The field's magnitude in the session's unit: the median norm of the magnetometer's
+    readings about their mean, over the rows that have a magnetometer sample."""
+    mag = session.mag[session.has_mag]
+    return float(np.median(np.linalg.norm(mag - mag.mean(axis=0), axis=1)))
+
+
+def stability_verdict(runs: list[dict]) -> tuple[float | None, bool]:
+    """(spread, stable) of :func:`stability`'s runs (each with ``heading_deg`` or
+    ``refused``, the refusal's kind): the spread max − min of the heading errors, degrees,
+    where every run gives one (else None); stable when that is at most
+    :data:`STABILITY_MAX_SPREAD_DEG`, or when every run refuses with the same kind."""
+    kinds = {run["refused"] for run in runs}
+    if kinds == {None}:
+        headings = [run["heading_deg"] for run in runs]
+        spread = max(headings) - min(headings)
+        return spread, bool(math.isfinite(spread) and spread <= STABILITY_MAX_SPREAD_DEG)
+    return None, len(kinds) == 1 and None not in kinds
+
+
+def stability(case: Case, ml_run: dict) -> dict:
+    """ML's heading error with the session's magnetometer moved by ``k · STABILITY_STEP ·
+    field`` on every axis (field: :func:`field_magnitude`), k = 0 … :data:`STABILITY_MAX_K`:
+    k = 0 is ``ml_run`` (the unforced ML run of :func:`evaluate_case`, a :class:`MethodRun`
+    dict), the others calibrated as it was (unforced) and scored on the case's unmoved
+    trials. Rows without a magnetometer sample stay without one (NaN). JSON-ready: the
+    field, the runs (``k``, ``heading_deg`` or None, ``refused``: the refusal's kind or
+    None), the spread (degrees, :func:`stability_verdict`) and ``stable``."""
+    field_size = field_magnitude(case.session)
+    runs = [{"k": 0, **_stability_entry(ml_run)}]
+    for k in range(1, STABILITY_MAX_K + 1):
+        moved = dataclasses.replace(
+            case.session, mag=case.session.mag + k * STABILITY_STEP * field_size
+        )
+        run = run_method(dataclasses.replace(case, session=moved), "ml")
+        runs.append({"k": k, **_stability_entry(run.__dict__)})
+    spread, stable = stability_verdict(runs)
+    return {"field": field_size, "runs": runs, "spread_deg": spread, "stable": stable}
+
+
+def _stability_entry(run: dict) -> dict:
+    if run["refused"] is not None:
+        return {"heading_deg": None, "refused": run["refusal_kind"]}
+    return {"heading_deg": float(run["heading_deg"]), "refused": None}
+
+
 def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
     """Everything the report shows of one case, JSON-ready: ``plain``, ``plain_sdp`` and
-    ``floor`` (degrees or None), the floor's field heading and dip, and per method its
-    :class:`MethodRun` as a dict, plus ``forced`` (the run with force=True) when refused."""
+    ``floor`` (degrees or None), the floor's field heading and dip, per method its
+    :class:`MethodRun` as a dict, plus ``forced`` (the run with force=True) when refused,
+    and ``stability`` (:func:`stability`; None without ML)."""
     t0 = time.perf_counter()
     mag = case.session.mag[case.session.has_mag]
     plain = plain_fit(mag)
@@ -594,6 +673,7 @@ def evaluate_case(case: Case, methods: tuple[str, ...] = METHODS) -> dict:
             entry["forced"] = dict(run_method(case, method, force=True).__dict__)
         out["methods"][method] = entry
     ml = out["methods"].get("ml", {})
+    out["stability"] = stability(case, ml) if ml else None
     ml_result = ml.get("forced", ml)
     axes = imu_axes(case)  # once for the two sections that use it: two delay scans
     for key, score in (
@@ -1013,4 +1093,45 @@ def criteria(results: list[dict]) -> list[Criterion]:
             None if not with_plain else not worse,
         )
     )
+
+    stable = [r for r in results if r.get("stability")]
+    unstable = [
+        f"{r['case']} ({_instability(r['stability'])})"
+        for r in stable
+        if not r["stability"]["stable"]
+    ]
+    spreads = [r["stability"]["spread_deg"] for r in stable]
+    worst = max((s for s in spreads if s is not None), default=None)
+    out.append(
+        Criterion(
+            f"ML stable under k·{scientific(STABILITY_STEP)} shifts of the magnetometer on "
+            f"every case (k = 0…"
+            f"{STABILITY_MAX_K}: the same heading error within {STABILITY_MAX_SPREAD_DEG}°, "
+            "or the same refusal)",
+            (
+                "no case"
+                if not stable
+                else (f"largest spread {worst:.3f}°" if worst is not None else "all refused")
+                + f"; unstable: {', '.join(unstable) or 'none'}"
+            ),
+            None if not stable else not unstable,
+        )
+    )
     return out
+
+
+def scientific(x: float) -> str:
+    """``x`` as "2·10⁻⁶" (one significant figure's mantissa as ``{:g}`` gives it)."""
+    mantissa, exponent = f"{x:e}".split("e")
+    superscript = str(int(exponent)).translate(str.maketrans("-0123456789", "⁻⁰¹²³⁴⁵⁶⁷⁸⁹"))
+    return f"{float(mantissa):g}·10{superscript}"
+
+
+def _instability(section: dict) -> str:
+    """Why a :func:`stability` section is not stable, in a few words."""
+    if section["spread_deg"] is not None:
+        return f"spread {section['spread_deg']:.3f}°"
+    refused = [run["k"] for run in section["runs"] if run["refused"] is not None]
+    if len(refused) < len(section["runs"]):
+        return f"refused at k = {', '.join(map(str, refused))} only"
+    return "refused for different reasons"

@@ -7,7 +7,8 @@
 Calibrates each case of the data folder (see :mod:`magcal_evaluation.real`) with every
 method, scores it with the reference attitude against the plain fit and the known-attitude
 floor, and writes a Markdown report (the command, date, machine, commit, the heading table,
-the estimates per method, the acceptance criteria) and every case's figures as JSON (--raw).
+the acceptance criteria, ML's stability under tiny shifts of the magnetometer, the estimates
+per method) and every case's figures as JSON (--raw).
 A refused method is shown "refused", and its forced result (force=True) is scored too. One
 process per case, --workers at a time. Exits 1 when a criterion fails (after writing).
 """
@@ -114,6 +115,20 @@ def _rescored_ml_cell(a: dict) -> str:
     return f"refused (forced {cell})" if a.get("ml_forced") else cell
 
 
+def _stability_row(r: dict) -> str:
+    """case | the heading per k (or "refused") | spread | verdict."""
+    a = r["stability"]
+    cells = [
+        "refused" if run["refused"] is not None else f"{run['heading_deg']:.3f}"
+        for run in a["runs"]
+    ]
+    if a["stable"]:
+        verdict = "stable" if a["spread_deg"] is not None else "stable (the same refusal)"
+    else:
+        verdict = "**unstable**"
+    return f"| {r['case']} | {' | '.join(cells)} | {_f(a['spread_deg'], '{:.3f}')} | {verdict} |"
+
+
 def _section_rows(results: list[dict], key: str):
     """(case result, its ``key`` section, ML's run: the forced one where ML refused) for
     every case that has the section."""
@@ -172,6 +187,22 @@ def render_markdown(results: list[dict], verdicts: list[real.Criterion], meta: d
     for c in verdicts:
         res = "n/a" if c.passed is None else ("pass" if c.passed else "**FAIL**")
         lines.append(f"| {c.text} | {c.measured} | {res} |")
+    shifts = range(real.STABILITY_MAX_K + 1)
+    lines += [
+        "",
+        "## Stability under tiny shifts of the magnetometer",
+        "",
+        "ML's heading error (degrees) with every magnetometer reading of the session moved by "
+        f"k·{real.scientific(real.STABILITY_STEP)} of the field's magnitude on each axis, far "
+        "below any sensor's resolution (k = 0 is the run of the heading table), each run "
+        "calibrated and scored as that table's: stable when the spread (max − min) is at most "
+        f"{real.STABILITY_MAX_SPREAD_DEG}° or every run refuses for the same reason "
+        "(`magcal_evaluation.real.stability`, `make real`).",
+        "",
+        "| case | " + " | ".join(f"k = {k}" for k in shifts) + " | spread ° | verdict |",
+        "|---|" + "---:|" * len(shifts) + "---:|---|",
+    ]
+    lines += [_stability_row(r) for r in good if r.get("stability")]
     lines += [
         "",
         "## Scored at the magnetometer's own time",

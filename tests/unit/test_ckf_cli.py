@@ -51,7 +51,7 @@ def test_calibrate_writes_a_result(sessions, tmp_path, capsys, method):
 def test_unobservable_session_is_refused_unless_forced(sessions, tmp_path, capsys, method):
     _, yaw = sessions
     out = tmp_path / "r.json"
-    assert main(["calibrate", str(yaw), "--method", method, "-o", str(out)]) == EXIT_ERROR
+    assert main(["calibrate", str(yaw), "--method", method, "-q", "-o", str(out)]) == EXIT_ERROR
     err = capsys.readouterr().err
     assert err.startswith("magcal calibrate: ") and "yaw" in err and err.count("\n") == 1
     assert not out.exists()

@@ -45,8 +45,9 @@ def no_calibration(monkeypatch):
 
 
 def refused(capsys, argv: list[str], *patterns: str) -> str:
-    """Run ``argv``, expect the refusal: exit 2, one line ``magcal <command>: ...`` on stderr."""
-    assert main(argv) == EXIT_ERROR
+    """Run ``argv`` with -q, expect the refusal: exit 2, one line ``magcal <command>: ...`` on
+    stderr (without -q, the steps a command had begun are on lines before it)."""
+    assert main([*argv, "-q"]) == EXIT_ERROR
     err = capsys.readouterr().err
     command = argv[0]
     assert "Traceback" not in err
@@ -288,3 +289,32 @@ def test_launcher_runs_through_a_symlink(tmp_path):
     env = {**os.environ, "CDPATH": str(tmp_path)}
     run = subprocess.run([str(link), "--version"], capture_output=True, text=True, env=env)
     assert run.returncode == 0 and run.stdout.startswith("magcal ")
+
+
+def test_every_command_takes_quiet_and_verbose():
+    import argparse
+
+    from magcal.cli import build_parser
+
+    parser = build_parser()
+    commands = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    for name, command in commands.choices.items():
+        options = command._option_string_actions
+        assert {"-q", "--quiet", "-v", "--verbose"} <= set(options), name
+
+
+def test_verbose_shows_the_link_log_on_stderr(capsys):
+    import logging
+
+    from magcal.cli import build_parser, configure_output
+
+    configure_output(build_parser().parse_args(["info", "--port", "/dev/null", "-v"]))
+    logging.getLogger("magcal.link.serial_link").debug("opened /dev/ttyACM0")
+    logging.getLogger("magcal.calib").debug("not a link")
+    err = capsys.readouterr().err
+    assert "magcal magcal.link.serial_link: opened /dev/ttyACM0" in err
+    assert "not a link" not in err
+    # Without -v the link's debug records stay off stderr.
+    configure_output(build_parser().parse_args(["info", "--port", "/dev/null"]))
+    logging.getLogger("magcal.link.serial_link").debug("opened /dev/ttyACM1")
+    assert "ttyACM1" not in capsys.readouterr().err

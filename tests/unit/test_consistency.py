@@ -186,7 +186,7 @@ def test_cli_refuses_with_exit_2_and_writes_nothing_unless_forced(handheld, tmp_
     path = tmp_path / "jump.csv"
     write_session(path, _field_jump(session, truth.sensor.o, 1.2))
     out = tmp_path / "r.json"
-    assert main(["calibrate", str(path), "--method", "init", "-o", str(out)]) == EXIT_ERROR
+    assert main(["calibrate", str(path), "--method", "init", "-q", "-o", str(out)]) == EXIT_ERROR
     err = capsys.readouterr().err
     assert err.startswith("magcal calibrate: ") and err.count("\n") == 1
     assert "field changed" in err and "--force" in err

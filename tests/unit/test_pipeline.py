@@ -194,3 +194,52 @@ def test_unknown_optimizer_is_rejected():
     session, _ = simulate(preset("mems", duration_s=10.0), 1)
     with pytest.raises(ValueError, match="unknown optimizer"):
         calibrate(session, "ml", optimizer="newton")
+
+
+def test_ml_checks_its_optimum_against_the_other_starting_point():
+    session, _ = simulate(preset("mems", duration_s=20.0), 6)
+    cal = calibrate(session, "ml")
+    points = cal.result.extra["starting_points"]
+    assert [p["name"] for p in points] == ["the initial estimate", "the TWO-STEP fit"]
+    # A clean session: both starting points reach the same optimum, and nothing is said.
+    assert all(p["converged"] for p in points)
+    assert abs(points[0]["cost"] - points[1]["cost"]) < 0.1
+    assert cal.ml.different_optima() is None
+    assert not any("optima" in w for w in cal.result.warnings)
+
+
+def test_ml_goes_on_from_a_starting_point_that_reached_a_better_optimum():
+    from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
+    from magcal.calib.initial.estimate import initial_estimate
+    from magcal.calib.likelihood.ml import maximum_likelihood
+    from magcal.calib.likelihood.optimize import OptimizeOptions
+
+    session, _ = simulate(preset("mems", duration_s=20.0), 7)
+    init = initial_estimate(session, fit_ellipsoid_sdp(session.mag))
+    optimum = calibrate(session, "ml").ml.params
+    # Three iterations leave the fit from the initial estimate short of the optimum; the
+    # fit from the optimum itself stays there, and the estimate must come from it.
+    est = maximum_likelihood(
+        session,
+        init,
+        options=OptimizeOptions(max_iter=3),
+        other_starts=[("the optimum", optimum)],
+    )
+    start, other = est.starting_points
+    assert other.cost < start.cost - 1.0
+    np.testing.assert_allclose(est.params.D, optimum.D, atol=1e-3 * np.abs(optimum.D).max())
+
+
+def test_clearly_different_optima_are_named():
+    from magcal.calib.likelihood.ml import MLEstimate, StartingPoint
+
+    def estimate(*points):
+        return MLEstimate(None, None, None, None, starting_points=points)
+
+    a = StartingPoint("the initial estimate", -100.0, 20, True)
+    b = StartingPoint("the TWO-STEP fit", -90.0, 25, True)
+    assert estimate(a, b).different_optima() == (a, b)
+    # 2 ΔV = 6 is within the χ²₁(0.99) = 6.63 a kept parameter must beat: the same optimum.
+    assert estimate(a, dataclasses.replace(b, cost=-97.0)).different_optima() is None
+    # A fit stopped short found no optimum to compare.
+    assert estimate(a, dataclasses.replace(b, converged=False)).different_optima() is None

@@ -16,7 +16,7 @@ import termios
 import pytest
 
 from magcal import ui
-from magcal.commands.calibrate import progress_printer as bfgs_printer
+from magcal.commands.calibrate import CalibrationProgress
 from magcal.commands.collect import progress_printer
 from magcal.commands.import_log import progress_printer as import_printer
 from magcal.commands.report import progress_printer as report_printer
@@ -142,26 +142,39 @@ def test_a_log_gets_the_last_update_even_within_the_second():
     assert lines[-1].endswith("ok to stop: coverage 92 %, norm spread 0.4 %")
 
 
-def test_the_optimizer_logs_its_first_and_every_tenth_iteration():
-    stream = io.StringIO()
-    show = bfgs_printer(stream)
-    for k in range(1, 26):
-        show(k, 1.0 / k, 1e-3)
-    show.done()
-    lines = stream.getvalue().splitlines()
-    assert [int(line.split()[2]) for line in lines] == [1, 10, 20]
-    assert lines[0] == "ML iteration    1  cost 1.000000  predicted decrease 1.00e-03"
-
-
-def test_the_optimizer_on_a_terminal_is_one_line(monkeypatch):
-    monkeypatch.setenv("COLUMNS", "80")
-    stream = _Terminal()
-    show = bfgs_printer(stream)
+def _calibrate(progress: CalibrationProgress) -> None:
+    """Two steps, the second with three ML iterations, as calibrate reports them."""
+    progress.stage("ellipsoid fit (SDP)")
+    progress.stage("ML, the paper's model (no time offset)")
     for k in range(1, 4):
-        show(k, 1.0 / k, 1e-3)
-    show.done()
+        progress(k, 1.0 / k, 1e-3)
+    progress.done()
+
+
+def test_calibrate_logs_one_line_per_step_and_nothing_per_iteration():
+    stream = io.StringIO()
+    _calibrate(CalibrationProgress(stream))
+    assert stream.getvalue().splitlines() == [
+        "calibrate: ellipsoid fit (SDP)",
+        "calibrate: ML, the paper's model (no time offset)",
+    ]
+
+
+def test_calibrate_quiet_shows_nothing(monkeypatch):
+    for stream in (io.StringIO(), _Terminal()):
+        _calibrate(CalibrationProgress(stream, quiet=True))
+        assert stream.getvalue() == ""
+
+
+def test_calibrate_on_a_terminal_is_one_line_with_the_step(monkeypatch):
+    monkeypatch.setenv("COLUMNS", "200")
+    stream = _Terminal()
+    _calibrate(CalibrationProgress(stream))
     shown = _screen_lines(stream.getvalue())
-    assert shown[-1] == "ML iteration    3  cost 0.333333  predicted decrease 1.00e-03"
+    assert shown[-1] == (
+        "calibrate: ML, the paper's model (no time offset): iteration 3, cost 0.333, "
+        "predicted decrease 1.0e-03"
+    )
 
 
 def test_import_logs_every_quarter():

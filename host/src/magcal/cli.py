@@ -28,6 +28,10 @@ ENTRY_POINT_GROUP = "magcal.commands"
 #: Commands listed first in ``--help``, in this order; the others follow by name.
 FIRST_COMMANDS = ("simulate", "calibrate")
 
+#: The loggers whose records -v shows: the serial and MAVLink links, the device protocol and
+#: the autopilot's parameter and calibration traffic.
+VERBOSE_LOGGERS = ("magcal.link", "magcal.device", "magcal.autopilot")
+
 #: An option value that argparse would take for an option: a negative number, or a list of
 #: numbers that starts with one ("-35.3,149.2").
 _NEGATIVE_VALUE = re.compile(r"^-\.?\d")
@@ -79,7 +83,51 @@ def build_parser() -> argparse.ArgumentParser:
         module.add_parser(sub)
     for entry_point in metadata.entry_points(group=ENTRY_POINT_GROUP):
         _add_plugin(sub, entry_point)
+    for command in sub.choices.values():
+        _add_output_options(command)
     return parser
+
+
+def _add_output_options(command: argparse.ArgumentParser) -> None:
+    """-q and -v, on every command (after its name, where people type them)."""
+    taken = command._option_string_actions
+    group = command.add_argument_group("output")
+    if "-q" not in taken and "--quiet" not in taken:
+        group.add_argument(
+            "-q",
+            "--quiet",
+            action="store_true",
+            help="show no progress; results, warnings and errors still show",
+        )
+    if "-v" not in taken and "--verbose" not in taken:
+        group.add_argument(
+            "-v",
+            "--verbose",
+            action="store_true",
+            help="also show what the links to the device and the autopilot log "
+            "(magcal.link, magcal.device, magcal.autopilot)",
+        )
+
+
+def configure_output(args: argparse.Namespace) -> None:
+    """Apply -q and -v: progress silenced; :data:`VERBOSE_LOGGERS` on stderr."""
+    import logging
+
+    from magcal import ui
+
+    ui.set_quiet(getattr(args, "quiet", False))
+    verbose = getattr(args, "verbose", False)
+    for name in VERBOSE_LOGGERS:
+        # Set afresh on every call: main() may run more than once in a process.
+        log = logging.getLogger(name)
+        for handler in [h for h in log.handlers if getattr(h, "magcal_verbose", False)]:
+            log.removeHandler(handler)
+        log.setLevel(logging.DEBUG if verbose else logging.NOTSET)
+        if verbose:
+            handler = logging.StreamHandler(sys.stderr)
+            handler.setFormatter(logging.Formatter("magcal %(name)s: %(message)s"))
+            handler.magcal_verbose = True  # type: ignore[attr-defined]
+            log.addHandler(handler)
 
 
 def _command_modules() -> list:
@@ -124,6 +172,7 @@ def quiet_libraries() -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    configure_output(args)
     try:
         with warnings.catch_warnings():
             quiet_libraries()

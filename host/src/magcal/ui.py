@@ -37,6 +37,16 @@ EXIT_INTERRUPTED = 130
 #: Redraws a second of a live progress display on a terminal.
 REFRESH_PER_S = 10
 
+#: Set by ``-q`` (:func:`set_quiet`): progress displays show nothing; messages, warnings,
+#: results and errors still do.
+_quiet = False
+
+
+def set_quiet(quiet: bool) -> None:
+    """Silence (or restore) every progress display made from now on."""
+    global _quiet
+    _quiet = bool(quiet)
+
 
 def refusal(command: str, exc: BaseException | str) -> str:
     """The one-paragraph stderr message ``magcal <command>: ...`` for ``exc``.
@@ -109,6 +119,7 @@ class _Display:
     def __init__(self, stream: TextIO | None) -> None:
         self.stream = stream or sys.stderr
         self.live = is_live(self.stream)
+        self.quiet = _quiet
         self._display = None  # rich Live or Progress, both with .console and .stop()
 
     def message(self, text: str) -> None:
@@ -158,6 +169,8 @@ class StatusLine(_Display):
     def update(self, text: str, t_s: float | None = None, *, log: bool | None = None) -> None:
         """Show ``text``. In a log it is written when ``log`` is True, or, ``log`` not given,
         when ``t_s`` (s, the caller's clock; now when None) is ``every_s`` past the last."""
+        if self.quiet:
+            return
         if self.live:
             self._show(text)
             return
@@ -243,6 +256,8 @@ class ProgressBar(_Display):
         if total is not None:
             self.total = total
         self.completed = completed
+        if self.quiet:
+            return
         if self.live:
             self._draw(note)
             return

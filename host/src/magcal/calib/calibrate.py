@@ -94,6 +94,22 @@ def _on_every_row(session: Session, init: InitialEstimate) -> InitialEstimate:
     return dataclasses.replace(init, params=params, levels=levels)
 
 
+def _other_starting_points(view: Session, init: InitialEstimate) -> list[tuple[str, ModelParams]]:
+    """Where else the ML step starts from, to check that its optimum is the best the
+    method's starting points reach: the initial estimate with its ellipsoid from TWO-STEP,
+    the norm-only fit, in place of the SDP's (and the alignment and dip that go with it).
+    None where TWO-STEP has no ellipsoid for the data."""
+    try:
+        fit, _ = twostep.calibration_ellipsoid(view.mag, force=True)
+        other = initial_estimate(view, fit)
+    except MagcalError:
+        return []
+    p = dataclasses.replace(
+        init.params, D=other.params.D, o=other.params.o, dip_rad=other.params.dip_rad
+    )
+    return [("the TWO-STEP fit", p)]
+
+
 def _alignment_warnings(session: Session, g: float) -> list[str]:
     dev = np.linalg.norm(session.acc, axis=1) - g
     # A robust spread (1.4826 × median |dev| equals the RMS for Gaussian deviations): a
@@ -119,10 +135,17 @@ def calibrate(
     progress: Callable[[int, float, float], None] | None = None,
     priors: Priors = Priors(),
     optimizer: str = OPTIMIZERS[0],
+    stage: Callable[[str], None] | None = None,
 ) -> Calibration:
     """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
     or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see
-    :data:`NORM_ONLY`). ``optimizer``: the ML step's (``likelihood.ml.OPTIMIZERS``)."""
+    :data:`NORM_ONLY`). ``optimizer``: the ML step's (``likelihood.ml.OPTIMIZERS``).
+    ``stage(text)`` is told as each step starts; ``progress`` at each ML iteration."""
+
+    def announce(text: str) -> None:
+        if stage:
+            stage(text)
+
     if method not in METHODS:
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     if not session.has_acc.any():
@@ -133,6 +156,7 @@ def calibrate(
     # when every row has every sensor).
     view = samples.at_magnetometer_rows(session)
     t0 = time.perf_counter()
+    announce("checking what the session can determine")
     report = observability.check_observability(view.gyr, view.acc, view.mag, view.t)
     warnings = observability.raise_if_unobservable(report, force)
     seconds["checks"] = time.perf_counter() - t0
@@ -142,6 +166,7 @@ def calibrate(
     # too little rotation: say that instead of the fit's own advice to rotate more.
     t0 = time.perf_counter()
     method_record = None
+    announce(f"ellipsoid fit ({'SDP' if method not in NORM_ONLY else method.upper()})")
     if method in NORM_ONLY:
         # These report degenerate data themselves; --force has already passed the checks.
         fit, method_record = NORM_ONLY[method](view.mag, force=force)
@@ -152,6 +177,7 @@ def calibrate(
         if report.ok and fit.warnings:
             fit = dataclasses.replace(fit, warnings=(NOISY_ELLIPSOID_WARNING,))
 
+    announce("the initial estimate: noise levels, alignment with the accelerometer, dip")
     init = initial_estimate(view, fit)
     seconds.update(init.seconds)
     warnings += list(init.warnings)
@@ -180,7 +206,17 @@ def calibrate(
     est = None
     if method == "ml":
         t0 = time.perf_counter()
-        est = maximum_likelihood(session, init, gradient, options, progress, priors, optimizer)
+        est = maximum_likelihood(
+            session,
+            init,
+            gradient,
+            options,
+            progress,
+            priors,
+            optimizer,
+            other_starts=_other_starting_points(view, init),
+            stage=stage,
+        )
         seconds["ml"] = time.perf_counter() - t0
         p = est.params
         r = est.report
@@ -203,6 +239,18 @@ def calibrate(
             "hessian_resets": r.hessian_resets,
             "seconds": r.seconds,
         }
+        extra["starting_points"] = [sp.as_dict() for sp in est.starting_points]
+        different = est.different_optima()
+        if different:
+            best, worst = different
+            warnings.append(
+                f"the ML fits from {best.name} and from {worst.name} ended in clearly "
+                f"different optima (negative log-likelihood {best.cost:.1f} against "
+                f"{worst.cost:.1f}): the calibration goes on from the better one, {best.name}, "
+                "but the session may admit more than one calibration; record again turning "
+                "the sensor through every orientation, or check the result against a known "
+                "heading"
+            )
         if not r.converged:
             warnings.append(
                 f"the ML optimisation stopped on '{r.stopping_rule}' before converging after "
@@ -212,6 +260,7 @@ def calibrate(
         p = init.params
 
     t0 = time.perf_counter()
+    announce("checking the result against its session")
     out = _filter_at(session, init, p)
     calibrated = np.linalg.solve(p.D, (session.mag - p.o).T).T
     view_rows = session.has_mag

@@ -192,17 +192,34 @@ def _print_summary(cal, out=None) -> None:
         print(f"warning: {w}", file=out)
 
 
-def progress_printer(stream=None):
-    """``show(iteration, cost, decrement)`` for the ML optimizer, ``show.done()`` after it: a
-    :class:`magcal.ui.StatusLine` on a terminal; in a log the first and every 10th iteration."""
-    status = ui.StatusLine(stream, last=False)
+class CalibrationProgress:
+    """What ``magcal calibrate`` shows while it works: the step under way and, in the ML
+    step, its iteration, cost and predicted decrease.
 
-    def show(iteration: int, cost: float, decrement: float) -> None:
-        line = f"ML iteration {iteration:4d}  cost {cost:.6f}  predicted decrease {decrement:.2e}"
-        status.update(line, log=iteration == 1 or iteration % 10 == 0)
+    On a terminal: one status line redrawn in place (:class:`magcal.ui.StatusLine`). In a
+    log: one line per step as it starts, nothing per iteration. ``quiet``: nothing.
+    Pass :meth:`stage` and the object itself to :func:`magcal.calib.calibrate.calibrate`;
+    :meth:`done` (idempotent) after it."""
 
-    show.done = status.close  # type: ignore[attr-defined]
-    return show
+    def __init__(self, stream=None, *, quiet: bool = False) -> None:
+        self._status = None if quiet else ui.StatusLine(stream, last=False)
+        self._stage = ""
+
+    def stage(self, text: str) -> None:
+        self._stage = text
+        if self._status is not None:
+            self._status.update(f"calibrate: {text}", log=True)
+
+    def __call__(self, iteration: int, cost: float, decrement: float) -> None:
+        if self._status is not None and self._status.live:
+            self._status.update(
+                f"calibrate: {self._stage}: iteration {iteration}, cost {cost:.3f}, "
+                f"predicted decrease {decrement:.1e}"
+            )
+
+    def done(self) -> None:
+        if self._status is not None:
+            self._status.close()
 
 
 def _read_matching_truth(truth_path: str, session_path: str, session):
@@ -306,7 +323,7 @@ def run(args) -> int:
     min_samples = ellipsoid.MIN_SAMPLES if args.force else observability.MIN_SAMPLES
     session = read_session(args.session, min_samples=min_samples)
     truth = _read_matching_truth(args.truth, args.session, session) if args.truth else None
-    progress = progress_printer()
+    progress = CalibrationProgress(quiet=getattr(args, "quiet", False))
     try:
         cal = calibrate(
             session,
@@ -315,6 +332,7 @@ def run(args) -> int:
             gradient=args.gradient,
             optimizer=args.optimizer,
             progress=progress,
+            stage=progress.stage,
             priors=Priors(
                 gyro_bias_rad_s=args.gyro_bias_prior, misalignment_rad=args.misalignment_prior
             ),

@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import dataclasses
 import statistics
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -47,6 +48,7 @@ from magcal.calib.likelihood.problem import (
     Priors,
     on_canonical_branch,
 )
+from magcal.errors import CalibrationError
 from magcal.io.session import Session
 
 #: The ML step's optimisers (``optimize.py``), the default first: the trust region on the
@@ -64,6 +66,19 @@ INTERMEDIATE_GRADIENT_TOL = 1e-2
 #: Significance level of the test that keeps a time offset (1 %: twice the log-likelihood
 #: must rise by χ²₁(0.99) = 6.63 when τ is freed: :func:`chi2_one_dof_quantile`).
 TIME_OFFSET_TEST_LEVEL = 0.01
+#: The fits, as :func:`maximum_likelihood` announces them to its ``stage`` callback.
+STAGE_PLAIN = "ML, the paper's model (no time offset)"
+STAGE_FROM_OTHER = "ML, from the other starting point's better optimum"
+STAGE_TIME_OFFSET = "ML, with the magnetometer's time offset"
+STAGE_GYRO_GAIN = "ML, allowing for the gyroscope's gain error"
+STAGE_REFINE = "ML, refining the chosen fit"
+
+#: Two fits stopped at the tests' tolerance whose costs differ by less than this (nats)
+#: found the same optimum: the estimate moves to another starting point's only beyond it.
+SAME_OPTIMUM_NATS = 10.0 * INTERMEDIATE_DECREMENT_TOL
+#: Two starting points' optima are "clearly different" when twice their cost difference
+#: exceeds the χ²₁ quantile at this level, as a parameter the tests would keep.
+DIFFERENT_OPTIMA_LEVEL = TIME_OFFSET_TEST_LEVEL
 #: Significance level of the test that allows for the gyroscope's gain error: the same as
 #: the time offset's, as if the gain error were one more parameter.
 GYRO_GAIN_TEST_LEVEL = TIME_OFFSET_TEST_LEVEL
@@ -107,6 +122,21 @@ class GyroGainTest:
 
 
 @dataclass(frozen=True)
+class StartingPoint:
+    """Where the paper's model (τ = 0) was fitted from, and the optimum it reached: its
+    ``cost`` on the estimate's own problem (the same normalisation, priors and starting
+    attitude), so that the starting points' optima compare."""
+
+    name: str
+    cost: float
+    iterations: int
+    converged: bool
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
 class MLEstimate:
     params: ModelParams  # raw magnetometer units
     theta: np.ndarray  # (35,) normalised
@@ -114,6 +144,27 @@ class MLEstimate:
     report: OptimizeReport  # every fit together (iterations, evaluations, time)
     time_offset_test: TimeOffsetTest | None = None
     gyro_gain_test: GyroGainTest | None = None
+    #: the initial estimate's fit first, then each other starting point's
+    starting_points: tuple[StartingPoint, ...] = ()
+
+    def different_optima(self) -> tuple[StartingPoint, StartingPoint] | None:
+        """The best and the worst starting point's optima when they are clearly different
+        (2 ΔV beyond the tests' threshold, :data:`DIFFERENT_OPTIMA_LEVEL`), else None."""
+        ranked = sorted(self.starting_points, key=lambda s: s.cost)
+        if len(ranked) >= 2 and different(ranked[0], ranked[-1]):
+            return ranked[0], ranked[-1]
+        return None
+
+
+def different(a: StartingPoint, b: StartingPoint) -> bool:
+    """Whether two starting points' fits ended in clearly different optima: both converged
+    (a fit stopped short has not found its optimum) and 2 |ΔV| beyond the χ²₁ quantile at
+    :data:`DIFFERENT_OPTIMA_LEVEL`, as a parameter the tests would keep."""
+    return (
+        a.converged
+        and b.converged
+        and 2.0 * abs(a.cost - b.cost) > chi2_one_dof_quantile(DIFFERENT_OPTIMA_LEVEL)
+    )
 
 
 def maximum_likelihood(
@@ -124,10 +175,20 @@ def maximum_likelihood(
     progress: Callable[[int, float, float], None] | None = None,
     priors: Priors = Priors(),
     optimizer: str = OPTIMIZERS[0],
+    other_starts: Sequence[tuple[str, ModelParams]] = (),
+    stage: Callable[[str], None] | None = None,
 ) -> MLEstimate:
     """Algorithm 1 step 2 from the initial estimate; ``gradient`` "exact" or "numeric";
     ``priors`` make it a MAP estimate (:class:`~magcal.calib.likelihood.problem.Priors`);
-    ``optimizer`` one of :data:`OPTIMIZERS`. The trust region needs exact gradients."""
+    ``optimizer`` one of :data:`OPTIMIZERS`. The trust region needs exact gradients.
+
+    ``other_starts``: (name, parameters in raw units) of other starting points. The
+    paper's model is fitted from each as well, on a second thread beside the initial
+    estimate's fit; the estimate continues from the best optimum reached, and
+    :attr:`MLEstimate.starting_points` records them all.
+
+    ``stage(text)`` is told as each fit starts (the model it fits); ``progress(iteration,
+    cost, decrement)`` at each iteration of the fits, numbered across them."""
     problem = LikelihoodProblem.for_ml_step(session, init, priors=priors)
     if gradient not in ("exact", "numeric"):
         raise ValueError(f"unknown gradient {gradient!r}: use 'exact' or 'numeric'")
@@ -143,6 +204,8 @@ def maximum_likelihood(
         done: list,
         final: bool = True,
         start: OptimizeReport | None = None,
+        report_progress: bool = True,
+        label: str = "",
     ) -> OptimizeReport:
         # Exact gradients: cost and gradient together at every trial point, since nearly
         # every step is accepted at α = 1 and a cost-only line search would pay for the
@@ -161,9 +224,11 @@ def maximum_likelihood(
             return value, grad
 
         before = sum(r.iterations for r in done)
+        if stage and label:
+            stage(label)
 
         def progress_after(iteration: int, cost: float, decrement: float) -> None:
-            if progress:
+            if progress and report_progress:
                 progress(before + iteration, cost, decrement)
 
         budget = dataclasses.replace(options, max_iter=options.max_iter - before)
@@ -211,13 +276,44 @@ def maximum_likelihood(
     theta0 = problem.theta0.copy()
     theta0[INDEX_TIME_OFFSET] = 0.0
     fits: list[OptimizeReport] = []
+
     # The fits before the last are compared by their cost alone (the tests), so they stop
     # once their remaining decrease is far below what a test can see; whichever is chosen
     # is refined to the final tolerance.
-    plain = run(problem, True, theta0, fits, final=False)
+    def fit_from(p: ModelParams) -> OptimizeReport | None:
+        """The paper's model fitted from ``p``; None where the cost is not finite there."""
+        other = LikelihoodProblem.for_ml_step(session, init, at=p, priors=priors)
+        x0 = other.theta0.copy()
+        x0[INDEX_TIME_OFFSET] = 0.0
+        try:
+            return run(other, True, x0, [], final=False, report_progress=False)
+        except CalibrationError:
+            return None
+
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        # The kernels release the GIL: on two cores the other starting points cost little
+        # wall time.
+        pending = [(name, pool.submit(fit_from, p)) for name, p in other_starts]
+        plain = run(problem, True, theta0, fits, final=False, label=STAGE_PLAIN)
+        others = [(name, future.result()) for name, future in pending]
+    others = [(name, rep) for name, rep in others if rep is not None]
+    starting_points = [
+        StartingPoint("the initial estimate", plain.cost, plain.iterations, plain.converged)
+    ]
+    for name, rep in others:
+        starting_points.append(
+            StartingPoint(name, float(problem.cost(rep.x)), rep.iterations, rep.converged)
+        )
+    best = min(range(len(starting_points)), key=lambda i: starting_points[i].cost)
+    if best > 0 and starting_points[best].cost < plain.cost - SAME_OPTIMUM_NATS:
+        # Another starting point reached a better optimum: the estimate goes on from there.
+        better = others[best - 1][1]
+        plain = run(
+            problem, True, better.x, fits, final=False, start=better, label=STAGE_FROM_OTHER
+        )
     chosen, time_test, gain_test = plain, None, None
     if budget_left(fits):  # budget left to test a delay
-        delayed = run(problem, False, plain.x, fits, final=False)
+        delayed = run(problem, False, plain.x, fits, final=False, label=STAGE_TIME_OFFSET)
         statistic = 2.0 * (plain.cost - delayed.cost)
         threshold = chi2_one_dof_quantile(TIME_OFFSET_TEST_LEVEL)
         time_test = TimeOffsetTest(
@@ -239,10 +335,23 @@ def maximum_likelihood(
         )
         if gain_test.kept:
             problem = gained
-            chosen = run(gained, not (time_test and time_test.kept), chosen.x, fits)
+            chosen = run(
+                gained,
+                not (time_test and time_test.kept),
+                chosen.x,
+                fits,
+                label=STAGE_GYRO_GAIN,
+            )
     if optimizer == "trust-region" and not (gain_test and gain_test.kept) and budget_left(fits):
         # The chosen fit stopped at the tests' tolerance: refined from where it stopped.
-        chosen = run(problem, not (time_test and time_test.kept), chosen.x, fits, start=chosen)
+        chosen = run(
+            problem,
+            not (time_test and time_test.kept),
+            chosen.x,
+            fits,
+            start=chosen,
+            label=STAGE_REFINE,
+        )
     report = dataclasses.replace(
         chosen,
         iterations=sum(r.iterations for r in fits),
@@ -261,4 +370,5 @@ def maximum_likelihood(
         report=report,
         time_offset_test=time_test,
         gyro_gain_test=gain_test,
+        starting_points=tuple(starting_points),
     )

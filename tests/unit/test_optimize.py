@@ -6,6 +6,7 @@ import pytest
 
 from magcal.calib.likelihood.optimize import (
     OptimizeOptions,
+    gradient_agrees,
     minimize_bfgs,
     minimize_trust_region,
     trust_region_step,
@@ -162,6 +163,34 @@ def test_trust_region_rejects_points_where_the_cost_is_not_finite():
     )
     assert np.isfinite(rep.cost) and rep.x[0] <= 2.0
     assert not rep.converged
+
+
+def test_trust_region_rejects_points_where_the_gradient_disagrees_with_the_cost():
+    # Beyond x = 2 the cost is still right but its gradient is rounding noise of 1e50 (a
+    # covariance at the edge of breaking down): no place to continue from.
+    def fgi(x):
+        g = x - 5.0 if x[0] <= 2.0 else np.full(1, 1e50)
+        return 0.5 * float((x[0] - 5.0) ** 2), g, np.eye(1)
+
+    rep = minimize_trust_region(
+        fgi,
+        lambda x: fgi(x)[:2],
+        lambda x: fgi(x)[0],
+        np.zeros(1),
+        np.ones(1),
+        np.ones(1),
+        OptimizeOptions(max_iter=200),
+    )
+    assert rep.x[0] <= 2.0 and not rep.converged
+
+
+def test_gradient_agreement_along_a_step():
+    quad = lambda x: 0.5 * float(x @ x)  # noqa: E731
+    x, s = np.array([1.0, 2.0]), np.array([-0.5, 0.3])
+    args = (quad(x), x, quad(x + s), x + s, s, 0.1)
+    assert gradient_agrees(*args)
+    assert not gradient_agrees(*args[:3], 1e6 * (x + s), *args[4:])
+    assert not gradient_agrees(*args[:3], np.array([np.nan, 0.0]), *args[4:])
 
 
 def test_trust_region_reports_a_run_out_of_iterations_as_not_converged():

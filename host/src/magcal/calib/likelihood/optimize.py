@@ -425,6 +425,13 @@ def minimize_trust_region(
                 B = _damped_bfgs_update(B, s, g_new - g)
             z, v, g = z + s, v_new, g_new
             history.append(v)
+        if not accepted and since_information > 0:
+            # The step failed on a model partly learnt elsewhere: the information here
+            # first, before any smaller step (a cost whose curvature grew by orders of
+            # magnitude since the last evaluation, as when the noise levels fall from a
+            # conservative start, otherwise costs a collapse of the region and its regrowth).
+            v, g, B = fgi(z)
+            since_information = 0
         if rho < TR_SHRINK_BELOW:
             radius = 0.25 * norm_s
         elif rho > TR_GROW_ABOVE and norm_s >= 0.9 * radius:

@@ -47,6 +47,7 @@ from magcal.calib.calibrate import calibrate
 from magcal.calib.diagnostics import quality
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_algebraic, symmetric_fit
 from magcal.calib.initial.estimate import InitialEstimate
+from magcal.calib.likelihood.optimize import CONVERGED_RULES
 from magcal.calib.likelihood.params import ModelParams
 from magcal.calib.likelihood.problem import LikelihoodProblem
 from magcal.errors import InsufficientDataError, ResultContradictedError
@@ -371,6 +372,11 @@ class Verdict:
     ratio_of_medians: float = float("nan")
     bound: str = ""
     errors: list[str] = field(default_factory=list)
+    #: the ML step's iterations over the runs (NaN where the check runs no ML) and the runs
+    #: whose ML stopped on a rule that certifies no optimum
+    ml_iterations_median: float = float("nan")
+    ml_iterations_max: float = float("nan")
+    ml_not_converged: int = 0
 
     @property
     def passed(self) -> bool:
@@ -397,7 +403,13 @@ def _median(x: np.ndarray) -> float:
 
 def _common(key: str, runs: list[dict]) -> dict:
     secs = _ok(runs, "seconds")
+    iters = _ok(runs, "iterations")
     return {
+        "ml_iterations_median": _median(iters),
+        "ml_iterations_max": float(iters.max()) if iters.size else float("nan"),
+        "ml_not_converged": sum(
+            r.get("stopping_rule") not in (None, *CONVERGED_RULES) for r in runs
+        ),
         "key": key,
         "title": CHECKS[key].title,
         "n_runs": len(runs),

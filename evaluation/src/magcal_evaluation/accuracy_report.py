@@ -168,14 +168,19 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
         "## Summary",
         "",
         "| check | runs | result | bound | failed runs (exception / beyond bound) | "
-        "forced | s per run, median (max) |",
-        "|---|---:|---|---|---:|---:|---:|",
+        "forced | s per run, median (max) | ML iterations, median (max); not converged |",
+        "|---|---:|---|---|---:|---:|---:|---:|",
     ]
     for v in verdicts:
+        iterations = (
+            "–"
+            if not np.isfinite(v.ml_iterations_median)
+            else f"{v.ml_iterations_median:.0f} ({v.ml_iterations_max:.0f}); {v.ml_not_converged}"
+        )
         lines.append(
             f"| {v.title} | {v.n_runs} | {_status(v)} | {v.bound} | {v.n_errors} / "
             f"{v.n_over_bound - v.n_errors} | {v.n_forced} | "
-            f"{_f(v.seconds_median, '{:.2f}')} ({_f(v.seconds_max, '{:.2f}')}) |"
+            f"{_f(v.seconds_median, '{:.2f}')} ({_f(v.seconds_max, '{:.2f}')}) | {iterations} |"
         )
     lines += [
         "",
@@ -189,7 +194,10 @@ def render_markdown(verdicts: list[accuracy.Verdict], meta: dict) -> str:
         "and also needs the SDP's A positive definite in every run (and the library's "
         "algebraic fit never to return a non-positive-definite A). The hand-held check is "
         "per run: ML no worse than the symmetric fit, and an alignment warning, in every "
-        "run. A time is one `calibrate()` call (the scale check: both scales).",
+        "run. A time is one `calibrate()` call (the scale check: both scales). ML "
+        "iterations: the ML step's, over its fits (not the second starting point's, on its "
+        "own thread); not converged: runs whose ML stopped on a rule that certifies no "
+        "optimum.",
         "",
         "## Heading errors (median RMS, degrees)",
         "",

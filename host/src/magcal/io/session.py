@@ -363,9 +363,7 @@ def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int, st
     first = lines[0].strip()
     key, _, version = first.lstrip("#").partition(":")
     if not first.startswith("#") or key.strip() != "magcal-session":
-        raise _error(
-            name, 0, f"expected {FIRST_LINE!r}, found {lines[0][:60]!r}: not a magcal session"
-        )
+        raise _error(name, 0, _not_a_session(lines[0]))
     version = version.strip()
     if version not in SESSION_VERSIONS:
         raise _error(
@@ -394,6 +392,27 @@ def _read_preamble(name: str, lines: list[str]) -> tuple[dict[str, str], int, st
             meta[key.strip()] = value.strip()
     raise SessionFormatError(
         f"reading session {name}: no header line after the metadata; expected {','.join(COLUMNS)!r}"
+    )
+
+
+def _not_a_session(first_line: str) -> str:
+    """What a file whose first line is not ``magcal-session`` lacks, and how to add it."""
+    layout = (
+        "then one row per sample: t in seconds, the gyroscope in rad/s, the accelerometer in "
+        f"m/s² ({FIRST_LINE_MULTI_RATE!r} instead when some rows lack the accelerometer or the "
+        "magnetometer)"
+    )
+    header = {c.strip() for c in first_line.split(",")}
+    if all(c in header for c in COLUMNS):
+        return (
+            f"expected {FIRST_LINE!r}, found the column header {first_line[:60]!r}: add the "
+            f"line {FIRST_LINE!r} above it, as the file's first line; the header follows it, "
+            + layout
+        )
+    return (
+        f"expected {FIRST_LINE!r}, found {first_line[:60]!r}: not a magcal session. A CSV file "
+        f"of samples becomes one with the line {FIRST_LINE!r} first, then the header line "
+        f"{','.join(COLUMNS)!r} (the columns in any order), " + layout
     )
 
 

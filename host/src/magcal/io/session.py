@@ -147,6 +147,18 @@ class Session:
         return bool(np.isnan(self.acc[:, 0]).any() or np.isnan(self.mag[:, 0]).any())
 
 
+def site_latitude_deg(meta: dict[str, str]) -> float | None:
+    """The latitude, degrees north, in a session's ``location`` metadata ("LAT,LON" or
+    "LAT,LON,ALT_KM", degrees north and east, as ``magcal flash --location`` takes it); None
+    when there is none or it does not start with a latitude."""
+    text = meta.get("location", "")
+    try:
+        lat = float(text.split(",")[0])
+    except ValueError:
+        return None
+    return lat if -90.0 <= lat <= 90.0 else None
+
+
 # --------------------------------------------------------------------------------------------
 # Building and validating in memory
 

@@ -65,6 +65,19 @@ MIN_SAMPLES = 10
 DIP_SIGN_SIGMAS = 5.0
 #: m_z below this is 0 to rounding (the same margin as the |m_z| < 1 clip below).
 DIP_SIGN_FLOOR = 1e-9
+#: Latitude, degrees, beyond which a site's magnetic hemisphere (the sign of the dip) is
+#: taken to be its geographic one: the dip equator strays from the geographic equator by
+#: up to about 15° (over South America and South-East Asia).
+HEMISPHERE_LATITUDE_DEG = 20.0
+
+#: What turns the dip's sign, for the warnings: the data cannot tell these apart (each is
+#: the true field with the world turned half a turn, about north or about the vertical).
+DIP_SIGN_CAUSES = (
+    "either the accelerometer's sign is flipped (level and at rest with z up it must read "
+    "about +9.81 m/s² on z, the specific force, not −9.81) or the magnetometer's axes are "
+    "mirrored against the inertial axes (one or three of them negated, or two swapped): "
+    "check the axis mapping"
+)
 
 
 @dataclass(frozen=True, eq=False)
@@ -173,6 +186,44 @@ def _refine(L: np.ndarray, R: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return R, J.T @ J
 
 
+def dip_sign_warnings(
+    m_z: float, margin: float, site_latitude_deg: float | None = None
+) -> list[str]:
+    """The warning (a list of none or one) when the dip's sign is not the site's.
+
+    m_z    : vertical component of the unit field in n (up positive; the dip is −asin m_z)
+    margin : |m_z| below which the dip has no sign to judge
+    site_latitude_deg : degrees north, or None when the site is unknown
+
+    A flipped accelerometer and a mirrored magnetometer both turn the dip's sign, so the
+    warning names both. With the site known (beyond ±HEMISPHERE_LATITUDE_DEG) it warns when
+    the dip's sign is not the hemisphere's; without, when the dip is negative (the field
+    pointing up), saying that the southern hemisphere is the innocent reading.
+    """
+    dip = float(np.degrees(-np.arcsin(np.clip(m_z, -1.0, 1.0))))
+    if abs(m_z) <= margin:
+        return []
+    points = "up" if m_z > 0.0 else "down"
+    if site_latitude_deg is not None and abs(site_latitude_deg) >= HEMISPHERE_LATITUDE_DEG:
+        expected = "down" if site_latitude_deg > 0.0 else "up"
+        if points == expected:
+            return []
+        hemisphere = "N" if site_latitude_deg > 0.0 else "S"
+        return [
+            f"alignment: the estimated dip is {dip:+.1f}° (the field points {points}), but at "
+            f"the session's location, latitude {abs(site_latitude_deg):.1f}°{hemisphere}, it "
+            f"points {expected}: {DIP_SIGN_CAUSES}"
+        ]
+    if points == "down":
+        return []
+    return [
+        f"alignment: the estimated dip is negative ({dip:.1f}°: the field points up, as in the "
+        "southern magnetic hemisphere); if the session was recorded in the northern "
+        f"hemisphere, {DIP_SIGN_CAUSES}. A line '# location: LAT,LON' in the session tells a "
+        "southern site from these faults"
+    ]
+
+
 def estimate_alignment_from_vertical(
     mag: np.ndarray,
     o: np.ndarray,
@@ -181,6 +232,7 @@ def estimate_alignment_from_vertical(
     weights: np.ndarray | None = None,
     *,
     expected_dip_sign: int | None = None,
+    site_latitude_deg: float | None = None,
 ) -> Alignment:
     """Solve eq. 27 given the body-frame vertical directly.
 
@@ -193,6 +245,8 @@ def estimate_alignment_from_vertical(
               when the SO(3) solution's dip has the other sign, the reflected solution
               ``−R_D`` (the magnetometer axes mirrored against the inertial axes) is returned
               with a warning.
+    site_latitude_deg : optional, degrees north, where the session was recorded: only to
+              word the warning about the dip's sign (:func:`dip_sign_warnings`).
 
     See the module docstring for the method. Raises :class:`InsufficientDataError` for too
     few samples or all-zero weights.
@@ -267,15 +321,11 @@ def estimate_alignment_from_vertical(
         R_D, m_z = -R_D, -m_z
         warnings.append(
             "alignment: the magnetometer axes appear mirrored against the inertial axes "
-            "(det D < 0) given the expected sign of the dip; check the axis mapping"
+            "(det D < 0) given the expected sign of the dip, or the accelerometer's sign is "
+            "flipped; check the axis mapping"
         )
-    elif expected_dip_sign is None and m_z > m_z_margin:
-        warnings.append(
-            f"alignment: the estimated dip is negative ({np.degrees(-np.arcsin(min(m_z, 1.0))):.1f}"
-            "°, field pointing up: southern magnetic hemisphere); if the recording was made "
-            "in the northern hemisphere the magnetometer axes are mirrored against the "
-            "inertial axes: check the axis mapping"
-        )
+    elif expected_dip_sign is None:
+        warnings += dip_sign_warnings(m_z, m_z_margin, site_latitude_deg)
     limit = 1.0 - 1e-9
     if abs(m_z) > limit:
         warnings.append(
@@ -311,6 +361,7 @@ def estimate_alignment(
     weights: np.ndarray | None = None,
     *,
     expected_dip_sign: int | None = None,
+    site_latitude_deg: float | None = None,
 ) -> Alignment:
     """Misalignment ``R_D`` and ``m_z`` (paper eq. 27) from an inertial-only attitude.
 
@@ -320,7 +371,7 @@ def estimate_alignment(
     q_nb    : (N, 4) float, scalar-first unit quaternions body → nav (an EKF using gyro and
               accelerometer only: only the inclination matters, heading may drift)
     weights : optional (N,) float ≥ 0 (e.g. :func:`acceleration_weights`)
-    expected_dip_sign : see :func:`estimate_alignment_from_vertical`
+    expected_dip_sign, site_latitude_deg : see :func:`estimate_alignment_from_vertical`
 
     Only the vertical row of ``R_nb,t`` enters: ``v_b,t = R_bn,t (0, 0, 1)`` = the third row
     of ``R_nb,t``.
@@ -335,5 +386,11 @@ def estimate_alignment(
         [2.0 * (x * z - w * y), 2.0 * (y * z + w * x), 1.0 - 2.0 * (x * x + y * y)]
     )
     return estimate_alignment_from_vertical(
-        mag, o, D_tilde, v_b, weights, expected_dip_sign=expected_dip_sign
+        mag,
+        o,
+        D_tilde,
+        v_b,
+        weights,
+        expected_dip_sign=expected_dip_sign,
+        site_latitude_deg=site_latitude_deg,
     )

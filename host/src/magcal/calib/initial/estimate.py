@@ -25,7 +25,7 @@ from magcal.calib.initial.ellipsoid import EllipsoidFit, fit_ellipsoid_sdp
 from magcal.calib.initial.sensor_levels import SensorLevels, measure_sensor_levels
 from magcal.calib.likelihood import mekf
 from magcal.calib.likelihood.params import ModelParams
-from magcal.io.session import Session
+from magcal.io.session import Session, site_latitude_deg
 
 
 @dataclass(frozen=True)
@@ -91,7 +91,14 @@ def initial_estimate(session: Session, fit: EllipsoidFit | None = None) -> Initi
     t0 = time.perf_counter()
     q_inertial = inertial_attitude(session, levels)
     weights = acceleration_weights(session.acc, g=levels.g)
-    alignment = estimate_alignment(session.mag, fit.o, fit.D_tilde, q_inertial, weights)
+    alignment = estimate_alignment(
+        session.mag,
+        fit.o,
+        fit.D_tilde,
+        q_inertial,
+        weights,
+        site_latitude_deg=site_latitude_deg(session.meta),
+    )
     seconds["alignment"] = time.perf_counter() - t0
 
     params = ModelParams(

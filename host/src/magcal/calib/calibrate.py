@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from magcal.calib import samples
-from magcal.calib.diagnostics import consistency, observability, quality
+from magcal.calib.diagnostics import consistency, observability, quality, units
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
 from magcal.calib.initial.estimate import InitialEstimate, initial_estimate
 from magcal.calib.initial.sensor_levels import measure_sensor_levels
@@ -136,11 +136,14 @@ def calibrate(
     priors: Priors = Priors(),
     optimizer: str = OPTIMIZERS[0],
     stage: Callable[[str], None] | None = None,
+    declared_units: units.SessionUnits = units.SessionUnits(),
 ) -> Calibration:
     """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
     or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see
     :data:`NORM_ONLY`). ``optimizer``: the ML step's (``likelihood.ml.OPTIMIZERS``).
-    ``stage(text)`` is told as each step starts; ``progress`` at each ML iteration."""
+    ``stage(text)`` is told as each step starts; ``progress`` at each ML iteration.
+    ``declared_units``: the units the session's columns were given in (converted first; the
+    others are checked against physics, ``diagnostics.units``)."""
 
     def announce(text: str) -> None:
         if stage:
@@ -150,6 +153,7 @@ def calibrate(
         raise MagcalError(f"unknown method {method!r}: choose one of {', '.join(METHODS)}")
     if not session.has_acc.any():
         raise MagcalError("the session has no accelerometer sample: record the accelerometer")
+    session = units.checked_session(session, declared_units)
     seconds = {}
     session, mag_samples = samples.drop_magnetometer_glitches(session)
     # Everything that works per magnetometer sample sees this view (the session itself
@@ -200,6 +204,7 @@ def calibrate(
             "total_rotation_rad": report.total_rotation_rad,
         },
         "magnetometer_samples": mag_samples.as_dict(),
+        "input_units": declared_units.as_dict(),
     }
     if method_record is not None:
         extra[NORM_ONLY_KEYS[method]] = method_record

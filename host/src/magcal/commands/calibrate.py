@@ -17,6 +17,11 @@ from magcal.errors import MagcalError
 CALIBRATION_METHODS = ("ml", "init", "ckf", "two-step")
 #: The ML step's optimisers (magcal.calib.likelihood.ml.OPTIMIZERS), the default first.
 ML_OPTIMIZERS = ("trust-region", "bfgs")
+#: The units a session's columns may be given in, the session format's first (the keys of
+#: TIME_UNITS, GYRO_UNITS and ACC_UNITS of magcal.calib.diagnostics.units).
+TIME_UNITS = ("s", "ms", "us")
+GYRO_UNITS = ("rad/s", "deg/s")
+ACC_UNITS = ("m/s2", "g", "mg")
 
 
 def add_parser(sub) -> None:
@@ -76,6 +81,34 @@ def add_parser(sub) -> None:
         "axes, centred on the nearest axis permutation, e.g. 5deg or 0.1rad (a bare number is "
         "degrees); default none. For a magnetometer mounted along the IMU's axes: data that "
         "cannot tell then fall back to aligned axes",
+    )
+    units_note = (
+        "; without it the column must be in {0}, and a session that looks like another unit "
+        "is refused, naming it (told from {1})"
+    )
+    p.add_argument(
+        "--time-unit",
+        choices=TIME_UNITS,
+        default=None,
+        help="the unit of the session's t column (us: microseconds), converted to seconds "
+        "before calibrating"
+        + units_note.format(
+            "seconds", "its step and from the gyroscope's turn against the accelerometer's"
+        ),
+    )
+    p.add_argument(
+        "--gyro-unit",
+        choices=GYRO_UNITS,
+        default=None,
+        help="the unit of the session's gyroscope columns, converted to rad/s before "
+        "calibrating" + units_note.format("rad/s", "its turn against the accelerometer's"),
+    )
+    p.add_argument(
+        "--acc-unit",
+        choices=ACC_UNITS,
+        default=None,
+        help="the unit of the session's accelerometer columns (g: 9.80665 m/s²), converted "
+        "to m/s² before calibrating" + units_note.format("m/s²", "its reading at rest"),
     )
     p.add_argument("--truth", help="truth JSON of a simulated session: also print errors")
     p.set_defaults(run=run)
@@ -301,13 +334,14 @@ def _write_plots(cal, session, directory: str) -> list[Path]:
 
 def run(args) -> int:
     from magcal.calib.calibrate import calibrate
-    from magcal.calib.diagnostics import observability
+    from magcal.calib.diagnostics import observability, units
     from magcal.calib.initial import ellipsoid
     from magcal.calib.likelihood.problem import Priors
     from magcal.io.result import check_result_writable, write_result
     from magcal.io.session import os_error_advice, read_session
 
     # Everything a typo can break is checked before calibrating: an ML run takes a while.
+    declared = units.SessionUnits(t=args.time_unit, gyr=args.gyro_unit, acc=args.acc_unit)
     if args.optimizer is None:
         args.optimizer = ML_OPTIMIZERS[0] if args.gradient == "exact" else "bfgs"
     if args.optimizer == "trust-region" and args.gradient != "exact":
@@ -336,9 +370,12 @@ def run(args) -> int:
             priors=Priors(
                 gyro_bias_rad_s=args.gyro_bias_prior, misalignment_rad=args.misalignment_prior
             ),
+            declared_units=declared,
         )
     finally:
         progress.done()
+    # What the calibration saw: the plots' time axis in seconds.
+    session = units.convert(session, declared)
     # Save the result first: nothing printed or plotted below may lose it.
     if args.output:
         write_result(args.output, cal.result)

@@ -55,16 +55,29 @@ $(LATEST_VENV)/.installed: host/pyproject.toml host/setup.py evaluation/pyprojec
 # versions and they add minutes without touching a library the unit tests do not: the
 # autopilot SITL (minutes of simulated flight), the SIL device, the accuracy checks, the
 # real recordings and the browser.
+# When every version installed there is the locked one (the lock is fresh), the suite would
+# run on exactly the libraries `make test` runs it on, so it is not run twice: the target says
+# so and stops (the product installed without the editable link is `make check-install`'s).
+# Like `make test`, it runs PYTEST_WORKERS processes (the Makefile).
 LATEST_TESTS := tests/unit tests/protocol tests/firmware tests/autopilot
+LATEST_FREEZE := $(dir $(LATEST_LOG))freeze.txt
 test-latest: setup firmware-lib sil
 	@mkdir -p $(dir $(LATEST_LOG))
 	@if ! $(MAKE) --no-print-directory $(LATEST_VENV)/.installed > $(dir $(LATEST_LOG))install.log 2>&1; then \
 		echo "test-latest: installing the newest allowed versions failed (see $(dir $(LATEST_LOG))install.log):"; \
 		grep -v 'WARNING: Location' $(dir $(LATEST_LOG))install.log | tail -5; exit 0; fi
-	@$(LATEST_VENV)/bin/python -m pip freeze --all $(addprefix --exclude ,$(LOCK_OWN)) 2>/dev/null \
-		| grep -vxFf $(LOCK) | sed 's/^/test-latest: newer than the lock: /' || true
-	@status=0; timeout 900 $(LATEST_VENV)/bin/python -m pytest -q -p no:cacheprovider \
-		$(LATEST_TESTS) > $(LATEST_LOG) 2>&1 \
+	@if ! $(LATEST_VENV)/bin/python -m pip freeze --all $(addprefix --exclude ,$(LOCK_OWN)) \
+			> $(LATEST_FREEZE) 2>/dev/null || [ ! -s $(LATEST_FREEZE) ]; then \
+		echo "test-latest: pip freeze listed nothing in $(LATEST_VENV); running the suite"; \
+	else \
+		grep -vxFf $(LOCK) $(LATEST_FREEZE) > $(LATEST_FREEZE).newer; found=$$?; \
+		if [ $$found -eq 1 ]; then \
+			echo "test-latest: the newest allowed versions are the locked ones ($$(wc -l < $(LATEST_FREEZE)) packages), on which make test runs the suite: not run twice"; \
+			exit 0; fi; \
+		sed 's/^/test-latest: newer than the lock: /' $(LATEST_FREEZE).newer; \
+	fi; \
+	status=0; timeout 900 $(LATEST_VENV)/bin/python -m pytest -q -p no:cacheprovider \
+		-n $(PYTEST_WORKERS) $(LATEST_TESTS) > $(LATEST_LOG) 2>&1 \
 		|| status=$$?; \
 	summary=$$(tail -1 $(LATEST_LOG)); \
 	echo "test-latest: with the newest allowed versions the suite ended with status $$status ($$summary)"; \

@@ -14,6 +14,7 @@ import importlib
 import pkgutil
 import re
 import sys
+import textwrap
 import warnings
 from importlib import metadata
 
@@ -37,10 +38,57 @@ VERBOSE_LOGGERS = ("magcal.link", "magcal.device", "magcal.autopilot")
 _NEGATIVE_VALUE = re.compile(r"^-\.?\d")
 
 
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """How every command's ``--help`` is laid out.
+
+    An option's default is shown, "(default: ml)", unless it says nothing (None, False: the
+    option unset) or the help already tells it in its own words. The description and the
+    epilog are wrapped paragraph by paragraph to the terminal's width, but an indented line,
+    an example command line of the epilog, is kept as written (argparse's
+    RawDescriptionHelpFormatter would keep every line break, and leave a long paragraph
+    running past the terminal's edge). Lines never break at a hyphen, so that an option or a
+    value (--max-samples, two-step, yaw-only) reads, and copies, whole."""
+
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        # "is", not "in": a default of 0 (== False) is a value worth showing.
+        unset = any(action.default is v for v in (None, False, argparse.SUPPRESS))
+        if unset or "default" in (action.help or "").lower():
+            return action.help
+        return super()._get_help_string(action)
+
+    def _split_lines(self, text: str, width: int) -> list[str]:
+        return textwrap.wrap(" ".join(text.split()), width, break_on_hyphens=False)
+
+    def _fill_text(self, text: str, width: int, indent: str) -> str:
+        lines: list[str] = []
+        paragraph: list[str] = []
+        for line in [*text.splitlines(), ""]:
+            if line.strip() and not line[0].isspace():
+                paragraph.extend(line.split())
+                continue
+            if paragraph:
+                lines.append(
+                    textwrap.fill(
+                        " ".join(paragraph),
+                        width,
+                        initial_indent=indent,
+                        subsequent_indent=indent,
+                        break_on_hyphens=False,
+                    )
+                )
+                paragraph = []
+            lines.append(indent + line.rstrip() if line.strip() else "")
+        return "\n".join(lines).rstrip("\n")
+
+
 class Parser(argparse.ArgumentParser):
     """An ArgumentParser that takes ``--location -35.3,149.2`` (or any option value that starts
     with a minus and a digit) as the option's value, as ``--location=-35.3,149.2`` is taken;
-    plain argparse reads such a value as an unknown option. Its subparsers are Parsers too."""
+    plain argparse reads such a value as an unknown option. Its subparsers are Parsers too,
+    and so lay out their help with :class:`HelpFormatter` unless given another formatter."""
+
+    def __init__(self, *args, formatter_class=HelpFormatter, **kwargs) -> None:
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
 
     def parse_known_args(self, args=None, namespace=None):
         args = sys.argv[1:] if args is None else list(args)

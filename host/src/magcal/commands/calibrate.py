@@ -25,13 +25,24 @@ ACC_UNITS = ("m/s2", "g", "mg")
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("calibrate", help="calibrate a session (Kok & Schön Algorithm 1)")
-    p.add_argument("session", help="session CSV (magcal-session: 1)")
+    p = sub.add_parser(
+        "calibrate",
+        help="calibrate a session (Kok & Schön Algorithm 1)",
+        description="Calibrate a recorded or simulated session: estimate the magnetometer's "
+        "distortion D and offset o (soft and hard iron, scale, misalignment to the IMU), the "
+        "field's dip and the gyroscope's bias, and check the result against the session. "
+        "Prints a summary and writes the result that magcal flash and magcal report read.",
+        epilog="examples:\n"
+        "  magcal calibrate session.csv -o result.json\n"
+        "  magcal calibrate session.csv -o result.json --truth session.truth.json --plot plots\n"
+        "  magcal calibrate log.csv --time-unit ms --gyro-unit deg/s --acc-unit g -o result.json",
+    )
+    p.add_argument("session", help="session CSV (magcal-session: 1 or 2)")
     p.add_argument(
         "--method",
         default="ml",
         choices=CALIBRATION_METHODS,
-        help="ml: maximum likelihood, Kok & Schön's Algorithm 1 (default); init: its initial "
+        help="ml: maximum likelihood, Kok & Schön's Algorithm 1; init: its initial "
         "estimate (step 1) only; ckf: Zhao et al.'s cubature Kalman filter, sample by sample; "
         "two-step: Alonso & Shuster's TWO-STEP. ckf and two-step fit the ellipsoid from the "
         "field norm alone and take the misalignment from init's alignment step",
@@ -110,7 +121,12 @@ def add_parser(sub) -> None:
         help="the unit of the session's accelerometer columns (g: 9.80665 m/s²), converted "
         "to m/s² before calibrating" + units_note.format("m/s²", "its reading at rest"),
     )
-    p.add_argument("--truth", help="truth JSON of a simulated session: also print errors")
+    p.add_argument(
+        "--truth",
+        metavar="TRUTH.json",
+        help="the truth magcal simulate wrote with the session: also print the heading errors "
+        "the calibration leaves",
+    )
     p.set_defaults(run=run)
 
 

@@ -51,7 +51,19 @@ def _coverage_arg(text: str) -> float | None:
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("collect", help="record a calibration session from the device")
+    p = sub.add_parser(
+        "collect",
+        help="record a calibration session from the device",
+        description="Record a calibration session from a device running magcal's firmware "
+        "(--port) or from an ArduPilot or PX4 autopilot (--mavlink) while you turn it slowly "
+        "through all orientations. Progress shows the field directions covered and says when "
+        "it is enough to stop; it stops at the coverage target, --duration, "
+        "--max-samples or Ctrl-C, and whatever was recorded is written.",
+        epilog="examples:\n"
+        "  magcal collect --port /dev/ttyACM0 -o session.csv\n"
+        "  magcal collect --mavlink udpin:0.0.0.0:14550 --compass 2 -o session.csv\n"
+        "  magcal collect --port /dev/ttyACM0 --duration 90 --coverage off -o session.csv",
+    )
     add_link_arguments(p)
     p.add_argument("-o", "--output", required=True, help="session CSV to write")
     p.add_argument("--duration", type=positive(float), metavar="S", help="stop after S seconds")

@@ -29,6 +29,10 @@ def add_parser(sub) -> None:
         "MAVLink telemetry .tlog (ArduPilot or PX4) or PX4 .ulg. The autopilot's compass "
         "correction is undone with the parameters in force; the stretch where the vehicle was "
         "turned by hand is found from the gyroscope unless --start/--end give the range.",
+        epilog="examples:\n"
+        "  magcal import flight.bin -o session.csv\n"
+        "  magcal import flight.tlog -o session.csv\n"
+        "  magcal import log.ulg --compass 2 --start 120 --end 180 -o session.csv",
     )
     p.add_argument("log", help="the flight log (.bin, .tlog or .ulg)")
     p.add_argument("-o", "--output", required=True, help="session CSV to write")
@@ -38,14 +42,14 @@ def add_parser(sub) -> None:
         default=1,
         metavar="N",
         help="magnetometer to import, 1 = the first (ArduPilot MAG instance 0, PX4 sensor_mag "
-        "instance 0); default 1",
+        "instance 0)",
     )
     p.add_argument(
         "--imu",
         type=positive(int),
         default=1,
         metavar="N",
-        help="IMU to pair it with, 1 = the first; default 1",
+        help="IMU to pair it with, 1 = the first",
     )
     p.add_argument("--start", type=finite, metavar="S", help="import from S seconds (log time)")
     p.add_argument("--end", type=finite, metavar="S", help="import up to S seconds (log time)")

@@ -21,7 +21,16 @@ from magcal.commands.common import (
 
 def add_parser(sub) -> None:
     p = sub.add_parser(
-        "info", help="show the device's (or autopilot's) firmware, sensors and compass parameters"
+        "info",
+        help="show the device's (or autopilot's) firmware, sensors and compass parameters",
+        description="Show what a device running magcal's firmware says about itself: its "
+        "firmware, protocol version, parameter format, sample rate and sensors with their exact "
+        "scales. With --mavlink: the autopilot, its firmware and each compass with its "
+        "parameters in force. It only reads: nothing is written to the device or the vehicle.",
+        epilog="examples:\n"
+        "  magcal info --port /dev/ttyACM0\n"
+        "  magcal info --mavlink udpin:0.0.0.0:14550\n"
+        "  magcal info --mavlink /dev/ttyACM0,115200 --compass 2",
     )
     add_link_arguments(p)
     p.set_defaults(run=run)

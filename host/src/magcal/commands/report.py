@@ -17,6 +17,13 @@ def add_parser(sub) -> None:
         "report",
         help="write a self-contained HTML report: the calibration, its uncertainty, the "
         "figures, and a validation on another session",
+        description="Write one self-contained HTML file about a calibration: the result with "
+        "its uncertainty, naming any direction of the parameters the session cannot determine, "
+        "and figures of the result applied to the session it was calibrated from. --validate "
+        "also applies it to a second session, not used for the fit.",
+        epilog="examples:\n"
+        "  magcal report result.json session.csv -o report.html\n"
+        "  magcal report result.json session.csv --validate other.csv -o report.html",
     )
     p.add_argument("result", help="result JSON (magcal-result/1) written by magcal calibrate")
     p.add_argument("session", help="the session CSV the result was calibrated from")

@@ -34,10 +34,24 @@ DEFAULT_MAX_SPREAD_PCT = 2.0
 
 
 def add_parser(sub) -> None:
-    p = sub.add_parser("verify", help="measure the device's corrected output (norm, heading)")
+    p = sub.add_parser(
+        "verify",
+        help="measure the device's corrected output (norm, heading)",
+        description="Stream the device's corrected field and measure it: the spread of its norm "
+        "and, from a raw stream or a recorded session, the heading consistency. Exits 1 when "
+        "the spread exceeds --max-spread or the output disagrees with the parameter set the "
+        "device reports. With --mavlink: the field the autopilot corrects with its parameters "
+        "in force.",
+        epilog="examples:\n"
+        "  magcal verify --port /dev/ttyACM0\n"
+        "  magcal verify --port /dev/ttyACM0 --samples 2000 --max-spread 1\n"
+        "  magcal verify --mavlink udpin:0.0.0.0:14550 --session session.csv",
+    )
     add_link_arguments(p)
     how_long = p.add_mutually_exclusive_group()
-    how_long.add_argument("--duration", type=positive(float), metavar="S", help="stream S s")
+    how_long.add_argument(
+        "--duration", type=positive(float), metavar="S", help="stream for S seconds"
+    )
     how_long.add_argument(
         "--samples", type=positive(int), metavar="N", help="stream N samples (default 500)"
     )

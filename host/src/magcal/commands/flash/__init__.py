@@ -37,6 +37,10 @@ def add_parser(sub) -> None:
         "map it to ArduPilot or PX4 compass parameters (field strength from --location or "
         "--field), back up the values in force, write each and confirm it from the vehicle's "
         "echo.",
+        epilog="examples:\n"
+        "  magcal flash result.json --port /dev/ttyACM0\n"
+        "  magcal flash result.json --mavlink udpin:0.0.0.0:14550 --location 52.1,5.2 --dry-run\n"
+        "  magcal flash --restore result.backup-*.json --port /dev/ttyACM0",
     )
     p.add_argument("result", nargs="?", help="calibration result JSON (magcal-result/1)")
     add_link_arguments(p)

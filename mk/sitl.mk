@@ -3,6 +3,10 @@
 # checkout by default) and PX4 SITL with SIH from PX4SITL_DIR (../shared/px4sitl). `make
 # test-sitl` runs tests/autopilot_sitl (the real command line against the simulated vehicles);
 # an autopilot whose SITL is absent is skipped with a message. `make test` runs it too.
+# The simulators mostly wait for the clock, so the two files run side by side in
+# PYTEST_WORKERS processes (the Makefile), one file to a process (--dist loadfile): ArduPilot's
+# cases one after another (their SITL instances are picked one at a time), and PX4's tests on
+# the one vehicle of their module. 307 s of tests ran in 200 s so beside a busy machine.
 
 .PHONY: test-sitl bench-sitl
 
@@ -18,7 +22,7 @@ test-sitl: setup
 	fi
 	@if [ -x "$(SITL_DIR)/arducopter" ] || [ -f "$(PX4SITL_DIR)/px4-sih.tar.gz" ]; then \
 		MAGCAL_SITL_DIR="$(abspath $(SITL_DIR))" MAGCAL_PX4SITL_DIR="$(abspath $(PX4SITL_DIR))" \
-			$(PY) -m pytest -q tests/autopilot_sitl; \
+			$(PY) -m pytest -q -n $(PYTEST_WORKERS) --dist loadfile tests/autopilot_sitl; \
 	fi
 
 TEST_EXTRA += test-sitl

@@ -76,12 +76,26 @@ STAGE_REFINE = "ML, refining the chosen fit"
 #: Two fits stopped at the tests' tolerance whose costs differ by less than this (nats)
 #: found the same optimum: the estimate moves to another starting point's only beyond it.
 SAME_OPTIMUM_NATS = 10.0 * INTERMEDIATE_DECREMENT_TOL
+#: A fit from another starting point is left unfinished (its optimum unknown) once it has
+#: run this many times the iterations the initial estimate's fit took (at least
+#: :data:`CHECK_MIN_ITERATIONS`): fits that reach the same optimum take about as many
+#: (19 and 20 on broad35_magnet4cm), and the estimate waits for the check.
+CHECK_ITERATIONS_FACTOR = 1.5
+CHECK_MIN_ITERATIONS = 10
 #: Two starting points' optima are "clearly different" when twice their cost difference
 #: exceeds the χ²₁ quantile at this level, as a parameter the tests would keep.
 DIFFERENT_OPTIMA_LEVEL = TIME_OFFSET_TEST_LEVEL
 #: Significance level of the test that allows for the gyroscope's gain error: the same as
 #: the time offset's, as if the gain error were one more parameter.
 GYRO_GAIN_TEST_LEVEL = TIME_OFFSET_TEST_LEVEL
+
+
+class _Abandoned(Exception):
+    """Raised through the optimiser to leave a check's fit unfinished."""
+
+    def __init__(self, iterations: int) -> None:
+        super().__init__(iterations)
+        self.iterations = iterations
 
 
 def chi2_one_dof_quantile(level: float) -> float:
@@ -125,10 +139,11 @@ class GyroGainTest:
 class StartingPoint:
     """Where the paper's model (τ = 0) was fitted from, and the optimum it reached: its
     ``cost`` on the estimate's own problem (the same normalisation, priors and starting
-    attitude), so that the starting points' optima compare."""
+    attitude), so that the starting points' optima compare; None for a fit left unfinished
+    (:data:`CHECK_ITERATIONS_FACTOR`)."""
 
     name: str
-    cost: float
+    cost: float | None
     iterations: int
     converged: bool
 
@@ -150,7 +165,9 @@ class MLEstimate:
     def different_optima(self) -> tuple[StartingPoint, StartingPoint] | None:
         """The best and the worst starting point's optima when they are clearly different
         (2 ΔV beyond the tests' threshold, :data:`DIFFERENT_OPTIMA_LEVEL`), else None."""
-        ranked = sorted(self.starting_points, key=lambda s: s.cost)
+        ranked = sorted(
+            (p for p in self.starting_points if p.cost is not None), key=lambda p: p.cost
+        )
         if len(ranked) >= 2 and different(ranked[0], ranked[-1]):
             return ranked[0], ranked[-1]
         return None
@@ -206,6 +223,7 @@ def maximum_likelihood(
         start: OptimizeReport | None = None,
         report_progress: bool = True,
         label: str = "",
+        abandon: Callable[[int], bool] | None = None,
     ) -> OptimizeReport:
         # Exact gradients: cost and gradient together at every trial point, since nearly
         # every step is accepted at α = 1 and a cost-only line search would pay for the
@@ -228,6 +246,8 @@ def maximum_likelihood(
             stage(label)
 
         def progress_after(iteration: int, cost: float, decrement: float) -> None:
+            if abandon and abandon(iteration):
+                raise _Abandoned(iteration)
             if progress and report_progress:
                 progress(before + iteration, cost, decrement)
 
@@ -280,34 +300,49 @@ def maximum_likelihood(
     # The fits before the last are compared by their cost alone (the tests), so they stop
     # once their remaining decrease is far below what a test can see; whichever is chosen
     # is refined to the final tolerance.
-    def fit_from(p: ModelParams) -> OptimizeReport | None:
-        """The paper's model fitted from ``p``; None where the cost is not finite there."""
+    main_iterations: list[int] = []  # the initial estimate's fit's, once it has ended
+
+    def too_long(iteration: int) -> bool:
+        return bool(main_iterations) and iteration > CHECK_ITERATIONS_FACTOR * max(
+            main_iterations[0], CHECK_MIN_ITERATIONS
+        )
+
+    def fit_from(p: ModelParams) -> OptimizeReport | int | None:
+        """The paper's model fitted from ``p``; None where the cost is not finite there,
+        the iterations run where it was left unfinished."""
         other = LikelihoodProblem.for_ml_step(session, init, at=p, priors=priors)
         x0 = other.theta0.copy()
         x0[INDEX_TIME_OFFSET] = 0.0
         try:
-            return run(other, True, x0, [], final=False, report_progress=False)
+            return run(other, True, x0, [], final=False, report_progress=False, abandon=too_long)
         except CalibrationError:
             return None
+        except _Abandoned as stop:
+            return stop.iterations
 
     with ThreadPoolExecutor(max_workers=1) as pool:
         # The kernels release the GIL: on two cores the other starting points cost little
         # wall time.
         pending = [(name, pool.submit(fit_from, p)) for name, p in other_starts]
         plain = run(problem, True, theta0, fits, final=False, label=STAGE_PLAIN)
+        main_iterations.append(plain.iterations)
         others = [(name, future.result()) for name, future in pending]
-    others = [(name, rep) for name, rep in others if rep is not None]
     starting_points = [
         StartingPoint("the initial estimate", plain.cost, plain.iterations, plain.converged)
     ]
+    reached = {}
     for name, rep in others:
-        starting_points.append(
-            StartingPoint(name, float(problem.cost(rep.x)), rep.iterations, rep.converged)
-        )
-    best = min(range(len(starting_points)), key=lambda i: starting_points[i].cost)
+        if isinstance(rep, OptimizeReport):
+            reached[len(starting_points)] = rep
+            starting_points.append(
+                StartingPoint(name, float(problem.cost(rep.x)), rep.iterations, rep.converged)
+            )
+        elif rep is not None:
+            starting_points.append(StartingPoint(name, None, rep, False))
+    best = min(reached, key=lambda i: starting_points[i].cost, default=0)
     if best > 0 and starting_points[best].cost < plain.cost - SAME_OPTIMUM_NATS:
         # Another starting point reached a better optimum: the estimate goes on from there.
-        better = others[best - 1][1]
+        better = reached[best]
         plain = run(
             problem, True, better.x, fits, final=False, start=better, label=STAGE_FROM_OTHER
         )

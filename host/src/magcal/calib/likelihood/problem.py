@@ -567,7 +567,8 @@ class LikelihoodProblem:
     def prior(self, theta: np.ndarray) -> tuple[float, np.ndarray]:
         """The priors' negative log density (up to a constant) and its gradient (35,)."""
         r = theta - self.prior_mean
-        value = 0.5 * float(np.sum(self.prior_precision * r * r))
+        with np.errstate(over="ignore"):  # a trial point far out: an infinite cost, refused
+            value = 0.5 * float(np.sum(self.prior_precision * r * r))
         grad = self.prior_precision * r
         if self.misalignment_sigma_rad is not None:
             v, g = misalignment_penalty(

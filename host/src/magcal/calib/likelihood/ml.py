@@ -19,6 +19,11 @@ from there with it. A simulated gyroscope with an exact gain, or a gyroscope who
 errors are too small to show, keeps the first estimate; a real one turned fast shows its
 gain error as turns that miss by a share of their size.
 
+Beside the fit of the paper's model from θ₀, the same fit runs from every other starting
+point the caller gives (``other_starts``: the pipeline gives the initial estimate with its
+ellipsoid from TWO-STEP), on a second thread; the estimate goes on from the best optimum,
+and :meth:`MLEstimate.different_optima` names clearly different ones.
+
 The problem (data, normalisation, scales, priors, cost and gradients) is built by
 ``problem.py``; this module runs the optimiser on it and maps the result back to raw
 magnetometer units on the canonical branch of the likelihood's symmetries.

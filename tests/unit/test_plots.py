@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import subprocess
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,6 +18,7 @@ from magcal.report.plots import (
 )
 
 PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def assert_png(path):
@@ -73,13 +75,23 @@ def test_heading_rmse_histograms_write_png(tmp_path, rng):
     assert_png(plot_heading_rmse_histograms(init, ml, tmp_path / "fig8.png"))
 
 
-def test_pyplot_is_not_used(tmp_path, rng):
-    # Importing pyplot selects a backend globally; the module must not need it.
-    if "matplotlib.pyplot" in sys.modules:
-        pytest.skip("another test imported pyplot already")
-    raw, cal = sphere_data(rng, 50)
-    plot_ellipsoid_sphere(raw, cal, tmp_path / "a.png")
-    assert "matplotlib.pyplot" not in sys.modules
+def test_pyplot_is_not_used(tmp_path):
+    # Importing pyplot selects a backend globally; the module must not need it. In a fresh
+    # interpreter: in this one, another test of the same process may have imported pyplot.
+    code = (
+        "import sys, numpy as np\n"
+        "from magcal.report.plots import plot_ellipsoid_sphere\n"
+        "from tests.unit.test_plots import sphere_data\n"
+        "raw, cal = sphere_data(np.random.default_rng(3), 50)\n"
+        f"plot_ellipsoid_sphere(raw, cal, {str(tmp_path / 'a.png')!r})\n"
+        "print('matplotlib.pyplot' in sys.modules)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=REPO_ROOT
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["False"]
+    assert_png(tmp_path / "a.png")
 
 
 def test_matplotlib_is_loaded_only_to_draw(tmp_path, rng):

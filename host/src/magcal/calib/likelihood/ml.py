@@ -302,9 +302,6 @@ def maximum_likelihood(
     theta0[INDEX_TIME_OFFSET] = 0.0
     fits: list[OptimizeReport] = []
 
-    # The fits before the last are compared by their cost alone (the tests), so they stop
-    # once their remaining decrease is far below what a test can see; whichever is chosen
-    # is refined to the final tolerance.
     main_iterations: list[int] = []  # the initial estimate's fit's, once it has ended
 
     def too_long(iteration: int) -> bool:
@@ -329,6 +326,9 @@ def maximum_likelihood(
         # The kernels release the GIL: on two cores the other starting points cost little
         # wall time.
         pending = [(name, pool.submit(fit_from, p)) for name, p in other_starts]
+        # The fits before the last are compared by their cost alone (the tests), so they stop
+        # once their remaining decrease is far below what a test can see; whichever is chosen
+        # is refined to the final tolerance.
         plain = run(problem, True, theta0, fits, final=False, label=STAGE_PLAIN)
         main_iterations.append(plain.iterations)
         others = [(name, future.result()) for name, future in pending]

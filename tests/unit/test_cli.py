@@ -1,6 +1,7 @@
 # SPDX-License-Identifier: Apache-2.0
 """The command line as a user runs it: files in, files out, exit codes and messages."""
 
+import io
 import json
 import os
 import re
@@ -318,3 +319,18 @@ def test_verbose_shows_the_link_log_on_stderr(capsys):
     configure_output(build_parser().parse_args(["info", "--port", "/dev/null"]))
     logging.getLogger("magcal.link.serial_link").debug("opened /dev/ttyACM1")
     assert "ttyACM1" not in capsys.readouterr().err
+
+
+def test_quiet_and_verbose_end_with_the_command(tmp_path, capsys):
+    """-q and -v hold while main() runs; a display made after it shows again."""
+    import logging
+
+    from magcal import ui
+
+    main(["info", "--port", str(tmp_path / "no-such-port"), "-q", "-v"])
+    capsys.readouterr()
+    stream = io.StringIO()
+    with ui.StatusLine(stream) as status:
+        status.update("shown", log=True)
+    assert stream.getvalue() == "shown\n"
+    assert logging.getLogger("magcal.link").level == logging.NOTSET

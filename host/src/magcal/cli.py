@@ -237,3 +237,7 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"magcal {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED
+    finally:
+        # -q and -v are the command's, not the process's: a program that calls main() and
+        # then shows progress of its own (the tests, a plugin's host) gets it shown.
+        configure_output(argparse.Namespace())

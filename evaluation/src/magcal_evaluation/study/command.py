@@ -47,16 +47,33 @@ def add_parser(sub) -> None:
         "study",
         help="the papers' experiments (Kok & Schön Figure 8, Zhao Table 1, every method "
         "compared): PNGs and summary.md; interrupt and rerun to resume",
+        description="Rerun the papers' experiments on seeded simulations: Kok & Schön's "
+        "Figure 8 (the EKF's heading error with the initial and the ML estimates, Table 2 "
+        "settings), Zhao et al.'s Table 1 and Figure 1 (their cubature Kalman filter against "
+        "TWO-STEP), and init, ML, CKF and TWO-STEP compared on the same scenarios (heading "
+        "error, time per run, refusals with their reasons). Writes summary.md and PNG figures "
+        "to OUTDIR. Every finished run is appended to OUTDIR/runs.jsonl: interrupt with Ctrl-C "
+        "and run the same command again to resume. A run depends only on its experiment, "
+        "scenario, method and seed, so neither --jobs nor an interruption changes a figure.",
+        epilog="examples:\n"
+        "  magcal study out/study\n"
+        "  magcal study out/quick --runs 10 --zhao-runs 5 --scenarios table2,mems\n"
+        "  magcal study out/figure8 --experiments figure8 --runs 50 --jobs 1",
     )
     p.add_argument("outdir", help="study folder (created; rerun with it to resume)")
     p.add_argument(
         "--runs",
         type=positive(int),
         default=150,
+        metavar="N",
         help="runs of Figure 8 and per scenario and method of the comparison (default 150)",
     )
     p.add_argument(
-        "--zhao-runs", type=positive(int), default=50, help="runs of Zhao Table 1 (default 50)"
+        "--zhao-runs",
+        type=positive(int),
+        default=50,
+        metavar="N",
+        help="runs of Zhao Table 1 (default 50)",
     )
     p.add_argument(
         "--experiments",
@@ -73,12 +90,17 @@ def add_parser(sub) -> None:
         "table2,mems,handheld,raw-counts)",
     )
     p.add_argument(
-        "--seed", type=_non_negative_int, default=1, help="first seed; run i uses seed + i"
+        "--seed",
+        type=_non_negative_int,
+        default=1,
+        metavar="N",
+        help="first seed; run i uses seed + i",
     )
     p.add_argument(
         "--jobs",
         type=positive(int),
         default=available_cpus(),
+        metavar="N",
         help="worker processes (default: every CPU this process may use)",
     )
     p.set_defaults(run=run)

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import re
 
 import numpy as np
 import pytest
@@ -16,7 +17,7 @@ from magcal.calib import frames
 from magcal.calib.calibrate import calibrate
 from magcal.calib.diagnostics import consistency
 from magcal.cli import EXIT_ERROR, main
-from magcal.errors import ResultContradictedError
+from magcal.errors import FieldChangedError, ResultContradictedError
 from magcal.io.result import read_result
 from magcal.io.session import write_session
 from magcal.sim.scenarios import preset, simulate
@@ -143,22 +144,47 @@ def test_a_field_that_jumps_20_percent_halfway_is_refused_naming_the_stretch(han
     session, truth = handheld
     jumped = _field_jump(session, truth.sensor.o, 1.2)
     with pytest.raises(
-        ResultContradictedError,
-        match=r"field changed during the recording.* between 30 s and 60 s.*away from it",
+        FieldChangedError,
+        match=r"field changed during the recording.* between 30 s and 60 s.*constant for only "
+        r"46 %.*away from it.*--force",
     ):
         calibrate(jumped, "init")
     forced = calibrate(jumped, "init", force=True).result
     assert any("forced" in w and "field changed" in w for w in forced.warnings)
     assert forced.extra["consistency"]["field_stretches"]["impact"] > 0.02
+    assert "field_left_out" not in forced.extra
 
 
-def test_a_short_change_is_a_warning(handheld):
-    session, truth = handheld
+def _changed_between(session, o, start_s, end_s, factor=1.2):
     mag = session.mag.copy()
-    last = session.t >= session.t[-1] - 3.0  # the last 3 s of 60: a sensor set down by steel
-    mag[last] = truth.sensor.o + 1.2 * (mag[last] - truth.sensor.o)
-    result = calibrate(dataclasses.replace(session, mag=mag), "init").result
-    assert any(w.startswith("the magnetic field changed") for w in result.warnings)
+    rel = session.t - session.t[0]
+    inside = (rel >= start_s) & (rel < end_s)
+    mag[inside] = o + factor * (mag[inside] - o)
+    return dataclasses.replace(session, mag=mag)
+
+
+@pytest.mark.parametrize(("start_s", "end_s"), [(57.0, 60.0), (20.0, 32.0), (18.0, 31.0)])
+def test_a_change_over_a_third_or_less_is_left_out(handheld, start_s, end_s):
+    """At the end (a sensor set down by steel) or in the middle (carried past it): calibrated
+    without the changed stretches' magnetometer readings, as well as without the change."""
+    session, truth = handheld
+    changed = _changed_between(session, truth.sensor.o, start_s, end_s)
+    clean = calibrate(session, "ml").result
+    result = calibrate(changed, "ml").result
+    left_out = result.extra["field_left_out"]
+    assert any("calibrated without the magnetometer's readings there" in w for w in result.warnings)
+    spans = left_out["left_out_s"]
+    # The stretches of 5 s that hold the change with their margins, and nothing else.
+    assert spans[0][0] <= start_s and spans[-1][1] >= end_s - 0.1
+    assert sum(b - a for a, b in spans) <= (end_s - start_s) + 2 * (
+        consistency.FIELD_STRETCH_S + consistency.CHANGE_MARGIN_S
+    )
+    assert np.allclose(result.D, clean.D, rtol=0, atol=2e-3 * np.abs(clean.D).max())
+    assert np.allclose(result.o, clean.o, rtol=0, atol=2e-3 * np.abs(clean.D).max())
+    # Forced, all of it is used, and the result's check names the change.
+    forced = calibrate(changed, "init", force=True).result
+    assert "field_left_out" not in forced.extra
+    assert any("field changed" in w for w in forced.warnings)
 
 
 @pytest.mark.parametrize(
@@ -208,3 +234,54 @@ def test_a_stretch_that_shares_no_direction_is_left_out_and_the_figures_are_json
     levels = checks.figures["field_stretches"]["levels"]
     assert [row[2] is None for row in levels] == [False, False, False, True]
     json.dumps(checks.figures, allow_nan=False)
+
+
+def test_the_fit_residual_sees_a_fit_error_through_noise():
+    rng = np.random.default_rng(4)
+    u = rng.normal(size=(20000, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    # Slow motion: the fit's error changes little from one sample to the next.
+    u = np.cumsum(u, axis=0)
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    noise = 0.2 * rng.normal(size=(20000, 3))  # 20 % of the field per axis
+    alone = consistency.fit_residual(u + noise)
+    # The noise relative to the mean strength, which the noise itself raises by ≈ 4 %.
+    assert alone.noise == pytest.approx(0.2 / 1.04, rel=0.03) and alone.lower < 0.01
+    bent = u * (1.0 + 0.1 * np.sqrt(2) * np.sin(np.arange(20000) / 300.0))[:, None]
+    figure = consistency.fit_residual(bent + 0.01 * rng.normal(size=(20000, 3)))
+    assert figure.beyond == pytest.approx(0.1, rel=0.05) and figure.lower > 0.09
+
+
+def _not_an_ellipsoid(session, o, D, amplitude):
+    """The field's strength scaled by 1 + amplitude·uₓu_yu_z of its direction u: a distortion
+    no ellipsoid has (RMS amplitude/√105 over the sphere), the direction unchanged."""
+    m = np.linalg.solve(D, (session.mag - o).T).T
+    u = m / np.linalg.norm(m, axis=1)[:, None]
+    scale = 1.0 + amplitude * u[:, 0] * u[:, 1] * u[:, 2]
+    return dataclasses.replace(session, mag=o + (scale[:, None] * m) @ D.T)
+
+
+def test_a_field_no_ellipsoid_fits_is_refused_by_the_absolute_gate(handheld, tmp_path, capsys):
+    session, truth = handheld
+    bent = _not_an_ellipsoid(session, truth.sensor.o, truth.sensor.D, 1.2)  # 11.7 % RMS
+    path = tmp_path / "bent.csv"
+    write_session(path, bent)
+    out = tmp_path / "r.json"
+    assert main(["calibrate", str(path), "-q", "-o", str(out)]) == EXIT_ERROR
+    err = capsys.readouterr().err
+    assert re.search(r"strength is not constant: it departs from its mean by 1\d\.\d % of the "
+                     r"field .*limit 8 %", err), err
+    assert not out.exists()
+    # The limit is the user's to move.
+    assert main(["calibrate", str(path), "-q", "--max-fit-residual", "15", "-o", str(out)]) == 0
+    figure = read_result(out).extra["consistency"]["fit_residual"]
+    assert 0.08 < figure["lower"] < 0.15 and figure["limit"] == 0.15
+    # A distortion of a third of that passes the default gate.
+    write_session(path, _not_an_ellipsoid(session, truth.sensor.o, truth.sensor.D, 0.4))
+    assert main(["calibrate", str(path), "-q", "-o", str(out)]) == 0
+
+
+def test_the_command_line_default_is_the_gate():
+    from magcal.commands.calibrate import DEFAULT_MAX_FIT_RESIDUAL_PERCENT
+
+    assert DEFAULT_MAX_FIT_RESIDUAL_PERCENT / 100 == consistency.MAX_FIT_RESIDUAL

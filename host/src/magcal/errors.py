@@ -23,6 +23,12 @@ class InsufficientDataError(MagcalError):
     rotation, yaw-only motion, ...). ``--force`` turns it into a warning."""
 
 
+class FieldChangedError(InsufficientDataError):
+    """The field changed during the recording for too much of it to calibrate on the constant
+    part (steel or a magnet nearby that does not move with the sensor). ``--force``
+    calibrates on all of it, with a warning."""
+
+
 class CalibrationError(MagcalError):
     """A numerical step failed (solver failure, non-finite cost, ...)."""
 

@@ -31,7 +31,7 @@ from magcal.calib.likelihood.optimize import OptimizeOptions
 from magcal.calib.likelihood.params import ModelParams
 from magcal.calib.likelihood.problem import LikelihoodProblem, Priors
 from magcal.calib.norm_only import ckf, twostep
-from magcal.errors import MagcalError
+from magcal.errors import FieldChangedError, MagcalError
 from magcal.io.result import CalibrationResult
 from magcal.io.session import Session
 
@@ -110,6 +110,45 @@ def _other_starting_points(view: Session, init: InitialEstimate) -> list[tuple[s
     return [("the TWO-STEP fit", p)]
 
 
+def _without_changed_field(
+    session: Session, view: Session
+) -> tuple[Session, Session, dict | None, list[str]]:
+    """The session and its view without the magnetometer's readings where the field changed
+    (``consistency.field_change``), what was left out for the result, and the warning; the
+    same objects when the field was constant. Raises :class:`FieldChangedError` when the
+    constant part is less than ``consistency.MIN_CONSTANT_FRACTION`` of the session."""
+    try:
+        change = consistency.field_change(view.t, view.mag)
+    except MagcalError:  # no plain fit of these data: the checks that follow say why
+        return session, view, None, []
+    if not change.changed:
+        return session, view, None, []
+    margin = consistency.CHANGE_MARGIN_S
+    spans = [
+        (view.t[0] + a - margin, view.t[0] + b + margin)
+        for a, b in consistency.merged_spans(change.changed)
+    ]
+    left_out = sum(int(((view.t >= a) & (view.t <= b)).sum()) for a, b in spans) / view.t.size
+    if 1.0 - left_out < consistency.MIN_CONSTANT_FRACTION:
+        raise FieldChangedError(
+            f"{change.describe()}; the field was constant for only {100 * (1 - left_out):.0f} % "
+            "of the magnetometer's samples, too little to tell which field the sensor is in "
+            f"(at least {100 * consistency.MIN_CONSTANT_FRACTION:.0f} % needed to calibrate on "
+            "the constant part): record again away from it; --force calibrates on all of it"
+        )
+    session = samples.without_magnetometer_between(session, spans)
+    record = {
+        "left_out_s": [[max(a - view.t[0], 0.0), b - view.t[0]] for a, b in spans],
+        "left_out_fraction": left_out,
+        **change.figures(),
+    }
+    warning = (
+        f"{change.describe()}; calibrated without the magnetometer's readings there "
+        f"({100 * left_out:.0f} % of them); --force calibrates on all of it"
+    )
+    return session, samples.at_magnetometer_rows(session), record, [warning]
+
+
 def _alignment_warnings(session: Session, g: float) -> list[str]:
     dev = np.linalg.norm(session.acc, axis=1) - g
     # A robust spread (1.4826 × median |dev| equals the RMS for Gaussian deviations): a
@@ -137,13 +176,15 @@ def calibrate(
     optimizer: str = OPTIMIZERS[0],
     stage: Callable[[str], None] | None = None,
     declared_units: units.SessionUnits = units.SessionUnits(),
+    max_fit_residual: float = consistency.MAX_FIT_RESIDUAL,
 ) -> Calibration:
     """Calibrate a session with ``method``: "ml" (Algorithm 1), "init" (its step 1), "ckf"
     or "two-step" (the ellipsoid from the field norm alone, then step 1's alignment: see
     :data:`NORM_ONLY`). ``optimizer``: the ML step's (``likelihood.ml.OPTIMIZERS``).
     ``stage(text)`` is told as each step starts; ``progress`` at each ML iteration.
     ``declared_units``: the units the session's columns were given in (converted first; the
-    others are checked against physics, ``diagnostics.units``)."""
+    others are checked against physics, ``diagnostics.units``). ``max_fit_residual``: the
+    absolute gate on the corrected field's strength (``consistency.MAX_FIT_RESIDUAL``)."""
 
     def announce(text: str) -> None:
         if stage:
@@ -163,6 +204,10 @@ def calibrate(
     announce("checking what the session can determine")
     report = observability.check_observability(view.gyr, view.acc, view.mag, view.t)
     warnings = observability.raise_if_unobservable(report, force)
+    field_left_out = None
+    if not force:  # forced, all of it is used, and the result's checks name the change
+        session, view, field_left_out, cut = _without_changed_field(session, view)
+        warnings += cut
     seconds["checks"] = time.perf_counter() - t0
 
     # Past the checks (or forced), a degenerate ellipsoid is fitted regardless, with a
@@ -206,6 +251,8 @@ def calibrate(
         "magnetometer_samples": mag_samples.as_dict(),
         "input_units": declared_units.as_dict(),
     }
+    if field_left_out is not None:
+        extra["field_left_out"] = field_left_out
     if method_record is not None:
         extra[NORM_ONLY_KEYS[method]] = method_record
     est = None
@@ -302,6 +349,7 @@ def calibrate(
         None if method_record is None else np.asarray(method_record["A"]),
         session_fit=None if method in NORM_ONLY else fit,
         gyr=view.gyr,
+        max_fit_residual=max_fit_residual,
     )
     seconds["consistency"] = time.perf_counter() - t0
     extra["consistency"] = checks.figures

@@ -130,6 +130,20 @@ def drop_magnetometer_glitches(session: Session) -> tuple[Session, MagnetometerS
     ), counts
 
 
+def without_magnetometer_between(session: Session, spans_s: list[tuple[float, float]]) -> Session:
+    """The session with the magnetometer's readings inside each span (start, end), s on the
+    session's clock, ends included, turned into rows without the magnetometer: the IMU rows
+    stay, so a filter propagates through the span with the gyroscope."""
+    drop = np.zeros(session.t.size, dtype=bool)
+    for start, end in spans_s:
+        drop |= (session.t >= start) & (session.t <= end)
+    if not (drop & session.has_mag).any():
+        return session
+    mag = session.mag.copy()
+    mag[drop] = np.nan
+    return Session(t=session.t, gyr=session.gyr, acc=session.acc, mag=mag, meta=session.meta)
+
+
 def at_magnetometer_rows(session: Session) -> Session:
     """The session at its magnetometer rows: a single-rate session (every row has all three).
 

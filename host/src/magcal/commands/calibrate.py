@@ -5,6 +5,7 @@ the paper's figures, and the errors against a simulation's truth."""
 
 from __future__ import annotations
 
+import argparse
 import math
 import sys
 from pathlib import Path
@@ -56,6 +57,16 @@ def add_parser(sub) -> None:
         "session contradicts (a gyroscope bias or D no sensor has, a field norm or dip worse "
         "than a plain ellipsoid fit's, a field that changed during the recording), each with "
         "a warning",
+    )
+    p.add_argument(
+        "--max-fit-residual",
+        type=_percent,
+        default=DEFAULT_MAX_FIT_RESIDUAL_PERCENT,
+        metavar="PERCENT",
+        help="the absolute gate: refuse a result whose corrected field's strength departs "
+        "from constant by more than this, RMS beyond the magnetometer's noise, in %% of the "
+        "field (like ArduPilot's COMPASS_CAL_FIT, in any unit). The default is twice what "
+        "calibrations of clean real recordings leave",
     )
     p.add_argument(
         "--gradient",
@@ -128,6 +139,22 @@ def add_parser(sub) -> None:
         "the calibration leaves",
     )
     p.set_defaults(run=run)
+
+
+#: --max-fit-residual's default, % (MAX_FIT_RESIDUAL of magcal.calib.diagnostics.consistency;
+#: not imported here, the parser loads no numerical code).
+DEFAULT_MAX_FIT_RESIDUAL_PERCENT = 8.0
+
+
+def _percent(text: str) -> float:
+    """A positive percentage: "8" or "8%"."""
+    try:
+        value = float(text.strip().removesuffix("%"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a percentage (e.g. 8 or 8%)") from None
+    if not value > 0.0:
+        raise argparse.ArgumentTypeError(f"{text!r}: the limit must be above 0 %")
+    return value
 
 
 #: --gyro-bias-prior's default, as the command line writes it (GYRO_BIAS_PRIOR_DEG_S of
@@ -387,6 +414,7 @@ def run(args) -> int:
                 gyro_bias_rad_s=args.gyro_bias_prior, misalignment_rad=args.misalignment_prior
             ),
             declared_units=declared,
+            max_fit_residual=args.max_fit_residual / 100.0,
         )
     finally:
         progress.done()

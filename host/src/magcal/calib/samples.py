@@ -58,11 +58,14 @@ class MagnetometerSamples:
         """One line for the result's warnings when samples were dropped, else None."""
         if not self.repeated and not self.jumps:
             return None
-        return (
-            f"magnetometer: {self.repeated} samples repeating the previous value exactly "
-            f"(not new readings) and {self.jumps} isolated jumps were not used; "
-            f"{self.used} samples were"
-        )
+        left_out = []
+        if self.repeated:
+            left_out.append(
+                f"{self.repeated} exact repeats of the previous value (re-sent, not new readings)"
+            )
+        if self.jumps:
+            left_out.append(f"{self.jumps} isolated jump{'s' if self.jumps > 1 else ''}")
+        return f"magnetometer: {self.used} samples used; left out: {' and '.join(left_out)}"
 
 
 def repeated_samples(mag: np.ndarray) -> np.ndarray:

@@ -31,6 +31,9 @@ Motions:
   samples (3 s) need rates of several rad/s to visit diverse orientations.
 * ``"yaw-only"``: rotation about the vertical only (body z stays along nav z).
 * ``"small"``: a wobble of at most about ``small_amplitude_rad`` around one orientation.
+* ``"swing"``: the tumble, with fast swings about the body's x axis on top
+  (:data:`SWING_AMPLITUDE_RAD` at :data:`SWING_HZ`): the gyroscope turns mostly about one
+  axis, as a sensor on a swinging arm or a pendulum does.
 """
 
 from __future__ import annotations
@@ -42,7 +45,12 @@ import numpy as np
 from magcal.calib import frames
 from magcal.errors import MagcalError
 
-MOTIONS = ("tumble", "yaw-only", "small")
+MOTIONS = ("tumble", "yaw-only", "small", "swing")
+
+# "swing": amplitude and frequency of the swing about body x. 40° at 1 Hz peaks at 4.4 rad/s,
+# several times a hand's tumbling rate, so that most of the rotation is about x.
+SWING_AMPLITUDE_RAD = np.deg2rad(40.0)
+SWING_HZ = 1.0
 
 # Largest angle between consecutive spline controls (rad) for "tumble" and "yaw-only".
 TUMBLE_STEP_RAD = 1.0
@@ -351,7 +359,7 @@ def make_trajectory(
         )
     dt = 1.0 / rate_hz
 
-    if motion == "tumble":
+    if motion in ("tumble", "swing"):
         start = random_rotation(rng)
         step = TUMBLE_STEP_RAD
     elif motion == "yaw-only":
@@ -365,7 +373,7 @@ def make_trajectory(
     # Controls: 3 copies of the start (clamped start), then enough to cover τ ∈ [0, n_m T].
     n_more = int(np.floor(n_m * dt / knot_s)) + 1
     clamp = np.repeat(start[None], 3, axis=0)
-    if motion == "tumble":
+    if motion in ("tumble", "swing"):
         # Short sessions make only one or two tours, and a tour's spread of orientations varies
         # with the grid's random rotation: keep the best of a few candidate tours.
         n_cand = TUMBLE_CANDIDATES if n_more <= 2 * TUMBLE_LAP_MAX_POINTS else 1
@@ -386,6 +394,10 @@ def make_trajectory(
     tau = np.clip(k - n_s, 0, None) * dt
     q = spline_so3(controls, knot_s, tau)
     q[: n_s + 1] = start  # exactly at rest (the spline gives `start` there up to round-off)
+    if motion == "swing":
+        angle = SWING_AMPLITUDE_RAD * np.sin(2.0 * np.pi * SWING_HZ * tau)
+        swing = frames.rotvec_to_quat(np.column_stack([angle, 0.0 * angle, 0.0 * angle]))
+        q = frames.quat_multiply(q, swing)
     q = _make_sign_continuous(q)
     omega = body_rates(q, rate_hz)
 

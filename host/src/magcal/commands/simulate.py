@@ -64,8 +64,9 @@ def add_parser(sub) -> None:
         choices=["tumble", "yaw-only", "small", "swing"],
         help="tumble: through all orientations; yaw-only: about the vertical only; small: a "
         "wobble of about 10° around one orientation; swing: the tumble with fast swings of "
-        "±40° about the body's x axis on top (most of the rotation about one axis). yaw-only and small turn the sensor too "
-        "little to determine a calibration: magcal calibrate refuses them (default: tumble)",
+        "±40° about the body's x axis on top (most of the rotation about one axis). yaw-only "
+        "and small turn the sensor too little to determine a calibration: magcal calibrate "
+        "refuses them (default: tumble)",
     )
     p.add_argument(
         "--max-rate",

@@ -156,6 +156,21 @@ CHANGE_MARGIN_S = FIELD_STRETCH_S / 2
 
 _DIRECTIONS = fibonacci_sphere(FIELD_DIRECTIONS)
 
+#: What to do about each kind of contradiction, in the refusal after the figures.
+ADVICE_ORIENTATIONS = (
+    "record again turning the sensor slowly through all orientations, each face up in turn, "
+    "or try another --method"
+)
+ADVICE_GYROSCOPE = (
+    "check the gyroscope's unit (--gyro-unit) and begin the recording with a few seconds "
+    "of the sensor held still"
+)
+ADVICE_AXES = (
+    "record again turning the sensor about more than one axis, slowly enough that the "
+    "accelerometer reads mostly gravity, or try another --method"
+)
+ADVICE_STEEL = "record again away from steel and magnets that do not move with the sensor"
+
 
 @dataclass(frozen=True)
 class FieldStretch:
@@ -172,6 +187,7 @@ class Checks:
     """The figures of :func:`check` and the ones that contradict the result.
 
     refusals : one sentence per failed check, naming the figure and its limit
+    advice   : what to do about them, each once
     warnings : changes of the field too short to refuse; a field norm far less constant
                than the uncorrected one where the plain fit's is as bad
     figures  : every figure measured, for the result's ``extra["consistency"]``
@@ -180,6 +196,7 @@ class Checks:
     refusals: list[str] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
     figures: dict = field(default_factory=dict)
+    advice: list[str] = field(default_factory=list)
 
 
 def _finite(x: float) -> float | None:
@@ -477,7 +494,7 @@ def _field_change_checked(
     change = field_change(t, mag, plain_cal)
     if not change.changed:
         return [], change.figures()
-    return [f"{change.describe()}; record again away from it"], change.figures()
+    return [change.describe()], change.figures()
 
 
 def merged_spans(stretches: list[FieldStretch]) -> list[tuple[float, float]]:
@@ -524,34 +541,43 @@ def check(
     D = np.asarray(D, dtype=float)
     o = np.asarray(o, dtype=float)
     refusals: list[str] = []
+    advice: list[str] = []
     figures: dict = {}
+
+    def refuse(text: str, what_to_do: str) -> None:
+        refusals.append(text)
+        if what_to_do not in advice:
+            advice.append(what_to_do)
 
     if gyro_bias is not None:
         bias = float(np.rad2deg(np.max(np.abs(gyro_bias))))
         figures["gyro_bias_max_deg_s"] = _finite(bias)
         if not np.isfinite(bias) or bias > MAX_GYRO_BIAS_DEG_S:
-            refusals.append(
+            refuse(
                 f"its gyroscope bias of {bias:.1f} °/s is beyond any MEMS gyroscope's (limit "
-                f"{MAX_GYRO_BIAS_DEG_S:.0f} °/s per axis)"
+                f"{MAX_GYRO_BIAS_DEG_S:.0f} °/s per axis)",
+                ADVICE_GYROSCOPE,
             )
     if ellipsoid_A is not None:
         eig = np.linalg.eigvalsh(0.5 * (ellipsoid_A + np.asarray(ellipsoid_A).T))
         figures["ellipsoid_A_min_eigenvalue"] = _finite(eig[0])
         if not np.all(np.isfinite(eig)) or eig[0] <= 0.0:
-            refusals.append(
+            refuse(
                 "its fitted ellipsoid is not one (the matrix A is not positive definite, "
-                f"smallest eigenvalue {eig[0]:.3g})"
+                f"smallest eigenvalue {eig[0]:.3g})",
+                ADVICE_ORIENTATIONS,
             )
     if not (np.all(np.isfinite(D)) and np.all(np.isfinite(o))):
-        refusals.append("its D or o is not finite")
-        return Checks(refusals, [], figures)
+        refuse("its D or o is not finite", ADVICE_ORIENTATIONS)
+        return Checks(refusals, [], figures, advice)
     singular = np.linalg.svd(D, compute_uv=False)
     condition = float(singular[0] / singular[-1]) if singular[-1] > 0 else float("inf")
     figures["D_condition"] = _finite(condition)
     if condition > MAX_D_CONDITION:
-        refusals.append(
+        refuse(
             f"its D stretches one axis {condition:.3g}× against another (condition number; "
-            f"limit {MAX_D_CONDITION:.0f}): no magnetometer's soft iron does"
+            f"limit {MAX_D_CONDITION:.0f}): no magnetometer's soft iron does",
+            ADVICE_ORIENTATIONS,
         )
 
     plain_cal = _plain_correction(mag, fit=session_fit)
@@ -565,22 +591,24 @@ def check(
     figures["field_norm_spread"] = {k: _finite(v) for k, v in spread.items()}
     limit = max(spread["raw"], NORM_SPREAD_MAX_RATIO * spread["plain_fit"]) + NORM_SPREAD_MARGIN
     if not spread["result"] <= limit:
-        refusals.append(
+        refuse(
             f"its corrected field norm varies by {100 * spread['result']:.2f} % (std/mean), "
             f"against {100 * spread['raw']:.2f} % uncorrected and {100 * spread['plain_fit']:.2f} "
-            f"% for a plain ellipsoid fit (limit {100 * limit:.2f} %)"
+            f"% for a plain ellipsoid fit (limit {100 * limit:.2f} %)",
+            ADVICE_ORIENTATIONS,
         )
 
     residual = fit_residual(calibrated)
     figures["fit_residual"] = {**residual.as_dict(), "limit": max_fit_residual}
     if residual.lower > max_fit_residual:
-        refusals.append(
+        refuse(
             f"its corrected field's strength is not constant: it departs from its mean by "
             f"{100 * residual.beyond:.1f} % of the field (RMS beyond the magnetometer's noise of "
             f"{100 * residual.noise:.1f} %; at least {100 * residual.lower:.1f} % allowing for "
             f"sampling; limit {100 * max_fit_residual:g} %, --max-fit-residual): the model of "
             "a constant field distorted by the sensor does not fit these data, as when steel or "
-            "a magnet nearby does not move with the sensor"
+            "a magnet nearby does not move with the sensor",
+            ADVICE_STEEL,
         )
 
     dip_plain, n_dip = _dip_spread_deg(acc, plain_cal)
@@ -594,11 +622,12 @@ def check(
         dip_result <= DIP_SPREAD_MAX_RATIO * dip_plain
         or dip_result <= dip_plain + DIP_SPREAD_MARGIN_DEG
     ):
-        refusals.append(
+        refuse(
             f"its dip angle against the accelerometer scatters by {dip_result:.2f}° from sample "
             f"to sample, against {dip_plain:.2f}° for a plain ellipsoid fit (limit "
             f"{DIP_SPREAD_MAX_RATIO}× and +{DIP_SPREAD_MARGIN_DEG}°): its alignment with the "
-            "accelerometer is wrong"
+            "accelerometer is wrong",
+            ADVICE_AXES,
         )
 
     if gyr is not None:
@@ -620,22 +649,24 @@ def check(
         ):
             axis = frames.quat_to_rotvec(frames.matrix_to_quat(Q))
             axis = axis / np.linalg.norm(axis)
-            refusals.append(
+            refuse(
                 f"its axes are turned against the gyroscope's: turned by {angle:.0f}° about its "
                 f"({axis[0]:+.2f}, {axis[1]:+.2f}, {axis[2]:+.2f}) axis, its corrected field "
                 f"would follow the measured rotation far better (carried {TURN_WINDOW_S:g} s it "
                 f"misses itself by {miss_turned:.2f}° instead of {miss_result:.2f}°, median; limit "
                 f"{TURN_ROTATION_LIMIT_DEG:.0f}° of turn and {TURN_MAX_RATIO}× + "
-                f"{TURN_MARGIN_DEG}°)"
+                f"{TURN_MARGIN_DEG}°)",
+                ADVICE_AXES,
             )
         elif n_pairs >= MIN_TURN_PAIRS and not (
             miss_result <= TURN_MAX_RATIO * miss_plain + TURN_MARGIN_DEG
         ):
-            refusals.append(
+            refuse(
                 f"its corrected field turns against the gyroscope: carried {TURN_WINDOW_S:g} s "
                 f"by the measured rotation it misses itself by {miss_result:.2f}° (median), "
                 f"against {miss_plain:.2f}° for a plain ellipsoid fit (limit {TURN_MAX_RATIO}× "
-                f"+ {TURN_MARGIN_DEG}°): its axes are turned against the gyroscope's"
+                f"+ {TURN_MARGIN_DEG}°): its axes are turned against the gyroscope's",
+                ADVICE_AXES,
             )
 
     field_refusals, figures["field_stretches"] = _field_change_checked(t, mag, plain_cal)
@@ -649,7 +680,9 @@ def check(
             "than none (a plain ellipsoid fit of this session is as bad: "
             f"{100 * spread['plain_fit']:.1f} %); the session does not determine a calibration"
         )
-    return Checks(refusals + field_refusals, warnings, figures)
+    if field_refusals and ADVICE_STEEL not in advice:
+        advice.append(ADVICE_STEEL)
+    return Checks(refusals + field_refusals, warnings, figures, advice)
 
 
 def refusals_or_warnings(checks: Checks, method: str, force: bool) -> list[str]:
@@ -659,10 +692,9 @@ def refusals_or_warnings(checks: Checks, method: str, force: bool) -> list[str]:
         return list(checks.warnings)
     what = "; ".join(checks.refusals)
     if not force:
+        advice = "; ".join(checks.advice or [ADVICE_ORIENTATIONS])
         raise ResultContradictedError(
             f"the {method} result contradicts its own session, so it was not written: {what}. "
-            "Record again, turning the sensor slowly through all orientations away from steel "
-            "and magnets, or try another --method; --force writes it anyway with this as a "
-            "warning"
+            f"To do: {advice}; --force writes it anyway with this as a warning"
         )
     return [f"forced: the result contradicts its own session: {what}", *checks.warnings]

@@ -306,24 +306,28 @@ def turn_to_gyroscope(
     if pairs.size == 0:
         return np.eye(3), float("nan"), 0.0
     R = frames.quat_to_matrix(frames.integrate_rates(gyr[:-1] - gyro_bias, np.diff(t)))
+    # The chord seen from the pair's first sample: Q u_a − M Q u_b, M = R_aᵀ R_b the rotation
+    # over the window, of the same length as R_a Q u_a − R_b Q u_b.
+    M = np.swapaxes(R[pairs], 1, 2) @ R[later[pairs]]
     u = calibrated / np.linalg.norm(calibrated, axis=1, keepdims=True)
-    Ra, Rb = R[pairs], R[later[pairs]]
     ua, ub = u[pairs], u[later[pairs]]
     Q = np.eye(3)
     for _ in range(_TURN_FIT_STEPS):
         qa, qb = ua @ Q.T, ub @ Q.T
-        chord = np.einsum("kij,kj->ki", Ra, qa) - np.einsum("kij,kj->ki", Rb, qb)
-        # Q → exp([φ]×) Q moves R Q u by −R [Q u]× φ.
-        J = np.einsum("kij,kjl->kil", Rb, frames.skew(qb)) - np.einsum(
-            "kij,kjl->kil", Ra, frames.skew(qa)
+        Mqb = (M @ qb[:, :, None])[:, :, 0]
+        chord = qa - Mqb
+        # Q → exp([φ]×) Q moves Q u by −[Q u]× φ.
+        J = M @ frames.skew(qb) - frames.skew(qa)
+        step = -np.linalg.solve(
+            np.einsum("kji,kjl->il", J, J, optimize=True),
+            np.einsum("kji,kj->i", J, chord, optimize=True),
         )
-        step = -np.linalg.lstsq(J.reshape(-1, 3), chord.reshape(-1), rcond=None)[0]
         Q = frames.rotvec_to_matrix(step) @ Q
-        if np.linalg.norm(step) < 1e-8:
+        if np.linalg.norm(step) < 1e-6:
             break
-    wa = np.einsum("kij,kj->ki", Ra, ua @ Q.T)
-    wb = np.einsum("kij,kj->ki", Rb, ub @ Q.T)
-    miss = float(np.rad2deg(np.median(np.arccos(np.clip(np.sum(wa * wb, axis=1), -1.0, 1.0)))))
+    qa, qb = ua @ Q.T, ub @ Q.T
+    cosines = np.sum(qa * (M @ qb[:, :, None])[:, :, 0], axis=1)
+    miss = float(np.rad2deg(np.median(np.arccos(np.clip(cosines, -1.0, 1.0)))))
     angle = float(np.rad2deg(np.arccos(np.clip(0.5 * (np.trace(Q) - 1.0), -1.0, 1.0))))
     return Q, miss, angle
 
@@ -353,16 +357,20 @@ def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]
     n_stretch = int(index.max()) + 1
     if n_stretch < 2:
         return []
-    # Median norm of each stretch in each direction (NaN where it has too few samples).
+    # Median norm of each stretch in each direction (NaN where it has too few samples): the
+    # samples sorted by (stretch, direction, norm), each group's middle read off at once.
+    group = index * FIELD_DIRECTIONS + cell
+    order = np.lexsort((norm, group))
+    keys, first, count_of = np.unique(group[order], return_index=True, return_counts=True)
+    sorted_norm = norm[order]
+    middle = 0.5 * (
+        sorted_norm[first + (count_of - 1) // 2] + sorted_norm[first + count_of // 2]
+    )
     med = np.full((n_stretch, FIELD_DIRECTIONS), np.nan)
     count = np.zeros((n_stretch, FIELD_DIRECTIONS), dtype=int)
-    for j in range(n_stretch):
-        in_j = index == j
-        for c in np.unique(cell[in_j]):
-            values = norm[in_j & (cell == c)]
-            count[j, c] = values.size
-            if values.size >= FIELD_MIN_CELL_SAMPLES:
-                med[j, c] = np.median(values)
+    count.flat[keys] = count_of
+    enough = count_of >= FIELD_MIN_CELL_SAMPLES
+    med.flat[keys[enough]] = middle[enough]
     shared = np.isfinite(med).sum(axis=0) >= 2  # directions seen in two stretches or more
     reference = np.full(FIELD_DIRECTIONS, np.nan)
     reference[shared] = np.nanmedian(med[:, shared], axis=0)
@@ -372,12 +380,12 @@ def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]
         if use.any():
             levels[j] = np.average(med[j, use] / reference[use] - 1.0, weights=count[j, use])
     levels -= _constant_level(levels)
+    # t is in time order, so each stretch's samples are consecutive.
+    present, start = np.unique(index, return_index=True)
+    end = np.append(start[1:], t.size) - 1
     return [
-        FieldStretch(
-            float(t[index == j][0] - t[0]), float(t[index == j][-1] - t[0]), float(levels[j])
-        )
-        for j in range(n_stretch)
-        if (index == j).any()
+        FieldStretch(float(t[a] - t[0]), float(t[b] - t[0]), float(levels[j]))
+        for j, a, b in zip(present, start, end, strict=True)
     ]
 
 

@@ -363,9 +363,7 @@ def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]
     order = np.lexsort((norm, group))
     keys, first, count_of = np.unique(group[order], return_index=True, return_counts=True)
     sorted_norm = norm[order]
-    middle = 0.5 * (
-        sorted_norm[first + (count_of - 1) // 2] + sorted_norm[first + count_of // 2]
-    )
+    middle = 0.5 * (sorted_norm[first + (count_of - 1) // 2] + sorted_norm[first + count_of // 2])
     med = np.full((n_stretch, FIELD_DIRECTIONS), np.nan)
     count = np.zeros((n_stretch, FIELD_DIRECTIONS), dtype=int)
     count.flat[keys] = count_of

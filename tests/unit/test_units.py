@@ -215,10 +215,13 @@ def test_accelerometer_norm_bounds():
 # The accelerometer's sign
 
 
-def test_flipped_accelerometer_warning_names_the_accelerometer_and_the_magnetometer(sim):
-    session, _ = sim
+def test_flipped_accelerometer_warning_names_the_accelerometer_and_the_magnetometer(sim, good):
+    """Not refused: a negative dip is right in the southern hemisphere. The calibration of the
+    magnetometer is right all the same: the flip turns the dip's sign, not D or o."""
+    session, truth = sim
     cal = pipeline.calibrate(dataclasses.replace(session, acc=-session.acc))
     assert cal.result.dip_deg < 0.0
+    assert heading_error_deg(truth, cal.result) < 1.5 * heading_error_deg(truth, good[1].result)
     (w,) = [w for w in cal.result.warnings if "dip" in w and "accelerometer" in w]
     assert "the accelerometer's sign is flipped" in w and "+9.81" in w
     assert "mirrored" in w and "southern" in w

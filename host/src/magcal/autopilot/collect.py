@@ -179,14 +179,8 @@ class _AttitudeMonitor(CollectMonitor):
         self.tracker = AttitudeCoverage(min_extent)  # type: ignore[assignment]
         self._rec = rec
 
-    def feed(self, mag, force: bool = False) -> CoverageState:
-        if len(mag) > self._fed:
-            readings = self._to_session_units(np.array(mag[self._fed :], dtype=float))
-            rotations = self._rec.screen.rotations(self._fed, len(mag))
-            self.tracker.add(readings, rotations)
-            self.live.add(readings)
-            self._fed = len(mag)
-        return self.tracker.state(force=force)
+    def _track(self, readings: np.ndarray, start: int, stop: int) -> None:
+        self.tracker.add(readings, self._rec.screen.rotations(start, stop))
 
 
 def link_rate_hz(url: str) -> float:

@@ -99,6 +99,25 @@ class CollectProgress:
     coverage: float  # 0..1
     hint: str  # what to do next: the live estimate's state, then the coverage hint
     live: LiveState | None = None  # None before the first report or if the estimate failed
+    #: The one thing to do next, without figures: "ok to stop: ..." once it is, else the
+    #: coverage hint (:func:`instruction`); "" when the reporter did not say.
+    instruction: str = ""
+    #: The coverage behind ``coverage``: cell counts, centre, hint (None: not given).
+    coverage_state: CoverageState | None = None
+    #: The magnetometer readings (K, 3) in session units added since the previous report
+    #: (None: not given), for a display of the field directions.
+    readings: np.ndarray | None = None
+
+    def coverage_percent(self) -> str:
+        """The coverage figure as every display shows it: "87.0" (percent, one decimal)."""
+        return f"{100 * self.coverage:.1f}"
+
+    def figures(self) -> str:
+        """Samples, rate, drops and coverage, as the progress line shows them."""
+        return (
+            f"{self.samples:7d} samples  {self.rate_hz:6.1f}/s  dropped {self.dropped}  "
+            f"coverage {self.coverage_percent():>5} %"
+        )
 
 
 @dataclass(frozen=True)
@@ -266,6 +285,14 @@ def progress_hint(coverage: CoverageState, live: LiveState | None) -> str:
     return f"{live.text()}; {coverage.hint}"
 
 
+def instruction(coverage: CoverageState, live: LiveState | None) -> str:
+    """The one thing to do next, without the estimate's figures: the live estimate's
+    "ok to stop: ..." once it is, else the coverage hint."""
+    if live is not None and live.ok_to_stop:
+        return live.text()
+    return coverage.hint
+
+
 class RecordedStream(Protocol):
     """What :func:`record_stream` needs of a recorder: the samples so far (``len``), the
     messages found missing (``gaps``) and the magnetometer readings as received (``mag``)."""
@@ -300,6 +327,7 @@ class CollectMonitor:
         self._to_session_units = to_session_units
         self._fed = 0
         self._times: deque[float] = deque(maxlen=RATE_WINDOW_SAMPLES)
+        self._unreported: list[np.ndarray] = []
 
     def received(self, host_s: float) -> None:
         """A sample arrived at host time ``host_s`` (s), for the rate shown."""
@@ -311,10 +339,15 @@ class CollectMonitor:
         refreshed whatever the tracker's schedule)."""
         if len(mag) > self._fed:
             readings = self._to_session_units(np.array(mag[self._fed :]))
-            self.tracker.add(readings)
+            self._track(readings, self._fed, len(mag))
             self.live.add(readings)
+            self._unreported.append(readings)
             self._fed = len(mag)
         return self.tracker.state(force=force)
+
+    def _track(self, readings: np.ndarray, start: int, stop: int) -> None:
+        """Readings ``start:stop`` of the recording (K, 3), session units, to the coverage."""
+        self.tracker.add(readings)
 
     def progress(
         self,
@@ -330,6 +363,8 @@ class CollectMonitor:
         rate = (len(t) - 1) / span if span > 0 else 0.0
         if live is None:
             live = self.live.state(coverage.coverage)
+        readings = np.concatenate(self._unreported) if self._unreported else np.empty((0, 3))
+        self._unreported = []
         return CollectProgress(
             len(rec),
             elapsed_s,
@@ -338,6 +373,9 @@ class CollectMonitor:
             coverage.coverage,
             progress_hint(coverage, live),
             live,
+            instruction(coverage, live),
+            coverage,
+            readings,
         )
 
 

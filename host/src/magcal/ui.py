@@ -185,11 +185,24 @@ class StatusLine(_Display):
         elif self._last:
             self._held = text
 
+    def columns(self) -> int | None:
+        """The width a line is cut at: the terminal's on a terminal; None in a log, where
+        lines are written whole."""
+        if not self.live:
+            return None
+        width = terminal_columns(self.stream)
+        if width is not None:
+            return width
+        if self._console is None:
+            self._console = _console(self.stream)
+        return self._console.width
+
     def _show(self, text: str) -> None:
         from rich.live import Live
 
         if self._display is None:
-            self._console = _console(self.stream)
+            if self._console is None:
+                self._console = _console(self.stream)
             # Drawn at each update, not by a timer: every state the caller reports is shown
             # (callers report a few times a second), and the output is deterministic.
             self._display = Live(

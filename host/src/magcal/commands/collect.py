@@ -6,9 +6,14 @@ the on-board correction undone; the compass parameters in force in the metadata)
 
 Stops at a coverage target of field directions (default 90 %), ``--duration`` or
 ``--max-samples``, whichever comes first, or Ctrl-C. Progress goes to stderr: one line
-redrawn in place on a terminal (cut at its width), one line a second otherwise; it shows
+redrawn in place on a terminal (cut at its width; when the whole line does not fit, the
+instruction comes first and the figures are cut), one line a second otherwise; it shows
 the live estimate's norm spread and says when it is ok to stop. Whatever was collected is
 written, also after Ctrl-C (exit 130) or an error mid-collection (exit 2, the file named).
+
+``--view`` also shows the collection on a local page (:mod:`magcal.view`), opened in the
+browser when there is one: the sphere of field directions with the cells still missing, the
+same figures and instruction, and the readings before and after a fit once it has ended.
 
 Each half loads what it needs when it runs, not when the parser is built (the device client
 and the live estimate; the ``--mavlink`` half :mod:`magcal.autopilot` and pymavlink).
@@ -62,7 +67,8 @@ def add_parser(sub) -> None:
         epilog="examples:\n"
         "  magcal collect --port /dev/ttyACM0 -o session.csv\n"
         "  magcal collect --mavlink udpin:0.0.0.0:14550 --compass 2 -o session.csv\n"
-        "  magcal collect --port /dev/ttyACM0 --duration 90 --coverage off -o session.csv",
+        "  magcal collect --port /dev/ttyACM0 --duration 90 --coverage off -o session.csv\n"
+        "  magcal collect --port /dev/ttyACM0 --view -o session.csv",
     )
     add_link_arguments(p)
     p.add_argument("-o", "--output", required=True, help="session CSV to write")
@@ -83,25 +89,42 @@ def add_parser(sub) -> None:
         help="with --mavlink: the IMU message rate to ask for (default: 100 on a network link, "
         "what half a serial link's baud rate carries there)",
     )
+    p.add_argument(
+        "--view",
+        action="store_true",
+        help="also show the collection live on a local page (127.0.0.1, a free port, its "
+        "address printed; opened in the browser when there is one): the sphere of field "
+        "directions with the cells still missing, turnable with the mouse, what to do next, "
+        "and the readings before and after a fit once collection ends",
+    )
     p.set_defaults(run=run)
 
 
-def progress_line(p: CollectProgress) -> str:
-    """The collect status: samples, rate, drops, coverage and the live estimate's hint."""
-    return (
-        f"{p.samples:7d} samples  {p.rate_hz:6.1f}/s  dropped {p.dropped}  "
-        f"coverage {100 * p.coverage:5.1f} %  {p.hint}"
-    )
+def progress_line(p: CollectProgress, columns: int | None = None) -> str:
+    """The collect status: samples, rate, drops, coverage and the live estimate's hint.
+
+    columns : the width the line will be cut at (None: never cut). When the whole line is
+        wider and the report names its instruction, the instruction comes first, then the
+        figures and the estimate's state: a narrow terminal cuts the figures, not what to do.
+    """
+    line = f"{p.figures()}  {p.hint}"
+    if columns is None or len(line) <= columns or not p.instruction:
+        return line
+    parts = [p.instruction, " ".join(p.figures().split())]
+    if p.live is not None and not p.live.ok_to_stop:
+        parts.append(p.live.text())
+    return "  ".join(parts)
 
 
 def progress_printer(stream=None):
     """``show(progress)`` for the collection, ``show.done()`` after it (idempotent): a
-    :class:`magcal.ui.StatusLine` redrawn in place on a terminal (cut at its width); in a log,
-    LOG_LINES_PER_S whole lines of the collection's clock and always its last state."""
+    :class:`magcal.ui.StatusLine` redrawn in place on a terminal (cut at its width,
+    :func:`progress_line`); in a log, LOG_LINES_PER_S whole lines of the collection's clock
+    and always its last state."""
     status = StatusLine(stream, every_s=1.0 / LOG_LINES_PER_S, last=True)
 
     def show(p: CollectProgress) -> None:
-        status.update(progress_line(p), p.elapsed_s)
+        status.update(progress_line(p, status.columns()), p.elapsed_s)
 
     show.done = status.close  # type: ignore[attr-defined]
     return show
@@ -117,6 +140,34 @@ def write_collected(path: str, result: CollectResult, out) -> None:
         f"{result.dropped}, coverage {100 * result.coverage.coverage:.1f} %)",
         file=out,
     )
+
+
+def open_view(args, compass: str):
+    """The live page for ``--view`` (None without it): served, its address said on stderr
+    and opened in the browser when there is one."""
+    if not getattr(args, "view", False):
+        return None
+    from magcal.view.collect import CollectView, open_in_browser
+
+    view = CollectView([compass], title=f"magcal collect: {compass}")
+    opened = open_in_browser(view.url)
+    say(
+        "collect",
+        f"live view at {view.url}" + ("" if opened else " (open it in a browser on this machine)"),
+    )
+    return view
+
+
+def reporter(progress, view):
+    """The recorder's ``progress``: the terminal's printer, and the page's when there is one."""
+    if view is None:
+        return progress
+
+    def report(p: CollectProgress) -> None:
+        progress(p)
+        view(p)
+
+    return report
 
 
 def collect_saving_partial(run_collect, path: str, progress) -> CollectResult:
@@ -183,19 +234,25 @@ def run(args, out=None) -> int:
     min_samples = observability.MIN_SAMPLES
     progress = progress_printer()
     with open_device(args.port) as dev:
-        result = collect_saving_partial(
-            lambda: collect(
-                dev.client,
-                dev.info,
-                duration_s=args.duration,
-                coverage_target=None if args.coverage is None else args.coverage / 100.0,
-                max_samples=args.max_samples,
-                min_samples=min_samples,
-                progress=progress,
-            ),
-            args.output,
-            progress,
-        )
+        view = open_view(args, f"magnetometer of device {dev.info.uid_hex}")
+        result = None
+        try:
+            result = collect_saving_partial(
+                lambda: collect(
+                    dev.client,
+                    dev.info,
+                    duration_s=args.duration,
+                    coverage_target=None if args.coverage is None else args.coverage / 100.0,
+                    max_samples=args.max_samples,
+                    min_samples=min_samples,
+                    progress=reporter(progress, view),
+                ),
+                args.output,
+                progress,
+            )
+        finally:
+            if view is not None:
+                view.finish(result)
     return finish_collect(
         args, result, min_samples, f"on {args.port}", "check that the device is acquiring", out
     )
@@ -225,21 +282,27 @@ def run_autopilot(args, out=None) -> int:
             f"{ap.describe()}, firmware {fw or 'unknown'}; compass {compass} "
             f"({'external' if cp.external else 'internal'}), field in {cp.unit}",
         )
-        result = collect_saving_partial(
-            lambda: collect_from_autopilot(
-                ap,
-                cp,
-                rate_hz=args.rate,
-                duration_s=args.duration,
-                coverage_target=None if args.coverage is None else args.coverage / 100.0,
-                max_samples=args.max_samples,
-                min_samples=min_samples,
-                progress=progress,
-                firmware=fw,
-            ),
-            args.output,
-            progress,
-        )
+        view = open_view(args, f"compass {compass} ({'external' if cp.external else 'internal'})")
+        result = None
+        try:
+            result = collect_saving_partial(
+                lambda: collect_from_autopilot(
+                    ap,
+                    cp,
+                    rate_hz=args.rate,
+                    duration_s=args.duration,
+                    coverage_target=None if args.coverage is None else args.coverage / 100.0,
+                    max_samples=args.max_samples,
+                    min_samples=min_samples,
+                    progress=reporter(progress, view),
+                    firmware=fw,
+                ),
+                args.output,
+                progress,
+            )
+        finally:
+            if view is not None:
+                view.finish(result)
     if result.session is not None:
         meta = result.session.meta
         print(

@@ -1,7 +1,8 @@
 # SPDX-License-Identifier: Apache-2.0
-# The report's browser test: Debian's Chromium, headless (tests/browser).
+# The browser tests: Debian's Chromium, headless (tests/browser).
 #
 #   make deps-browser   installs Debian's chromium (only when missing)
+#   make screenshots    docs/img/collect-view.png from the browser test of collect --view
 #
 # `make test` runs deps-browser first (TEST_EXTRA) and exports MAGCAL_REQUIRE_BROWSER=1 to
 # its pytest run, so there a missing Chromium fails tests/browser instead of skipping it.
@@ -27,3 +28,9 @@ deps-browser:
 test: export MAGCAL_REQUIRE_BROWSER := 1
 
 TEST_EXTRA += deps-browser
+
+# docs/img/collect-view.png, the live page of `magcal collect --view` that README.md shows:
+# the browser test of the page, run against the SIL device, keeps its last screenshot there.
+.PHONY: screenshots
+screenshots: setup sil deps-browser
+	MAGCAL_UPDATE_SCREENSHOTS=1 $(PY) -m pytest -q -p no:xdist tests/browser/test_collect_view_browser.py

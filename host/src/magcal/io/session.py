@@ -120,6 +120,8 @@ class Session:
     mag : (N, 3) float, raw magnetometer units (any unit); a NaN row where the row has no
           magnetometer sample (:attr:`has_mag`)
     meta: the ``# key: value`` metadata lines, without ``magcal-session``
+    extra: columns beyond the ten, name → (N,) float, NaN where the cell is empty (written
+          after the ten in this order; read only when :func:`read_session` is asked to)
     """
 
     t: np.ndarray
@@ -127,6 +129,7 @@ class Session:
     acc: np.ndarray
     mag: np.ndarray
     meta: dict[str, str] = field(default_factory=dict)
+    extra: dict[str, np.ndarray] = field(default_factory=dict)
 
     def __len__(self) -> int:
         return int(self.t.shape[0])
@@ -169,12 +172,15 @@ def session_from_arrays(
     acc: np.ndarray,
     mag: np.ndarray,
     meta: dict[str, str] | None = None,
+    extra: dict[str, np.ndarray] | None = None,
 ) -> Session:
     """Validate arrays and wrap them in a :class:`Session` (float64 copies).
 
     t   : (N,) seconds, finite, strictly increasing, N ≥ 1
     gyr : (N, 3) rad/s;  acc : (N, 3) m/s²;  mag : (N, 3) raw magnetometer units
     meta: ``key -> value`` strings (keys without ``:``, no newlines anywhere)
+    extra: more columns, name → (N,) float, NaN for an empty cell, finite otherwise; names
+          are not those of the ten columns, and hold no ``,`` or blank
 
     ``acc`` and ``mag`` may have all-NaN rows (no such sample at that row: a multi-rate
     session); every other value must be finite, and at least one row must have the
@@ -219,7 +225,35 @@ def session_from_arrays(
         )
     meta = dict(meta or {})
     _check_meta(meta, "building a session")
-    return Session(t=t, gyr=arrays["gyr"], acc=arrays["acc"], mag=arrays["mag"], meta=meta)
+    columns = _check_extra(extra or {}, n)
+    return Session(
+        t=t, gyr=arrays["gyr"], acc=arrays["acc"], mag=arrays["mag"], meta=meta, extra=columns
+    )
+
+
+def _check_extra(extra: dict[str, np.ndarray], n: int) -> dict[str, np.ndarray]:
+    """float64 copies of the extra columns, checked (see :func:`session_from_arrays`)."""
+    out = {}
+    for name, value in extra.items():
+        if not isinstance(name, str) or not name or name in COLUMNS or re.search(r"[,\s#]", name):
+            raise SessionFormatError(
+                f"building a session: extra column name {name!r} must be non-empty, without "
+                "',', blanks or '#', and not one of the ten required columns"
+            )
+        a = np.array(value, dtype=np.float64)
+        if a.shape != (n,):
+            raise SessionFormatError(
+                f"building a session: extra column {name} must have shape ({n},) like t, got "
+                f"{a.shape}"
+            )
+        if np.isinf(a).any():
+            index = int(np.flatnonzero(np.isinf(a))[0])
+            raise SessionFormatError(
+                f"building a session: extra column {name} at sample {index} is infinite; an "
+                "empty cell is NaN"
+            )
+        out[name] = a
+    return out
 
 
 def _breaks_line(text: str) -> bool:
@@ -259,7 +293,8 @@ def _check_meta(meta: dict[str, str], operation: str) -> None:
 
 
 def _multi_rate_rows(data: np.ndarray) -> list[str]:
-    """Version 2 rows of ``data`` (N, 10): a vector without a sample is three empty cells."""
+    """Version 2 rows of ``data`` (N, 10 + extra columns): a NaN is an empty cell (a vector
+    without a sample: three of them)."""
     rows = []
     for values in data.tolist():
         cells = ["" if math.isnan(v) else repr(v) for v in values]
@@ -274,18 +309,24 @@ def write_session(path: str | os.PathLike, session: Session) -> None:
 
     Values are written with ``repr`` (shortest text that round-trips float64 exactly), so
     ``read_session(path)`` gives back bit-identical arrays.
+
+    Extra columns (:attr:`Session.extra`) follow the ten; a session with an empty extra cell
+    is written as version 2 (version 1 rows are plain numbers).
     """
     # Validate first so that we never write a file our own reader rejects.
-    s = session_from_arrays(session.t, session.gyr, session.acc, session.mag, session.meta)
-    data = np.column_stack([s.t, s.gyr, s.acc, s.mag])
-    multi_rate = s.multi_rate
-    row_format = ",".join(["%r"] * len(COLUMNS))  # %r of a Python float is its repr
+    s = session_from_arrays(
+        session.t, session.gyr, session.acc, session.mag, session.meta, session.extra
+    )
+    data = np.column_stack([s.t, s.gyr, s.acc, s.mag, *s.extra.values()])
+    multi_rate = s.multi_rate or any(np.isnan(v).any() for v in s.extra.values())
+    columns = COLUMNS + tuple(s.extra)
+    row_format = ",".join(["%r"] * len(columns))  # %r of a Python float is its repr
     try:
         with open(path, "w", encoding="utf-8", newline="\n") as f:
             f.write((FIRST_LINE_MULTI_RATE if multi_rate else FIRST_LINE) + "\n")
             for key, value in s.meta.items():
                 f.write(f"# {key.strip()}: {value}\n")
-            f.write(",".join(COLUMNS) + "\n")
+            f.write(",".join(columns) + "\n")
             # .tolist() gives Python floats, whose repr is plain (numpy 2 scalars print
             # np.float64).
             if multi_rate:
@@ -302,11 +343,13 @@ def write_session(path: str | os.PathLike, session: Session) -> None:
 # Reading
 
 
-def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
+def read_session(path: str | os.PathLike, min_samples: int = 0, extra: bool = False) -> Session:
     """Read a ``magcal-session`` CSV file, version 1 or 2 (multi-rate).
 
     path        : the file
     min_samples : reject sessions with fewer samples (the calling method's minimum)
+    extra       : also read the columns beyond the ten into :attr:`Session.extra` (numbers,
+                  an empty cell NaN); otherwise they are not parsed
 
     Columns may come in any order; extra columns are ignored (not even parsed). Raises
     :class:`SessionFormatError` whose message names the file, the 1-based line number and the
@@ -351,13 +394,47 @@ def read_session(path: str | os.PathLike, min_samples: int = 0) -> Session:
             f"reading session {name}: session has {n} samples; calibration needs at least "
             f"{min_samples}: record longer"
         )
+    more = _parse_extra(name, lines, first, last, columns, usecols) if extra else {}
     return Session(
         t=data[:, 0].copy(),
         gyr=data[:, 1:4].copy(),
         acc=data[:, 4:7].copy(),
         mag=data[:, 7:10].copy(),
         meta=meta,
+        extra=more,
     )
+
+
+def _parse_extra(
+    name: str, lines: list[str], first: int, last: int, columns: list[str], usecols: list[int]
+) -> dict[str, np.ndarray]:
+    """The columns beyond the ten (rows already checked by :func:`_parse`): name → (N,)
+    float, an empty cell NaN; a cell that is neither empty nor a finite number is refused."""
+    wanted = [k for k in range(len(columns)) if k not in set(usecols)]
+    if not wanted:
+        return {}
+    rows = [lines[i].split(",") for i in range(first, last) if lines[i].strip()]
+    where = [i for i in range(first, last) if lines[i].strip()]
+    out = {}
+    for k in wanted:
+        values = np.empty(len(rows))
+        for r, fields in enumerate(rows):
+            text = fields[k].strip()
+            if not text:
+                values[r] = math.nan
+                continue
+            try:
+                if "_" in text:  # as the ten columns: Python's float() accepts "1_000"
+                    raise ValueError
+                values[r] = float(text)
+            except ValueError:
+                problem = f"column {columns[k]}: {text!r} is not a number"
+                raise _error(name, where[r], problem) from None
+            if not math.isfinite(values[r]):
+                problem = f"column {columns[k]}: value {text!r} is not finite"
+                raise _error(name, where[r], problem)
+        out[columns[k]] = values
+    return out
 
 
 def _error(name: str, line_index: int, problem: str) -> SessionFormatError:

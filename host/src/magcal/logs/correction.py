@@ -111,6 +111,20 @@ def ardupilot_recorded(compass: int, naming: str, names: set[str]) -> tuple[str,
     return tuple(dict.fromkeys(n for n in wanted if n in names))
 
 
+def flight_recorded_ardupilot(compass: int, naming: str, names: set[str]) -> tuple[str, ...]:
+    """What a flight session records of ``compass`` (1-based state index): the parameters
+    :func:`ardupilot_recorded` gives, its motor compensation (COMPASS_MOTn_X/Y/Z), whether it
+    is used and its priority, and the shared motor-compensation settings; those the log has."""
+    k = "" if compass == 1 else str(compass)
+    if naming == mapping.AP_NAMING_PER_INSTANCE:
+        motor = [f"COMPASS{compass}_MOT_{a}" for a in "XYZ"] + [f"COMPASS{compass}_USE"]
+    else:
+        motor = [f"COMPASS_MOT{k}_{a}" for a in "XYZ"] + [f"COMPASS_USE{k}"]
+    shared = ["COMPASS_MOTCT", "COMPASS_PMOT_EN", f"COMPASS_PRIO{compass}_ID", "COMPASS_DEC"]
+    wanted = [*ardupilot_recorded(compass, naming, names), *motor, *shared]
+    return tuple(dict.fromkeys(n for n in wanted if n in names))
+
+
 def ardupilot_state_index(params: dict[str, float], instance: int) -> int:
     """The parameter set (1-based state index) of logged compass ``instance`` (1-based).
 
@@ -252,6 +266,15 @@ def px4_recorded(index: int, names: set[str]) -> tuple[str, ...]:
     collect`` records them."""
     wanted = vehicle.px4_required(index) + vehicle.px4_custom_angles(index)
     wanted += [f"CAL_MAG{index}_ID", f"CAL_MAG{index}_PRIO", "SENS_BOARD_ROT"]
+    return tuple(dict.fromkeys(n for n in wanted if n in names))
+
+
+def flight_recorded_px4(index: int, names: set[str]) -> tuple[str, ...]:
+    """What a flight session records of CAL_MAG``index``: :func:`px4_recorded`'s parameters,
+    its motor compensation (CAL_MAGn_XCOMP/YCOMP/ZCOMP) and the compensation type; those the
+    log has."""
+    wanted = [*px4_recorded(index, names), *(f"CAL_MAG{index}_{a}COMP" for a in "XYZ")]
+    wanted.append("CAL_MAG_COMP_TYP")
     return tuple(dict.fromkeys(n for n in wanted if n in names))
 
 

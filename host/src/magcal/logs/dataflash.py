@@ -54,8 +54,15 @@ from pymavlink import DFReader
 
 from magcal.autopilot import vehicle
 from magcal.logs.convert import IMU_GAP_FACTOR
-from magcal.logs.correction import ardupilot_frame, ardupilot_recorded, undo_ardupilot
+from magcal.logs.correction import (
+    Undone,
+    ardupilot_frame,
+    ardupilot_recorded,
+    flight_recorded_ardupilot,
+    undo_ardupilot,
+)
 from magcal.logs.streams import (
+    GnssStream,
     ImuStream,
     LogImportError,
     LogStreams,
@@ -114,8 +121,12 @@ TRAILER_BYTES = 528
 PAUSE_CAUSE = "a logging pause: nothing at all was logged"
 #: Above this fraction of skipped bytes the file is not a DataFlash log.
 BAD_FRACTION = 0.5
-#: EV ids (AP_Logger LogEvent): ARMED = 10, DISARMED = 11.
-EV_ARMED, EV_DISARMED = 10, 11
+#: EV ids (AP_Logger LogEvent): ARMED = 10, DISARMED = 11, LAND_COMPLETE = 18,
+#: NOT_LANDED = 28.
+EV_ARMED, EV_DISARMED, EV_LAND_COMPLETE, EV_NOT_LANDED = 10, 11, 18, 28
+#: GPS time: the GPS epoch (1980-01-06) in Unix seconds, a week, and GPS − UTC (leap
+#: seconds since 2017; only the date is taken from it).
+GPS_EPOCH_UNIX_S, WEEK_S, GPS_UTC_LEAP_S = 315964800.0, 604800.0, 18.0
 #: A MAG sample is published at most this long before it is logged; beyond, S is not used.
 MAX_PUBLISH_LAG_US = 1_000_000
 NEEDS = "needs IMU, MAG and PARM messages"
@@ -177,7 +188,10 @@ def _units(df: _Index) -> dict[str, dict[str, tuple[str, float | None]]]:
     mult = _decode(df, "MULT")
     if mult is not None and "Id" in mult and "Mult" in mult:
         for i, m in zip(mult["Id"], mult["Mult"], strict=True):
-            mults[chr(int(i))] = float(m)
+            # MULT holds a float32 (1e-6 as 9.99999997e-07): its shortest decimal is the
+            # multiplier meant, and keeps µs times exact (an IMU and a MAG message of the
+            # same TimeUS then have the same time)
+            mults[chr(int(i))] = float(str(np.float32(m)))
     out: dict[str, dict[str, tuple[str, float | None]]] = {}
     for ftype, unit_ids, mult_ids in zip(
         fmtu["FmtType"], _text(fmtu["UnitIds"]), _text(fmtu["MultIds"]), strict=True
@@ -307,6 +321,93 @@ def _armed(df: _Index, clock: _Clock) -> StepSignal | None:
             t = clock.times(ev, "EV")[sel]
             state = (ev["Id"][sel] == EV_ARMED).astype(float)
             return StepSignal(t, state, before=1.0 - state[0])
+    return None
+
+
+def _airborne(df: _Index, clock: _Clock) -> StepSignal | None:
+    """The land detector's state from EV (NOT_LANDED: in the air; LAND_COMPLETE, DISARMED:
+    on the ground); None when the log has no NOT_LANDED event (the detector never said)."""
+    ev = _decode(df, "EV")
+    if ev is None or "Id" not in ev or not (ev["Id"] == EV_NOT_LANDED).any():
+        return None
+    sel = np.isin(ev["Id"], (EV_NOT_LANDED, EV_LAND_COMPLETE, EV_DISARMED))
+    t = clock.times(ev, "EV")[sel]
+    return StepSignal(t, (ev["Id"][sel] == EV_NOT_LANDED).astype(float), before=0.0)
+
+
+def _first_instance(cols: dict[str, np.ndarray], column: str) -> dict[str, np.ndarray]:
+    """The rows of instance 0 of a message with an instance column (all rows without)."""
+    if column not in cols:
+        return cols
+    sel = cols[column] == 0
+    return {k: v[sel] for k, v in cols.items()}
+
+
+def _gnss(name: str, df: _Index, clock: _Clock) -> GnssStream | None:
+    """The first GNSS receiver (GPS instance 0; GPS before ArduPilot 4.0): fix, position,
+    velocity (Spd along GCrs, VZ down) and GPS time (GWk/GMS; Week/TimeMS before 2015, when
+    the log time was T)."""
+    cols = _decode(df, "GPS")
+    if cols is None or not {"Status", "Lat", "Lng", "Alt", "Spd", "GCrs"} <= set(cols):
+        return None
+    cols = _first_instance(cols, "I")
+    if "GMS" in cols:
+        t = clock.times(cols, "GPS")
+        week, week_ms = cols.get("GWk"), cols["GMS"]
+    elif "T" in cols and "Week" in cols and "TimeMS" in cols:
+        t = np.asarray(cols["T"], dtype=float) * 1e-3
+        week, week_ms = cols["Week"], cols["TimeMS"]
+    else:
+        return None
+    if t.size == 0:
+        return None
+    speed = np.asarray(cols["Spd"], dtype=float)
+    course = np.deg2rad(np.asarray(cols["GCrs"], dtype=float))
+    down = np.asarray(cols["VZ"], dtype=float) if "VZ" in cols else np.full(t.size, np.nan)
+    vel = np.column_stack([speed * np.cos(course), speed * np.sin(course), down])
+    utc = np.full(t.size, np.nan)
+    if week is not None:
+        week = np.asarray(week, dtype=float)
+        ok = week > 0
+        utc[ok] = (
+            GPS_EPOCH_UNIX_S + week[ok] * WEEK_S + np.asarray(week_ms, float)[ok] * 1e-3
+        ) - GPS_UTC_LEAP_S
+    fix = np.asarray(cols["Status"], dtype=int)
+    lat, lon = np.asarray(cols["Lat"], float), np.asarray(cols["Lng"], float)
+    alt = np.asarray(cols["Alt"], float)
+    t, fix, lat, lon, alt, vel, utc = strictly_increasing(t, fix, lat, lon, alt, vel, utc)
+    return GnssStream(t, fix, lat, lon, alt, vel, utc, "GPS[0]" if "I" in cols else "GPS")
+
+
+def _current(df: _Index, clock: _Clock) -> StepSignal | None:
+    """Battery 0's current, A: BAT.Curr (ArduPilot 3.6 on), else CURR.Curr (centiamperes)."""
+    bat = _decode(df, "BAT")
+    if bat is not None and "Curr" in bat:
+        bat = _first_instance(bat, "Inst" if "Inst" in bat else "Instance")
+        t = clock.times(bat, "BAT")
+        return StepSignal(t, np.asarray(bat["Curr"], dtype=float)) if t.size else None
+    curr = _decode(df, "CURR")
+    if curr is not None and "Curr" in curr:
+        t = clock.times(curr, "CURR")
+        return StepSignal(t, np.asarray(curr["Curr"], dtype=float) / 100.0) if t.size else None
+    return None
+
+
+def _throttle(df: _Index, clock: _Clock) -> StepSignal | None:
+    """The throttle output, 0–1: CTUN.ThO (Copter 0–1; Plane percent), or CTUN.ThrOut of
+    older firmware (Copter 0–1000)."""
+    cols = _decode(df, "CTUN")
+    if cols is None:
+        return None
+    for column, scales in (("ThO", (1.0, 100.0)), ("ThrOut", (100.0, 1000.0))):
+        if column in cols:
+            v = np.asarray(cols[column], dtype=float)
+            t = clock.times(cols, "CTUN")
+            if not t.size:
+                return None
+            # the larger scale when the values exceed the smaller one's full range
+            scale = scales[1] if np.nanmax(np.abs(v)) > 1.5 * scales[0] else scales[0]
+            return StepSignal(t, np.clip(v / scale, 0.0, 1.0))
     return None
 
 
@@ -450,6 +551,9 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
             clock.reference(ref, ref_name)
         params = _params(df, clock)
         armed = _armed(df, clock)
+        airborne = _airborne(df, clock)
+        gnss = _gnss(name, df, clock)
+        current, throttle = _current(df, clock), _throttle(df, clock)
         t_imu_all = clock.times(imus[imu][1], imus[imu][0]) if imu in imus else np.zeros(0)
         pauses = _pauses(df, clock, np.sort(t_imu_all))
     finally:
@@ -487,6 +591,57 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     )
     imu_stream = ImuStream(t_imu, gyr, acc, imu, f"IMU[{imu - 1}]" if "I" in icol else imu_name)
 
+    mag_stream, mag_notes, undone = _mag_stream(name, mags, compass, units, clock, params)
+    notes += mag_notes
+    others, other_names = [], []
+    for k in sorted(mags):
+        if k == compass:
+            continue
+        try:
+            other, other_notes, other_undone = _mag_stream(name, mags, k, units, clock, params)
+        except LogImportError as exc:
+            notes.append(f"compass {k} left out of the flight columns: {exc}")
+            continue
+        others.append(other)
+        notes += other_notes
+        other_names += flight_recorded_ardupilot(
+            other_undone.param_compass, other_undone.naming, params.names()
+        )
+    other_names += flight_recorded_ardupilot(undone.param_compass, undone.naming, params.names())
+    return LogStreams(
+        path=path,
+        log_format="DataFlash",
+        autopilot=vehicle.ARDUPILOT,
+        imu=imu_stream,
+        mag=mag_stream,
+        params=params,
+        param_names=ardupilot_recorded(undone.param_compass, undone.naming, params.names()),
+        param_compass=undone.param_compass,
+        naming=undone.naming,
+        armed=armed,
+        throttle=throttle,
+        other_mags=tuple(others),
+        other_param_names=tuple(dict.fromkeys(other_names)),
+        gnss=gnss,
+        current=current,
+        airborne=airborne,
+        notes=tuple(notes),
+        known_gaps=pauses,
+        meta=undone.meta,
+    )
+
+
+def _mag_stream(
+    name: str,
+    mags: dict[int, tuple[str, dict[str, np.ndarray]]],
+    compass: int,
+    units: dict[str, dict[str, tuple[str, float | None]]],
+    clock: _Clock,
+    params: ParamTimeline,
+) -> tuple[MagStream, list[str], Undone]:
+    """Compass ``compass``'s samples with the correction in force undone, the notes about
+    them and how it was undone."""
+    notes = []
     mag_name, mcol = mags[compass]
     u = units.get(mag_name, {})
     keep = np.ones(mcol["MagX"].shape[0], dtype=bool)
@@ -504,7 +659,10 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
                 )
             )
         if unhealthy.any():
-            notes.append(f"{int(unhealthy.sum())} MAG sample(s) marked unhealthy were dropped")
+            notes.append(
+                f"{int(unhealthy.sum())} MAG sample(s) of compass {compass} marked unhealthy "
+                "were dropped"
+            )
     t_mag = _mag_sample_times(mcol, clock.times(mcol, mag_name))
     field = untruncate(_si(name, mcol, u, ("MagX", "MagY", "MagZ"), "G", 1e-3, mag_name))
     motor = None
@@ -524,7 +682,7 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     undone = undo_ardupilot(
         name, t_mag, field, params, compass, motor, offsets, params_complete=True
     )
-    mag_stream = MagStream(
+    stream = MagStream(
         t=t_mag[undone.keep],
         mag=undone.mag,
         instance=compass,
@@ -534,18 +692,4 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         suspect=undone.suspect,
         suspect_reason=undone.suspect_reason,
     )
-    return LogStreams(
-        path=path,
-        log_format="DataFlash",
-        autopilot=vehicle.ARDUPILOT,
-        imu=imu_stream,
-        mag=mag_stream,
-        params=params,
-        param_names=ardupilot_recorded(undone.param_compass, undone.naming, params.names()),
-        param_compass=undone.param_compass,
-        naming=undone.naming,
-        armed=armed,
-        notes=tuple(notes) + undone.notes,
-        known_gaps=pauses,
-        meta=undone.meta,
-    )
+    return stream, notes + list(undone.notes), undone

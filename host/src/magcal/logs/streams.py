@@ -64,6 +64,29 @@ class MagStream:
 
 
 @dataclass(frozen=True)
+class GnssStream:
+    """The GNSS receiver's solutions.
+
+    t        : (K,) float, s, strictly increasing (autopilot boot time)
+    fix      : (K,) int, fix type as MAVLink's GPS_FIX_TYPE counts it (3 = 3D fix; above:
+               better, DGPS and RTK); below 3 the position is not used
+    lat, lon : (K,) float, degrees north and east;  alt : (K,) float, m above mean sea level
+    vel      : (K, 3) float, m/s, north-east-down
+    utc_s    : (K,) float, UTC as seconds since 1970 (NaN where the receiver gave no time)
+    source   : the messages or topic read
+    """
+
+    t: np.ndarray
+    fix: np.ndarray
+    lat: np.ndarray
+    lon: np.ndarray
+    alt: np.ndarray
+    vel: np.ndarray
+    utc_s: np.ndarray
+    source: str
+
+
+@dataclass(frozen=True)
 class StepSignal:
     """A value that holds from each time on until the next one (armed state, throttle).
 
@@ -150,6 +173,15 @@ class LogStreams:
     naming     : ArduPilot's parameter naming (magcal.autopilot.mapping.AP_NAMING_*); PX4 ""
     armed      : 1.0 while armed (motors may spin), else 0.0; None when the log does not say
     throttle   : 0..1; None when the log does not say
+    other_mags : every other compass of the log, in compass order, each with its on-board
+                 correction undone as ``mag``'s (a compass whose correction cannot be undone is
+                 left out, with a note)
+    other_param_names: the parameters of those compasses' corrections (and shared ones, such
+                 as the motor-compensation type), recorded in a flight session
+    gnss       : the GNSS solutions; None when the log has none
+    current    : battery current, A; None when the log does not say
+    airborne   : 1.0 while the autopilot's land detector says the vehicle is in the air;
+                 None when the log does not say
     notes      : remarks for the user (e.g. samples dropped and why)
     known_gaps : (start s, end s, cause) of stretches whose cause the log tells (a logging
                  pause, a logger dropout); an IMU gap overlapping one has that cause
@@ -168,6 +200,11 @@ class LogStreams:
     naming: str = ""
     armed: StepSignal | None = None
     throttle: StepSignal | None = None
+    other_mags: tuple[MagStream, ...] = ()
+    other_param_names: tuple[str, ...] = ()
+    gnss: GnssStream | None = None
+    current: StepSignal | None = None
+    airborne: StepSignal | None = None
     notes: tuple[str, ...] = field(default_factory=tuple)
     known_gaps: tuple[tuple[float, float, str], ...] = ()
     gap_cause: str = "lost messages"

@@ -2,8 +2,9 @@
 """``magcal import LOG -o SESSION.csv``: a session from an ArduPilot or PX4 flight log.
 
 Reads a DataFlash ``.bin``, a MAVLink ``.tlog`` or a PX4 ``.ulg``, undoes the autopilot's
-compass correction, finds the stretch where the vehicle was turned by hand (or takes
-``--start/--end``), and writes the session. Progress and the stretch chosen go to stderr.
+compass correction, finds the stretch where the vehicle was turned by hand, or without one
+the flight (or takes ``--start/--end``), and writes the session. Progress and the stretch
+chosen go to stderr.
 The log readers (pymavlink, pyulog) load when the command runs, not when the parser is built.
 """
 
@@ -71,6 +72,25 @@ def faster_imu_hint(streams) -> str:
     return "choose SDLOG_PROFILE's high-rate sensor topics, or list them for the logger"
 
 
+def flight_contents(session) -> str:
+    """ "every compass (1,2,3), GNSS velocity, battery current and throttle": what a flight
+    session holds (a signal the log lacks, or that is empty over the range, is not named)."""
+    import numpy as np
+
+    have = {name for name, v in session.extra.items() if not np.isnan(v).all()}
+    parts = [f"every compass ({session.meta.get('compasses', '1')})"]
+    parts += [
+        what
+        for what, column in (
+            ("GNSS velocity", "vel_n"),
+            ("battery current", "current"),
+            ("throttle", "throttle"),
+        )
+        if column in have
+    ]
+    return ", ".join(parts[:-1]) + " and " + parts[-1] if len(parts) > 1 else parts[0]
+
+
 def progress_printer(label: str, stream=None):
     """``show(fraction)`` of the log read, ``show.done()`` after it: a
     :class:`magcal.ui.ProgressBar` in percent; in a log ``label: 45 %`` every LOG_STEP_PCT %."""
@@ -95,6 +115,7 @@ def run(args, out=None, err=None) -> int:
     from magcal.calib.diagnostics import observability
     from magcal.io.session import check_writable, write_session
     from magcal.logs import ImportOptions, import_log
+    from magcal.logs.flight import describe as describe_flight
     from magcal.logs.stretch import describe
 
     out = out or sys.stdout
@@ -125,8 +146,24 @@ def run(args, out=None, err=None) -> int:
         )
     for note in result.notes:
         print(f"note: {note}", file=err)
-    if result.stretch is None:
-        print(f"range from --start/--end: {result.start_s:.2f}–{result.end_s:.2f} s", file=err)
+    if (
+        result.flight is not None
+        and result.stretch is None
+        and args.start is None
+        and args.end is None
+    ):
+        print(f"no hand rotation; found {describe_flight(result.flight)}", file=err)
+        print(
+            f"importing the flight, {result.start_s:.2f}–{result.end_s:.2f} s, with "
+            f"{flight_contents(result.session)}; --start/--end choose another range",
+            file=err,
+        )
+    elif result.stretch is None:
+        kind = " (in flight: a flight session)" if result.flight is not None else ""
+        print(
+            f"range from --start/--end: {result.start_s:.2f}–{result.end_s:.2f} s{kind}",
+            file=err,
+        )
     else:
         print(f"found {describe(result.stretch)}", file=err)
         for other in result.others:

@@ -8,10 +8,13 @@
   parameters in force at each sample;
 - :mod:`~magcal.logs.stretch`: where the vehicle was turned by hand (pure function);
 - :mod:`~magcal.logs.convert`: pairing magnetometer and IMU samples, the session and its
-  metadata.
+  metadata;
+- :mod:`~magcal.logs.flight`: a log without a hand rotation: its flight (armed, in the air,
+  with GNSS) as a session with every compass, GNSS velocity, current and throttle.
 
 :func:`import_log` runs them in that order, after :func:`sniff_format` has recognised the
-format from the file's content (never from its name alone).
+format from the file's content (never from its name alone). A hand rotation is preferred to
+a flight when the log holds both.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ import numpy as np
 
 from magcal.io.session import Session, os_error_advice
 from magcal.logs.convert import Rows, cut, pair, to_session
+from magcal.logs.flight import Flight, find_flight, flight_session, in_flight
 from magcal.logs.streams import LogImportError, LogStreams
 from magcal.logs.stretch import Stretch, StretchConfig, explain_none, find_hand_rotation
 
@@ -42,6 +46,8 @@ SNIFF_FRAMES = 2
 #: MAVLink 1 and 2 start-of-frame bytes, after a tlog's 8-byte timestamp.
 MAVLINK1_STX, MAVLINK2_STX = 0xFE, 0xFD
 FORMATS = ("dataflash", "tlog", "ulog")
+#: A --start/--end range in flight for more than this share of its time is a flight session.
+FLIGHT_RANGE_SHARE = 0.5
 
 
 @dataclass(frozen=True)
@@ -67,6 +73,9 @@ class ImportResult:
 
     stretch : the detected hand rotation (None when --start/--end chose the range)
     others  : the other candidate stretches, best first
+    flight  : the flight imported (a flight session), None for a hand rotation; with
+              --start/--end a range mostly in flight gives a flight session whose flight
+              is the range
     notes   : remarks on the range (e.g. gaps left out)
     """
 
@@ -78,6 +87,7 @@ class ImportResult:
     stretch: Stretch | None
     others: tuple[Stretch, ...]
     notes: tuple[str, ...] = ()
+    flight: Flight | None = None
 
 
 def _mavlink_frames(data: bytes) -> int:
@@ -152,6 +162,7 @@ def import_log(
     """Read ``path``, pair its sensors, choose the range and build the session."""
     streams = read_log(path, options.compass, options.imu, progress)
     rows = pair(streams.imu, streams.mag)
+    flight = None
     if options.start_s is not None or options.end_s is not None:
         start = -np.inf if options.start_s is None else options.start_s
         end = np.inf if options.end_s is None else options.end_s
@@ -159,20 +170,34 @@ def import_log(
             raise LogImportError(f"--start {start:g} s is not before --end {end:g} s")
         sel, notes = cut(rows, start, end, streams)
         stretch, others = None, ()
+        t = streams.imu.t
+        t = t[(t >= rows.t[sel][0]) & (t <= rows.t[sel][-1])]
+        flying, by = in_flight(streams, t)
+        if flying.mean() > FLIGHT_RANGE_SHARE:
+            flight = Flight(float(rows.t[sel][0]), float(rows.t[sel][-1]), by)
     else:
         armed = streams.armed.at(rows.t) > 0.5 if streams.armed is not None else None
         throttle = streams.throttle.at(rows.t) if streams.throttle is not None else None
         inputs = (rows.t, rows.gyr, rows.acc, armed, throttle, rows.gap | rows.suspect)
         found = find_hand_rotation(*inputs, config=options.stretch)
-        if not found:
-            raise LogImportError(
-                f"{os.path.basename(path)}: no stretch where the vehicle was turned by hand: "
-                f"{explain_none(*inputs, config=options.stretch)}; pass --start and --end "
-                "(log time, s) to choose the range"
-            )
-        stretch, others = found[0], tuple(found[1:])
-        sel, notes = cut(rows, stretch.from_s, stretch.to_s, streams)
-    session = to_session(streams, rows, sel)
+        if found:
+            stretch, others = found[0], tuple(found[1:])
+            sel, notes = cut(rows, stretch.from_s, stretch.to_s, streams)
+        else:
+            flight, missing = find_flight(streams)
+            if flight is None:
+                raise LogImportError(
+                    f"{os.path.basename(path)}: no stretch where the vehicle was turned by "
+                    f"hand: {explain_none(*inputs, config=options.stretch)}; and no flight to "
+                    f"import: {missing}; pass --start and --end (log time, s) to choose the "
+                    "range"
+                )
+            stretch, others = None, ()
+            sel, notes = cut(rows, flight.start_s, flight.end_s, streams)
+    if flight is not None:
+        session = flight_session(streams, rows, sel, flight)
+    else:
+        session = to_session(streams, rows, sel)
     return ImportResult(
         session=session,
         streams=streams,
@@ -182,4 +207,5 @@ def import_log(
         stretch=stretch,
         others=others,
         notes=notes,
+        flight=flight,
     )

@@ -160,7 +160,10 @@ def cut(
         )
     notes: tuple[str, ...] = ()
     if (sel & rows.gap).any():
-        inside = [g for g in rows.gaps if g[1] > start_s and g[0] < end_s]
+        # the last row's interval reaches the next row's time, which may be past end_s
+        last = int(np.flatnonzero(sel)[-1])
+        reach = max(end_s, float(rows.t[min(last + 1, rows.t.size - 1)]))
+        inside = [g for g in rows.gaps if g[1] > start_s and g[0] < reach]
         runs = true_runs(sel & ~rows.gap)
         a, b = max(runs, key=lambda r: r[1] - r[0], default=(0, 0))
         listed = "; ".join(describe_gap(g, streams) for g in inside[:MAX_GAPS_LISTED])
@@ -186,7 +189,7 @@ def cut(
     return sel, notes
 
 
-def _param_text(value: float) -> str:
+def param_text(value: float) -> str:
     """A parameter for the metadata: integers exactly (device ids exceed float32's 2**24),
     others as the shortest text of their float32 (what the autopilot holds)."""
     if float(value).is_integer() and abs(value) < 2**53:
@@ -252,7 +255,7 @@ def session_meta(streams: LogStreams, rows: Rows, sel: np.ndarray) -> dict[str, 
             f"{', '.join(changed)} changed within this range; the param. lines hold the values "
             "at its end"
         )
-    meta |= {vehicle.SESSION_PARAM_PREFIX + n: _param_text(v) for n, v in recorded.items()}
+    meta |= {vehicle.SESSION_PARAM_PREFIX + n: param_text(v) for n, v in recorded.items()}
     return meta
 
 

@@ -118,6 +118,18 @@ def test_the_result_puts_an_ellipsoid_back_on_the_unit_sphere():
     assert len(r["before"]) <= MAX_POINTS and "error" not in r
 
 
+def test_the_result_leaves_out_rows_without_a_reading():
+    mag = 50.0 * _sphere(2000)
+    mag[::3] = np.nan  # a MAVLink session's IMU rows between magnetometer values
+    r = result_spheres(mag)
+    assert np.isfinite(np.array(r["before"])).all() and np.isfinite(np.array(r["after"])).all()
+    assert float(r["after_spread_pct"]) < 0.1
+    assert result_spheres(np.full((5, 3), np.nan)) == {
+        "before": [],
+        "error": "no magnetometer readings",
+    }
+
+
 def test_the_result_of_a_flat_recording_says_why_there_is_no_after():
     u = _sphere(2000)
     u[:, 2] = 0.0  # yaw only: a circle

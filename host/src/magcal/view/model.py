@@ -65,6 +65,7 @@ class CompassView:
         self._latest = progress
 
     def _keep(self, y: np.ndarray) -> None:
+        y = y[np.isfinite(y).all(axis=1)]
         picked = y[self._skip :: self._stride]
         self._skip = (self._skip - len(y)) % self._stride
         self._kept = np.concatenate([self._kept, picked])
@@ -112,7 +113,8 @@ class CompassView:
 def result_spheres(mag: np.ndarray) -> dict[str, Any]:
     """The collection's readings before and after an ellipsoid fit, for the page.
 
-    mag : (N, 3) float, the session's magnetometer readings (session units)
+    mag : (N, 3) float, the session's magnetometer readings (session units); rows that are
+        not finite (a MAVLink session's rows without a new magnetometer value) are left out
 
     before: the readings divided by their median distance from the fitted centre (the offset
     shows as a sphere off the origin, soft iron as an ellipsoid); after: ``D̃⁻¹ (y − o)``, on
@@ -122,17 +124,21 @@ def result_spheres(mag: np.ndarray) -> dict[str, Any]:
     """
     from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
 
-    y = _thin(np.asarray(mag, dtype=np.float64).reshape(-1, 3))
-    raw = np.linalg.norm(np.asarray(mag, dtype=np.float64), axis=1)
+    mag = np.asarray(mag, dtype=np.float64).reshape(-1, 3)
+    mag = mag[np.isfinite(mag).all(axis=1)]
+    if len(mag) == 0:
+        return {"before": [], "error": "no magnetometer readings"}
+    y = _thin(mag)
+    raw = np.linalg.norm(mag, axis=1)
     out: dict[str, Any] = {"before_spread_pct": f"{100 * raw.std() / raw.mean():.2f}"}
     try:
-        fit = fit_ellipsoid_sdp(np.asarray(mag, dtype=np.float64))
+        fit = fit_ellipsoid_sdp(mag)
     except MagcalError as exc:
         r = float(np.median(np.linalg.norm(y - y.mean(axis=0), axis=1))) or 1.0
         out.update(before=np.round(y / r, DIRECTION_DECIMALS).tolist(), error=str(exc))
         return out
     r = float(np.median(np.linalg.norm(y - fit.o, axis=1))) or 1.0
-    after = np.linalg.solve(fit.D_tilde, (np.asarray(mag, dtype=np.float64) - fit.o).T).T
+    after = np.linalg.solve(fit.D_tilde, (mag - fit.o).T).T
     norms = np.linalg.norm(after, axis=1)
     out.update(
         before=np.round(y / r, DIRECTION_DECIMALS).tolist(),

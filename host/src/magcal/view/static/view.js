@@ -245,8 +245,12 @@
   function renderResult(result) {
     var section = document.getElementById("result");
     section.hidden = false;
-    var text = "Field strength spread: " + result.before_spread_pct + " % in the raw readings";
-    if (result.after_spread_pct !== undefined) text += ", " + result.after_spread_pct + " % after the fit.";
+    var text = "";
+    if (result.before_spread_pct !== undefined) {
+      text = "Field strength spread: " + result.before_spread_pct + " % in the raw readings";
+      text += result.after_spread_pct !== undefined
+        ? ", " + result.after_spread_pct + " % after the fit." : ".";
+    }
     if (result.error) text += " The fit was refused: " + result.error;
     document.getElementById("result-text").textContent = text;
     drawCloud(document.getElementById("before"), result.before || []);

@@ -350,3 +350,149 @@ def _json_ready(value: Any, path: str, where: str) -> Any:
     raise ResultFormatError(
         f"{where}: key '{path}' holds a {type(value).__name__}, which JSON cannot store"
     )
+
+
+# --------------------------------------------------------------------------------------------
+# Motor interference and further compasses (optional keys ``motor`` and ``compasses``)
+
+#: The inputs a motor interference may follow, with the unit of ``u(t)`` each is given in.
+MOTOR_INPUT_UNITS = {"current": "A", "throttle": "1"}
+
+
+@dataclass(frozen=True, eq=False)
+class MotorInterference:
+    """The field the motors make at the compass, ``b·u(t)`` in ``y = D Rᵀ m + o + b·u(t)``.
+
+    input     : "current" (battery current, A) or "throttle" (0…1)
+    unit      : "A" or "1", the unit of u
+    vector    : (3,) float, b: the session's magnetometer unit per unit of u, in the
+                session's magnetometer frame
+    kept      : whether the likelihood-ratio test kept it (False: the calibration did not
+                find it; a flash leaves the motor compensation in force as it is)
+    statistic, threshold : that test's figures (None when the result does not give them)
+    """
+
+    input: str
+    unit: str
+    vector: np.ndarray
+    kept: bool
+    statistic: float | None = None
+    threshold: float | None = None
+
+
+@dataclass(frozen=True, eq=False)
+class CompassCalibration:
+    """One compass's calibration in a result: the top-level ``D``, ``o`` for the session's
+    compass, or an entry of ``compasses``. Same frame and unit as the session's magnetometer.
+
+    compass : 1-based compass number (as ``--compass``); None when the result does not say
+    D, D_inv : (3, 3);  o : (3,);  motor : the interference, or None;  warnings : strings
+    """
+
+    compass: int | None
+    D: np.ndarray
+    o: np.ndarray
+    motor: MotorInterference | None
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def D_inv(self) -> np.ndarray:
+        return np.linalg.inv(self.D)
+
+
+def _motor_from(value: Any, key: str, where: str) -> MotorInterference | None:
+    if value is None:
+        return None
+    if not isinstance(value, dict):
+        raise ResultFormatError(f"{where}: key '{key}' must be an object, got {value!r}")
+    source = value.get("input")
+    if source not in MOTOR_INPUT_UNITS:
+        raise ResultFormatError(
+            f"{where}: key '{key}.input' is {source!r}; it must be one of "
+            f"{', '.join(map(repr, MOTOR_INPUT_UNITS))}"
+        )
+    unit = value.get("unit", MOTOR_INPUT_UNITS[source])
+    if unit != MOTOR_INPUT_UNITS[source]:
+        raise ResultFormatError(
+            f"{where}: key '{key}.unit' is {unit!r}; the {source} input is in "
+            f"{MOTOR_INPUT_UNITS[source]!r}"
+        )
+    if "vector" not in value:
+        raise ResultFormatError(f"{where}: key '{key}' has no 'vector'")
+    vector = _checked_array(
+        _json_numbers(value["vector"], (3,), f"{key}.vector", where), (3,), f"{key}.vector", where
+    )
+    kept = value.get("kept", True)
+    if not isinstance(kept, bool):
+        raise ResultFormatError(f"{where}: key '{key}.kept' must be true or false, got {kept!r}")
+    figures = {}
+    for name in ("statistic", "threshold"):
+        v = value.get(name)
+        if v is not None:
+            figures[name] = float(_json_numbers(v, (), f"{key}.{name}", where))
+    return MotorInterference(source, unit, vector, kept, **figures)
+
+
+def result_motor(result: CalibrationResult, where: str = "result") -> MotorInterference | None:
+    """The result's ``motor`` key (the session's first compass), validated; None without
+    one. ResultFormatError names the key of a malformed one."""
+    return _motor_from(result.extra.get("motor"), "motor", where)
+
+
+def result_compasses(result: CalibrationResult, where: str = "result") -> list[CompassCalibration]:
+    """Every compass the result calibrates: the top-level ``D``, ``o`` and ``motor`` first
+    (compass ``session_meta.compass``), then each entry of ``compasses``. ResultFormatError
+    names the key of a malformed entry, a compass given twice, or a ``D_inv`` that is not the
+    inverse of its ``D``."""
+    meta = result.extra.get("session_meta")
+    first = None
+    if isinstance(meta, dict) and meta.get("compass") is not None:
+        try:
+            first = int(str(meta["compass"]))
+        except ValueError:
+            raise ResultFormatError(
+                f"{where}: key 'session_meta.compass' is {meta['compass']!r}, not a compass number"
+            ) from None
+    out = [
+        CompassCalibration(
+            first, result.D, result.o, result_motor(result, where), tuple(result.warnings)
+        )
+    ]
+    further = result.extra.get("compasses")
+    if further is None:
+        return out
+    if not isinstance(further, list):
+        raise ResultFormatError(f"{where}: key 'compasses' must be a list, got {further!r}")
+    for i, entry in enumerate(further):
+        key = f"compasses[{i}]"
+        if not isinstance(entry, dict):
+            raise ResultFormatError(f"{where}: key '{key}' must be an object")
+        missing = [k for k in ("compass", "D", "o") if k not in entry]
+        if missing:
+            raise ResultFormatError(f"{where}: key '{key}' lacks {', '.join(missing)}")
+        n = entry["compass"]
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ResultFormatError(
+                f"{where}: key '{key}.compass' must be a compass number (1, 2, …), got {n!r}"
+            )
+        if any(c.compass == n for c in out):
+            raise ResultFormatError(f"{where}: compass {n} is calibrated twice ('{key}')")
+        D = _checked_array(_json_numbers(entry["D"], (3, 3), f"{key}.D", where), (3, 3), "D", where)
+        _check_invertible(D, f"{where}: '{key}'")
+        o = _checked_array(_json_numbers(entry["o"], (3,), f"{key}.o", where), (3,), "o", where)
+        if entry.get("D_inv") is not None:
+            D_inv = _checked_array(
+                _json_numbers(entry["D_inv"], (3, 3), f"{key}.D_inv", where), (3, 3), "D_inv", where
+            )
+            residual = np.abs(D @ D_inv - np.eye(3)).max()
+            if residual > D_INV_TOLERANCE:
+                raise ResultFormatError(
+                    f"{where}: key '{key}.D_inv' is not the inverse of its 'D' (max |D D_inv - "
+                    f"I| = {residual:.3g}): recompute it"
+                )
+        warnings = entry.get("warnings", [])
+        if not isinstance(warnings, list) or not all(isinstance(w, str) for w in warnings):
+            raise ResultFormatError(f"{where}: key '{key}.warnings' must be a list of strings")
+        motor = _motor_from(entry.get("motor"), f"{key}.motor", where)
+        out.append(CompassCalibration(n, D, o, motor, tuple(warnings)))
+    return out

@@ -14,7 +14,8 @@ On-board corrections, as in the sources:
   ``mag *= scale_factor`` only if ``have_scale_factor`` (AP_Compass.cpp: within
   [COMPASS_MIN_SCALE_FACTOR, COMPASS_MAX_SCALE_FACTOR]); ``mag = M · mag`` with
   ``M = [[DIA_X, ODI_X, ODI_Y], [ODI_X, DIA_Y, ODI_Z], [ODI_Y, ODI_Z, DIA_Z]]`` (all-zero
-  diagonals → 1); then motor compensation (not modelled here: zero when disarmed/idle).
+  diagonals → 1); then motor compensation, ``mag += COMPASS_MOT·u`` (u the battery current
+  for COMPASS_MOTCT 2, the throttle 0…1 for 1; :func:`to_ardupilot`'s ``motor_b``).
   So ``B = M · s · (R · raw + OFS)``, as ``docs/autopilots.md`` says. An *internal* compass is
   rotated by AHRS_ORIENTATION, not COMPASS_ORIENT: its rotation cannot be changed by us.
   The custom matrix is ``Matrix3::from_euler(roll, pitch, yaw)`` (3-2-1); in the commit read,
@@ -22,7 +23,8 @@ On-board corrections, as in the sources:
   ``CUST_ROT1_*``/``CUST_ROT2_*`` (AP_CustomRotations.cpp: "euler 321 (yaw, pitch, roll)
   ordering", degrees; AP_AHRS.cpp converts the old 100 to 101). We write 101/102.
 - PX4 ``src/lib/sensor_calibration/Magnetometer.hpp`` ``Correct()`` (commit 021ee44a):
-  ``_rotation * (_scale * ((data + power·comp) − _offset))``; ``Magnetometer.cpp``
+  ``_rotation * (_scale * ((data + power·comp) − _offset))`` (power: the throttle, or the
+  current in kA, per CAL_MAG_COMP_TYP: VehicleMagnetometer.cpp); ``Magnetometer.cpp``
   (commit 033e9cee) builds ``_scale`` from SCALE (diagonal) and ODIAG (0,1), (0,2), (1,2)
   symmetric, and ``_rotation = get_rot_matrix(CAL_MAGn_ROT)``; an external ROT outside
   [0, ROTATION_MAX) is reset to 0 and an internal one is −1 (board rotation). That commit has
@@ -70,6 +72,17 @@ PX4_CUSTOM_ROT = 100
 #: never applied, even after a reboot.
 PX4_UPDATE_THRESHOLD = 0.01
 PX4_RESET_VALUES = {"OFF": (0.0, 0.0, 0.0), "SCALE": (1.0, 1.0, 1.0), "ODIAG": (0.0, 0.0, 0.0)}
+#: Motor compensation. ArduPilot's COMPASS_MOTCT and PX4's CAL_MAG_COMP_TYP per input (one
+#: setting for every compass of the vehicle); PX4's 2 is the current of battery 0.
+AP_MOTCT_NAME, PX4_COMP_TYP_NAME = "COMPASS_MOTCT", "CAL_MAG_COMP_TYP"
+AP_MOTCT = {"throttle": 1, "current": 2}
+PX4_COMP_TYP = {"throttle": 1, "current": 2}
+#: PX4 compensates per kA of current (VehicleMagnetometer.cpp: ``bat_stat.current_a * 0.001f``,
+#: "current in [kA]"; CAL_MAGn_XCOMP "[G/kA]") and per unit of throttle (0…1, "[G]").
+PX4_POWER_PER_INPUT_UNIT = {"current": 1e-3, "throttle": 1.0}
+#: ArduPilot's COMPASS_MOT_X/Y/Z range (AP_Compass.cpp ``@Range: -1000 1000``), mG per A or
+#: mG at full throttle.
+AP_MOT_MAX = 1000.0
 #: Field inclination used for the heading error of a dropped rotation (a mid latitude).
 DEFAULT_INCLINATION_DEG = 60.0
 
@@ -166,6 +179,28 @@ def _ap_names(compass: int, naming: str = AP_NAMING_LEGACY) -> dict[str, str]:
 ap_param_names = _ap_names
 
 
+def ap_motor_names(compass: int, naming: str = AP_NAMING_LEGACY) -> tuple[str, str, str]:
+    """COMPASS_MOT_X/Y/Z of compass 1, COMPASS_MOT2_X… of 2, COMPASS_MOT3_X… of 3; per-instance
+    COMPASSn_MOT_X… (unconfirmed, like that naming)."""
+    if naming == AP_NAMING_PER_INSTANCE:
+        return tuple(f"COMPASS{compass}_MOT_{a}" for a in "XYZ")  # type: ignore[return-value]
+    k = "" if compass == 1 else str(compass)
+    return tuple(f"COMPASS_MOT{k}_{a}" for a in "XYZ")  # type: ignore[return-value]
+
+
+def px4_motor_names(index: int) -> tuple[str, str, str]:
+    """CAL_MAG{index}_XCOMP/YCOMP/ZCOMP."""
+    return tuple(f"CAL_MAG{index}_{a}COMP" for a in "XYZ")  # type: ignore[return-value]
+
+
+def _motor_input(motor_input: str) -> str:
+    if motor_input not in AP_MOTCT:
+        raise AutopilotMappingError(
+            f"motor interference input {motor_input!r}: magcal maps 'current' and 'throttle'"
+        )
+    return motor_input
+
+
 def ap_external_name(compass: int, naming: str = AP_NAMING_LEGACY) -> str:
     """The parameter saying whether compass 1, 2, 3 is external (0 internal, 1 external,
     2 forced external): COMPASS_EXTERNAL, COMPASS_EXTERN2, ...; per-instance COMPASSn_EXTERN
@@ -220,8 +255,10 @@ def to_ardupilot(
     offs_max_mG: float = AP_OFFS_MAX_DEFAULT_MG,
     inclination_deg: float = DEFAULT_INCLINATION_DEG,
     rotation_sigma_deg: np.ndarray | None = None,
+    motor_b: np.ndarray | None = None,
+    motor_input: str = "current",
 ) -> AutopilotParams:
-    """ArduPilot parameters for ``B = F · D⁻¹ (y − o)``, ``y = R_old · raw`` (mG).
+    """ArduPilot parameters for ``B = F · D⁻¹ (y − o − b·u)``, ``y = R_old · raw`` (mG).
 
     D_inv : (3, 3) unit-field calibration, per mG;  o : (3,) offset in mG (y frame)
     field_mG : local field strength F (mG);  R_old : (3, 3) rotation in force when y was taken
@@ -230,6 +267,15 @@ def to_ardupilot(
     allow_custom : may ORIENT be 101/102 (CUST_ROT_ENABLE and CUST_ROTn_ROLL/PITCH/YAW)
     rotation_sigma_deg : (3,) the estimated misalignment's σ: a rotation within it of an
         enumerated one is written as that one (:func:`within_uncertainty`)
+    motor_b : (3,) b, the motors' field in y per unit of ``motor_input`` ("current": mG/A,
+        "throttle": mG at full throttle), or None: the motor parameters are not written.
+        ArduPilot adds ``COMPASS_MOT·u`` after the soft-iron matrix (AP_Compass_Backend.cpp
+        ``correct_field``, releases since 2017; older ones added it before), so the
+        corrected field ``M·s·(R_new·raw + OFS) + MOT·u`` equals ``P'·C·(y − o − b·u)``
+        (C = R_new·R_oldᵀ, the rotation written) when ``MOT = −P'·C·b``: the interference
+        in the frame of the correction as written, with the sign that removes it. With the
+        rotation represented, ``P'·C = F·D⁻¹`` and ``MOT = −F·D⁻¹·b``. COMPASS_MOTCT is
+        written as 2 (current) or 1 (throttle)
     """
     A = _check_calibration(D_inv, field_mG, "ArduPilot mapping")
     o = np.asarray(o, dtype=float)
@@ -286,6 +332,19 @@ def to_ardupilot(
     params[names["SCALE"]] = s
     if orient is not None:
         params[names["ORIENT"]] = float(orient)
+    if motor_b is not None:
+        kind = _motor_input(motor_input)
+        mot = -(P @ C) @ np.asarray(motor_b, dtype=float)
+        for name, v in zip(ap_motor_names(compass, naming), mot, strict=True):
+            if not abs(v) <= AP_MOT_MAX:
+                raise AutopilotMappingError(
+                    f"ArduPilot {name} = {v:.1f} is outside ±{AP_MOT_MAX:g} "
+                    f"({'mG/A' if kind == 'current' else 'mG at full throttle'}): the motor "
+                    "interference is too strong for ArduPilot's compensation; move the compass "
+                    "away from the power wiring"
+                )
+            params[name] = float(v)
+        params[AP_MOTCT_NAME] = float(AP_MOTCT[kind])
     residual = rotations.rotation_angle_deg(R_want, R_new)
     heading = 0.0 if residual < 1e-6 else _heading_rms_deg(A, P @ C, inclination_deg)
     if heading and not snapped:
@@ -344,8 +403,10 @@ def to_px4(
     inclination_deg: float = DEFAULT_INCLINATION_DEG,
     rotation_sigma_deg: np.ndarray | None = None,
     board_rotation: np.ndarray | None = None,
+    motor_b: np.ndarray | None = None,
+    motor_input: str = "current",
 ) -> AutopilotParams:
-    """PX4 parameters for ``B = F · D⁻¹ (y − o)``, ``y = Rot0 · raw`` (gauss).
+    """PX4 parameters for ``B = F · D⁻¹ (y − o − b·u)``, ``y = Rot0 · raw`` (gauss).
 
     D_inv : (3, 3) unit-field calibration, per gauss;  o : (3,) offset in gauss (y frame)
     field_gauss : F;  Rot0 : (3, 3) rotation already applied to y (default: y is raw)
@@ -354,6 +415,11 @@ def to_px4(
     :func:`to_ardupilot`; board_rotation : an internal compass (CAL_MAGn_ROT −1): the
     rotation PX4 turns it with (SENS_BOARD_ROT's), kept: CAL_MAGn_ROT is not written and a
     misalignment beyond it is left out (noted).
+    motor_b : (3,) b in y, gauss per unit of ``motor_input`` (A or throttle 0…1), or None.
+        PX4 adds ``power·comp`` to the raw sensor-frame field before the offset
+        (Magnetometer.hpp ``Correct``), so ``comp = −Rot0ᵀ·b`` per unit of power: per kA for
+        the current (gauss/kA: ×1000 of gauss/A), per unit throttle; CAL_MAG_COMP_TYP 2
+        (battery 0's current) or 1 (throttle)
     """
     A = _check_calibration(D_inv, field_gauss, "PX4 mapping")
     o = np.asarray(o, dtype=float)
@@ -420,6 +486,11 @@ def to_px4(
         names["YODIAG"]: float(S[0, 2]),
         names["ZODIAG"]: float(S[1, 2]),
     }
+    if motor_b is not None:
+        kind = _motor_input(motor_input)
+        comp = -(Rot0.T @ np.asarray(motor_b, dtype=float)) / PX4_POWER_PER_INPUT_UNIT[kind]
+        params |= {n: float(v) for n, v in zip(px4_motor_names(index), comp, strict=True)}
+        params[PX4_COMP_TYP_NAME] = float(PX4_COMP_TYP[kind])
     residual = rotations.rotation_angle_deg(R_want, R_new)
     heading = 0.0
     if residual >= 1e-6:

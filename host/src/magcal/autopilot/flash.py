@@ -46,7 +46,7 @@ import numpy as np
 from magcal.autopilot import mapping, params, rotations, vehicle, wmm
 from magcal.autopilot.connection import Autopilot
 from magcal.errors import MagcalError
-from magcal.io.result import CalibrationResult
+from magcal.io.result import CalibrationResult, CompassCalibration, MotorInterference
 
 log = logging.getLogger(__name__)
 
@@ -156,6 +156,20 @@ def result_in_unit(
     return D_inv, c * np.asarray(result.o, dtype=float), res_unit
 
 
+def calibration_in_unit(cal: CompassCalibration, factor: float) -> CompassCalibration:
+    """``cal`` for ``y_ap = factor·y`` (a unit change, :func:`result_in_unit`'s c): D, o and the
+    motor vector times ``factor``."""
+    motor = cal.motor
+    if motor is not None:
+        motor = dataclasses.replace(motor, vector=factor * np.asarray(motor.vector, dtype=float))
+    return dataclasses.replace(
+        cal,
+        D=factor * np.asarray(cal.D, dtype=float),
+        o=factor * np.asarray(cal.o, dtype=float),
+        motor=motor,
+    )
+
+
 # ------------------------------------------------------------------------------ planning
 def order_writes(
     autopilot: str, entries: tuple[params.ParamEntry, ...], current: dict[str, float]
@@ -183,8 +197,10 @@ def _type_of(name: str, types: dict[str, int]) -> int:
     if name in types:
         return types[name]
     # parameters not read yet (ArduPilot's hidden CUST_ROTn_*): their declared types
-    if name == "CUST_ROT_ENABLE" or "ORIENT" in name:
+    if name in ("CUST_ROT_ENABLE", mapping.AP_MOTCT_NAME) or "ORIENT" in name:
         return params.INT8
+    if name == mapping.PX4_COMP_TYP_NAME:
+        return params.INT32
     if name.endswith("_ROT"):
         return params.INT32
     return params.REAL32
@@ -232,6 +248,7 @@ def plan_flash(
     recorded: dict[str, float] | None = None,
     allow_custom: bool = True,
     rotation_sigma_deg: np.ndarray | None = None,
+    motor: MotorInterference | None = None,
 ) -> Plan:
     """The parameters for a calibration (pure; module docstring, step 1).
 
@@ -245,8 +262,15 @@ def plan_flash(
         refused: :func:`require_px4_custom_angles`)
     rotation_sigma_deg : (3,) the result's misalignment σ, degrees (None: unknown): a rotation
         within it of an enumerated one is written as that one
-        (:func:`magcal.autopilot.mapping.within_uncertainty`)."""
+        (:func:`magcal.autopilot.mapping.within_uncertainty`)
+    motor : the motor interference in the autopilot's unit (:func:`calibration_in_unit`):
+        when kept, the compass's motor compensation and the vehicle's compensation type are
+        planned too (ArduPilot COMPASS_MOTn_X/Y/Z and COMPASS_MOTCT, PX4 CAL_MAGn_X/Y/ZCOMP
+        and CAL_MAG_COMP_TYP); absent or not kept, they are left as they are."""
     unit = cp.unit
+    motor_kw = {}
+    if motor is not None and motor.kept:
+        motor_kw = {"motor_b": np.asarray(motor.vector, dtype=float), "motor_input": motor.input}
     F = fld.strength(unit)
     incl = (
         fld.inclination_deg if fld.inclination_deg is not None else mapping.DEFAULT_INCLINATION_DEG
@@ -278,6 +302,7 @@ def plan_flash(
             offs_max_mG=cp.values.get("COMPASS_OFFS_MAX", mapping.AP_OFFS_MAX_DEFAULT_MG),
             inclination_deg=incl,
             rotation_sigma_deg=rotation_sigma_deg,
+            **motor_kw,
         )
         new = dict(mapped.params)
         scale_name = mapping.ap_param_names(cp.compass, cp.naming)["SCALE"]
@@ -331,6 +356,7 @@ def plan_flash(
             inclination_deg=incl,
             rotation_sigma_deg=rotation_sigma_deg,
             board_rotation=board,
+            **motor_kw,
         )
     entries = []
     unchanged = []
@@ -423,6 +449,135 @@ def px4_reboot_reasons(
                 "and the values written one by one leave the last of them unused"
             )
     return out
+
+
+# ------------------------------------------------------------------------------ offline
+def recorded_compass_params(
+    meta: dict[str, str], compass: int, values: dict[str, float]
+) -> tuple[vehicle.CompassParams | None, list[str]]:
+    """Compass ``compass`` (1-based) as the session's metadata recorded it (pure): the
+    CompassParams a vehicle with the parameters ``values`` would report (``values``: the
+    session's ``param.NAME`` lines, with what is planned for other compasses already in), or
+    None and what is missing: the parameters the correction in force needs (the rotation,
+    whether the compass is external, its offsets and scales, its device id)."""
+    autopilot = meta.get("autopilot", "")
+    if autopilot == vehicle.ARDUPILOT:
+        naming = meta.get("param_naming") or mapping.AP_NAMING_LEGACY
+        required = vehicle.ardupilot_required(compass, naming)
+    else:
+        naming = ""
+        required = vehicle.px4_required(vehicle.px4_index(compass))
+    missing = [n for n in required if n not in values]
+    if missing:
+        return None, missing
+    if values[vehicle.dev_id_name(autopilot, compass, naming)] == 0.0:
+        return None, [
+            f"compass {compass} itself ({vehicle.dev_id_name(autopilot, compass, naming)} = 0)"
+        ]
+    if autopilot == vehicle.ARDUPILOT:
+        external = values[mapping.ap_external_name(compass, naming)] != 0.0
+    else:
+        external = values[f"CAL_MAG{vehicle.px4_index(compass)}_ROT"] >= 0
+    return vehicle.CompassParams(autopilot, compass, dict(values), {}, naming, external), []
+
+
+def offline_problems(meta: object) -> list[str]:
+    """What a result's ``session_meta`` lacks for a parameter file without a vehicle (pure;
+    empty: nothing)."""
+    if not isinstance(meta, dict):
+        return [
+            "it holds no session metadata ('session_meta'): it was not calibrated by magcal "
+            "calibrate from a session file"
+        ]
+    problems = []
+    if meta.get("autopilot") not in vehicle.AUTOPILOT_NAMES:
+        said = meta.get("autopilot")
+        problems.append(
+            "its session did not come from an autopilot (no 'autopilot' in session_meta)"
+            if said is None
+            else f"its session's autopilot {said!r} is neither ardupilot nor px4"
+        )
+    if not vehicle.params_from_meta({str(k): str(v) for k, v in meta.items()}):
+        problems.append(
+            "its session recorded none of the compass parameters in force ('param.NAME' "
+            "metadata, which magcal collect --mavlink and magcal import write)"
+        )
+    if meta.get("autopilot") in vehicle.AUTOPILOT_NAMES and "compass" not in meta:
+        problems.append("its session does not say which compass it recorded ('compass')")
+    return problems
+
+
+def plan_param_file(
+    calibrations: list[CompassCalibration],
+    meta: dict[str, str],
+    fld: wmm.Field,
+    *,
+    allow_custom: bool = True,
+    where: str = "result",
+) -> tuple[Plan, ...]:
+    """The plans of every compass in ``calibrations`` (in the autopilot's unit:
+    :func:`calibration_in_unit`) for a vehicle whose parameters are the ones the session
+    recorded (``meta``'s ``param.NAME``), one after the other: each sees what the ones before
+    it plan (a custom rotation slot taken, the motor compensation type set), so that their
+    writes together make one consistent set (pure). MagcalError, naming what is missing, when
+    the session lacks a compass's parameters; and when the compasses' motor interferences
+    follow different inputs (one COMPASS_MOTCT / CAL_MAG_COMP_TYP for the vehicle)."""
+    recorded = vehicle.params_from_meta(meta)
+    inputs = {c.motor.input for c in calibrations if c.motor is not None and c.motor.kept}
+    if len(inputs) > 1:
+        parts = ", ".join(
+            f"compass {c.compass}: {c.motor.input}"
+            for c in calibrations
+            if c.motor is not None and c.motor.kept
+        )
+        raise MagcalError(
+            f"flash: {where}'s motor interferences follow different inputs ({parts}), and the "
+            "vehicle has one compensation type for every compass (ArduPilot COMPASS_MOTCT, PX4 "
+            "CAL_MAG_COMP_TYP); nothing was written: write one compass with --compass N"
+        )
+    values = dict(recorded)
+    plans: list[Plan] = []
+    missing: list[str] = []
+    for cal in calibrations:
+        cp, lacking = recorded_compass_params(meta, cal.compass, values)
+        if cp is None:
+            missing.append(f"compass {cal.compass}: {', '.join(lacking)}")
+            continue
+        custom = allow_custom
+        if cp.autopilot == vehicle.PX4:
+            custom = custom and vehicle.px4_has_custom_angles(
+                values, vehicle.px4_index(cal.compass)
+            )
+        plan = plan_flash(
+            np.linalg.inv(cal.D),
+            cal.o,
+            cp,
+            fld,
+            recorded=recorded,
+            allow_custom=custom,
+            motor=cal.motor,
+        )
+        values |= {e.name: e.value for e in plan.writes}
+        plans.append(plan)
+    if missing:
+        raise MagcalError(
+            f"flash: {where}'s session did not record the parameters in force that a parameter "
+            f"file without a vehicle needs ({'; '.join(missing)}): calibrate a session that "
+            "records them (magcal collect --mavlink, magcal import), or flash with --mavlink URL; "
+            "nothing was written"
+        )
+    return tuple(plans)
+
+
+def param_file_entries(plans: tuple[Plan, ...]) -> tuple[params.ParamEntry, ...]:
+    """Every plan's writes in one file, in write order (the same order a vehicle is written
+    in: custom angles first, rotations last)."""
+    if not plans:
+        return ()
+    entries: dict[str, params.ParamEntry] = {}
+    for plan in plans:
+        entries |= {e.name: e for e in plan.writes}
+    return order_writes(plans[0].autopilot, tuple(entries.values()), {})
 
 
 # ------------------------------------------------------------------------------ backup

@@ -36,14 +36,19 @@ def add_parser(sub) -> None:
         "confirm the new set is active. --restore BACKUP writes a backup back. With --mavlink: "
         "map it to ArduPilot or PX4 compass parameters (field strength from --location or "
         "--field), back up the values in force, write each and confirm it from the vehicle's "
-        "echo.",
+        "echo. With --param-file and no link: write the parameters to that file from what the "
+        "result's session recorded of the vehicle, without a vehicle.",
         epilog="examples:\n"
         "  magcal flash result.json --port /dev/ttyACM0\n"
         "  magcal flash result.json --mavlink udpin:0.0.0.0:14550 --location 52.1,5.2 --dry-run\n"
-        "  magcal flash --restore result.backup-*.json --port /dev/ttyACM0",
+        "  magcal flash result.json --param-file compass.parm",
     )
     p.add_argument("result", nargs="?", help="calibration result JSON (magcal-result/1)")
     add_link_arguments(p)
+    # --param-file alone writes a parameter file without a vehicle: neither link is required
+    # (run() asks for one of the three)
+    for group in p._mutually_exclusive_groups:
+        group.required = False
     p.add_argument(
         "--restore",
         metavar="BACKUP",
@@ -78,7 +83,11 @@ def add_parser(sub) -> None:
         help="where the vehicle flies (degrees north, east; km): the field strength comes from "
         "the World Magnetic Model",
     )
-    ap.add_argument("--date", metavar="YYYY-MM-DD", help="the model's date (default today)")
+    ap.add_argument(
+        "--date",
+        metavar="YYYY-MM-DD",
+        help="the model's date (default today; for a parameter file alone, the session's date)",
+    )
     ap.add_argument(
         "--field",
         metavar="VALUE",
@@ -94,8 +103,11 @@ def add_parser(sub) -> None:
     ap.add_argument(
         "--param-file",
         metavar="PATH",
-        help="also export the parameters: .parm (Mission Planner, MAVProxy) or .params "
-        "(QGroundControl); with --dry-run the default is RESULT.<autopilot>.parm/.params",
+        help="also export the parameters: .parm or .param (Mission Planner, MAVProxy) or "
+        ".params (QGroundControl); with --dry-run the default is RESULT.<autopilot>.parm/.params. "
+        "Without --mavlink: write, without a vehicle, the parameters that change for every "
+        "compass of the result (--compass N: one), from the parameters its session recorded; the "
+        "field from --field, --location or the session's location and date",
     )
     ap.add_argument(
         "--no-custom-rotation",
@@ -131,6 +143,15 @@ MAVLINK_ONLY = (
 
 
 def run(args) -> int:
+    if not args.mavlink and not args.port:
+        if args.param_file:
+            from magcal.commands.flash import offline
+
+            return offline.run(args)
+        raise MagcalError(
+            "flash: give --port URL (a device), --mavlink URL (an autopilot), or --param-file "
+            "OUT.parm to write an autopilot's parameters to a file without a vehicle"
+        )
     check_link_options(args, MAVLINK_ONLY)
     if args.restore and args.result:
         raise MagcalError("flash: give either RESULT.json or --restore BACKUP, not both")

@@ -46,10 +46,11 @@ def _field(args):
     )
 
 
-def _recorded(args, result, cp, session) -> dict[str, float] | None:
+def _recorded(args, result, cp, session, further: bool = False) -> dict[str, float] | None:
     """The compass parameters in force when the result's session was recorded: from
     ``--session``'s metadata (``session``, read), else the result's copy (``session_meta``)
-    when it has one."""
+    when it has one. ``further``: ``cp`` is one of the result's further compasses
+    (``compasses``), not the session's own."""
     from magcal.autopilot import vehicle
 
     meta = None
@@ -60,16 +61,15 @@ def _recorded(args, result, cp, session) -> dict[str, float] | None:
         meta, where = {str(k): str(v) for k, v in result_meta.items()}, args.result
     if meta is None:
         return None
-    if meta.get("autopilot") not in (None, cp.autopilot) or meta.get("compass") not in (
-        None,
-        str(cp.compass),
+    if meta.get("autopilot") not in (None, cp.autopilot) or (
+        meta.get("compass") not in (None, str(cp.compass)) and not further
     ):
         raise MagcalError(
             f"flash: {where} was recorded from {meta.get('autopilot')} compass "
             f"{meta.get('compass')}, this is {cp.autopilot} compass {cp.compass}: nothing was "
             "written (use --compass, or the session of this compass)"
         )
-    external = meta.get("compass_external")
+    external = None if further else meta.get("compass_external")
     if external is not None and (external == "1") != cp.external:
         raise MagcalError(
             f"flash: {where} was recorded with compass {cp.compass} "
@@ -162,9 +162,9 @@ def _export(plan, path: Path, ap, result_path: str) -> Path:
 
 def run(args) -> int:
     from magcal.autopilot import flash as apflash
-    from magcal.autopilot import params, vehicle
+    from magcal.autopilot import params, vehicle, wmm
     from magcal.autopilot.connection import open_autopilot
-    from magcal.io.result import read_result
+    from magcal.io.result import read_result, result_compasses
     from magcal.io.session import read_session
 
     if args.restore:  # flash.run has checked that exactly one of the two is given
@@ -178,17 +178,24 @@ def run(args) -> int:
         params.file_format(args.backup)
         if Path(args.backup).exists():
             raise MagcalError(f"flash: backup file {args.backup} exists; give a new path")
-    compass = args.compass or 1
+    # one compass: --compass, default the result's first (its session's); the result's
+    # further compasses (``compasses``) each with their own calibration
+    calibrations = result_compasses(result, f"reading result {args.result}")
+    compass = args.compass or calibrations[0].compass or 1
+    chosen = next((c for c in calibrations if c.compass == compass), calibrations[0])
+    further = chosen is not calibrations[0]
     # The session and the rotation's σ (a Hessian of the ML cost) before the link is open.
     session = read_session(args.session) if args.session else None
-    rotation_sigma_deg = _rotation_sigma_deg(args, result, session)
+    rotation_sigma_deg = None if further else _rotation_sigma_deg(args, result, session)
     with open_autopilot(args.mavlink) as ap:
         # PX4: CAL_MAGn_ROLL/PITCH/YAW are read (and used) unless --no-custom-rotation
         cp = compass_params(
             ap, compass, custom_angles=ap.autopilot == vehicle.PX4 and not args.no_custom_rotation
         )
         _say(f"vehicle {ap.describe()}; compass {compass}, unit {cp.unit}")
-        D_inv, o, res_unit = apflash.result_in_unit(result, cp.unit, args.mag_unit, args.result)
+        _, _, res_unit = apflash.result_in_unit(result, cp.unit, args.mag_unit, args.result)
+        cal = apflash.calibration_in_unit(chosen, wmm.convert(1.0, res_unit, cp.unit))
+        D_inv, o = np.linalg.inv(cal.D), cal.o
         conv = "" if res_unit == cp.unit else f" (converted from {res_unit})"
         _say(f"{args.result}: method {result.method}, D and o in {cp.unit}{conv}")
         _say(
@@ -213,9 +220,10 @@ def run(args) -> int:
             o,
             cp,
             fld,
-            recorded=_recorded(args, result, cp, session),
+            recorded=_recorded(args, result, cp, session, further),
             allow_custom=allow_custom,
             rotation_sigma_deg=rotation_sigma_deg,
+            motor=cal.motor,
         )
         _print_plan(plan, cp, sys.stdout)
         if args.param_file:

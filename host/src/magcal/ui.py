@@ -104,6 +104,31 @@ def _console(stream: TextIO):
     )
 
 
+def print_wrapped(text: str, stream: TextIO | None = None, *, indent: int | None = None) -> None:
+    """``text`` (a warning, a note) on stdout or ``stream``: on a terminal wrapped at its width
+    between words, the continuation lines indented by ``indent`` spaces (default: to the
+    text after its first ": ", so "warning: ..." reads as one block); in a log one whole line,
+    which a reader or a grep takes whole."""
+    stream = stream or sys.stdout
+    if not is_live(stream):
+        print(text, file=stream, flush=True)
+        return
+    import textwrap
+
+    width = terminal_columns(stream) or _console(stream).width
+    if indent is None:
+        head = text.find(": ")
+        indent = head + 2 if 0 <= head < width // 3 else 2
+    lines = textwrap.wrap(
+        text,
+        width=max(width, indent + 20),
+        subsequent_indent=" " * indent,
+        break_long_words=False,
+        break_on_hyphens=False,
+    )
+    print("\n".join(lines), file=stream, flush=True)
+
+
 def write_line(text: str, stream: TextIO | None = None) -> None:
     """``text`` as a whole line on stderr (or ``stream``), flushed at once."""
     stream = stream or sys.stderr

@@ -265,7 +265,7 @@ def _print_summary(cal, out=None) -> None:
     out = out or sys.stdout
     ui.print_table(summary_rows(cal), out)
     for w in cal.result.warnings:
-        print(f"warning: {w}", file=out)
+        ui.print_wrapped(f"warning: {w}", out)
 
 
 class CalibrationProgress:

@@ -33,7 +33,7 @@ from magcal.commands.common import (
     positive,
 )
 from magcal.errors import MagcalError
-from magcal.ui import EXIT_INTERRUPTED, StatusLine, say
+from magcal.ui import EXIT_INTERRUPTED, StatusLine, print_wrapped, say
 
 if TYPE_CHECKING:
     from magcal.device.collect import CollectProgress, CollectResult
@@ -210,11 +210,11 @@ def finish_collect(
             f"{min_samples}: collect longer"
         )
     if args.coverage is not None and result.coverage.coverage < args.coverage / 100.0:
-        print(
+        print_wrapped(
             f"magcal collect: warning: coverage {100 * result.coverage.coverage:.1f} % is below "
             f"the target {args.coverage:g} % ({result.coverage.hint}); the calibration may be "
             "poorly determined: collect again with more rotation",
-            file=sys.stderr,
+            sys.stderr,
         )
     return 0
 

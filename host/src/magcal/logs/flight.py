@@ -12,8 +12,8 @@ the air and had a 3D GNSS fix:
   ``vehicle_land_detected``, MAVLink's EXTENDED_SYS_STATE); otherwise the GNSS altitude at
   least :data:`AIRBORNE_HEIGHT_M` above the ground, the 5th percentile of the altitude while
   armed with a fix;
-- a fix: the latest GNSS solution at most :data:`GNSS_TIMEOUT_S` old, of fix type 3 (3D) or
-  better.
+- a fix: the latest GNSS solution at most :data:`GNSS_TIMEOUT_S` old (or three of the log's
+  GNSS intervals, when it records them slowly), of fix type 3 (3D) or better.
 
 The longest run of such samples is the flight imported.
 
@@ -48,8 +48,10 @@ from magcal.logs.stretch import true_runs
 
 #: Fix type from which a GNSS solution is used (GPS_FIX_TYPE_3D_FIX).
 MIN_FIX_TYPE = 3
-#: A GNSS solution older than this no longer counts as a fix, s.
+#: A GNSS solution older than this (or than this many of the log's GNSS intervals, if
+#: longer) no longer counts as a fix, s.
 GNSS_TIMEOUT_S = 2.0
+GNSS_TIMEOUT_INTERVALS = 3.0
 #: Without a land detector, in the air means this high above the ground, m.
 AIRBORNE_HEIGHT_M = 3.0
 #: Percentile of the armed GNSS altitude taken as the ground.
@@ -94,7 +96,11 @@ def fix_at(gnss: GnssStream, t: np.ndarray) -> np.ndarray:
     i = np.searchsorted(gnss.t, t, side="right") - 1
     ok = i >= 0
     j = np.clip(i, 0, None)
-    return ok & (gnss.fix[j] >= MIN_FIX_TYPE) & (t - gnss.t[j] <= GNSS_TIMEOUT_S)
+    # a log that records the receiver slowly: three of its intervals
+    timeout = GNSS_TIMEOUT_S
+    if gnss.t.size > 1:
+        timeout = max(timeout, GNSS_TIMEOUT_INTERVALS * float(np.median(np.diff(gnss.t))))
+    return ok & (gnss.fix[j] >= MIN_FIX_TYPE) & (t - gnss.t[j] <= timeout)
 
 
 def _armed(streams: LogStreams, t: np.ndarray) -> np.ndarray:
@@ -219,7 +225,9 @@ def flight_arrays(streams: LogStreams, t0: float, t1: float) -> FlightArrays:
     gnss_t, gnss_v = np.zeros(0), np.zeros((0, 3))
     if streams.gnss is not None:
         g = streams.gnss
-        sel = (g.t >= t0) & (g.t <= t1) & (g.fix >= MIN_FIX_TYPE) & np.isfinite(g.vel).all(1)
+        # a solution with a horizontal velocity (telemetry's GPS_RAW_INT has no vertical one)
+        horizontal = np.isfinite(g.vel[:, :2]).all(axis=1)
+        sel = (g.t >= t0) & (g.t <= t1) & (g.fix >= MIN_FIX_TYPE) & horizontal
         gnss_t, gnss_v = g.t[sel], g.vel[sel]
     half_row = 0.5 * k / rate
     near = np.clip(np.searchsorted(t, gnss_t), 1, max(1, t.size - 1)) if t.size > 1 else None

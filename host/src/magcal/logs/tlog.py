@@ -31,6 +31,7 @@ MAV_MODE_FLAG_SAFETY_ARMED) and the throttle from VFR_HUD.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import struct
 from collections.abc import Callable
@@ -41,12 +42,16 @@ from pymavlink import mavutil
 from magcal.autopilot import vehicle
 from magcal.logs.correction import (
     PX4_RAW_FRAME,
+    Undone,
     ardupilot_frame,
     ardupilot_recorded,
+    flight_recorded_ardupilot,
+    flight_recorded_px4,
     px4_recorded,
     undo_ardupilot,
 )
 from magcal.logs.streams import (
+    GnssStream,
     ImuStream,
     LogImportError,
     LogStreams,
@@ -68,6 +73,14 @@ MAV_MODE_FLAG_SAFETY_ARMED = 128
 #: HIGHRES_IMU fields_updated: bits 0–2 acceleration, 3–5 rate.
 HIGHRES_ACC_GYRO = 0x3F
 IMU_MESSAGES = ("RAW_IMU", "SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")
+#: What a flight session takes besides the IMU and compasses.
+FLIGHT_MESSAGES = ("GPS_RAW_INT", "BATTERY_STATUS", "SYS_STATUS", "EXTENDED_SYS_STATE")
+#: MAVLink's "unknown" for GPS_RAW_INT vel and cog.
+UINT16_UNKNOWN = 65535
+#: A GPS_RAW_INT time_usec above this is UTC (Unix µs), below it time since boot.
+UNIX_US_MIN = 1e15
+#: MAV_LANDED_STATE: 1 on ground, 2 in air, 3 taking off, 4 landing (0 undefined).
+LANDED_ON_GROUND, LANDED_IN_AIR = 1, (2, 3, 4)
 #: Link latency allowed when telling a reboot from a delayed message, s.
 LINK_LATENCY_S = 1.0
 #: Progress is reported every this many messages.
@@ -112,7 +125,7 @@ def _read_messages(path: str, progress: Progress | None) -> tuple[int, dict[str,
     most IMU messages. Its messages are kept from the start of the file, also those
     before its first HEARTBEAT (a ground station may fetch the parameters first)."""
     name = os.path.basename(path)
-    wanted = ["HEARTBEAT", "PARAM_VALUE", "VFR_HUD", "HIGHRES_IMU", *IMU_MESSAGES]
+    wanted = ["HEARTBEAT", "PARAM_VALUE", "VFR_HUD", "HIGHRES_IMU", *IMU_MESSAGES, *FLIGHT_MESSAGES]
     try:
         # mavlogfile, not mavlink_connection: that one chooses the reader by the file's
         # suffix, and the format was recognised from the content
@@ -269,14 +282,65 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
     ]
     params = ParamTimeline.from_records(records)
     armed, throttle = _armed_throttle(seen, offset)
+    flight = {
+        "gnss": _gnss(seen, offset),
+        "current": _current(seen, offset),
+        "airborne": _airborne(seen, offset),
+    }
     if autopilot == MAV_AUTOPILOT_ARDUPILOTMEGA:
-        return _ardupilot(path, name, seen, params, compass, imu, armed, throttle)
+        streams = _ardupilot(path, name, seen, params, compass, imu, armed, throttle)
+        return dataclasses.replace(streams, **flight)
     if autopilot == MAV_AUTOPILOT_PX4:
-        return _px4(path, name, seen, params, compass, imu, armed, throttle)
+        streams = _px4(path, name, seen, params, compass, imu, armed, throttle)
+        return dataclasses.replace(streams, **flight)
     raise LogImportError(
         f"{name}: the vehicle's HEARTBEAT names autopilot {autopilot}; magcal reads ArduPilot "
         f"({MAV_AUTOPILOT_ARDUPILOTMEGA}) and PX4 ({MAV_AUTOPILOT_PX4}) telemetry"
     )
+
+
+def _gnss(seen: dict[str, list], offset: float) -> GnssStream | None:
+    """GPS_RAW_INT: fix, position, horizontal velocity (vel along cog; vertical not in the
+    message: left unknown) and UTC when time_usec is one; placed by reception time."""
+    msgs = seen["GPS_RAW_INT"]
+    if not msgs:
+        return None
+    t = np.array([rx - offset for rx, _ in msgs])
+    fix = np.array([m.fix_type for _, m in msgs], dtype=int)
+    lat = np.array([m.lat * 1e-7 for _, m in msgs])
+    lon = np.array([m.lon * 1e-7 for _, m in msgs])
+    alt = np.array([m.alt * 1e-3 for _, m in msgs])
+    speed = np.array([np.nan if m.vel == UINT16_UNKNOWN else m.vel * 1e-2 for _, m in msgs])
+    course = np.array([np.nan if m.cog == UINT16_UNKNOWN else m.cog * 1e-2 for _, m in msgs])
+    course = np.deg2rad(course)
+    vel = np.column_stack([speed * np.cos(course), speed * np.sin(course), np.full(t.size, np.nan)])
+    stamp = np.array([float(m.time_usec) for _, m in msgs])
+    utc = np.where(stamp > UNIX_US_MIN, stamp * 1e-6, np.nan)
+    t, fix, lat, lon, alt, vel, utc = strictly_increasing(t, fix, lat, lon, alt, vel, utc)
+    return GnssStream(t, fix, lat, lon, alt, vel, utc, "GPS_RAW_INT")
+
+
+def _current(seen: dict[str, list], offset: float) -> StepSignal | None:
+    """Battery current, A: BATTERY_STATUS id 0, else SYS_STATUS (cA; −1 unknown)."""
+    for kind, pick in (
+        ("BATTERY_STATUS", lambda m: getattr(m, "id", 0) == 0),
+        ("SYS_STATUS", lambda m: True),
+    ):
+        msgs = [(rx, m) for rx, m in seen[kind] if pick(m) and m.current_battery >= 0]
+        if msgs:
+            t = np.array([rx - offset for rx, _ in msgs])
+            return StepSignal(t, np.array([m.current_battery * 1e-2 for _, m in msgs]))
+    return None
+
+
+def _airborne(seen: dict[str, list], offset: float) -> StepSignal | None:
+    """EXTENDED_SYS_STATE.landed_state: 1 in the air (taking off, flying, landing), 0 on the
+    ground; None when the vehicle never said (undefined)."""
+    msgs = [(rx, m) for rx, m in seen["EXTENDED_SYS_STATE"] if m.landed_state > 0]
+    if not msgs:
+        return None
+    t = np.array([rx - offset for rx, _ in msgs])
+    return StepSignal(t, np.array([float(m.landed_state in LANDED_IN_AIR) for _, m in msgs]))
 
 
 def _armed_throttle(seen: dict[str, list], offset: float) -> tuple[StepSignal | None, ...]:
@@ -313,29 +377,22 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
     if missing:
         raise LogImportError(f"{name} (ArduPilot) has {' and '.join(missing)}; {NEEDS_AP}")
     imu_stream, imu_notes = _imu_from_scaled(name, imu_type, seen[imu_type], imu)
-    samples, late = _in_order(name, _mag_samples(seen, mag_type))
-    t = np.array([_boot_time_s(m) for _, m in samples])
-    t, field = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
-    t, field, stale = _fresh(t, field)
-    field = untruncate(field)
     params_note = _params_note(seen["PARAM_VALUE"])
-    undone = undo_ardupilot(
-        name,
-        t,
-        field,
-        params,
-        compass,
-        params_complete=not params_note,
-        params_note=params_note,
-    )
-    mag_stream = MagStream(
-        t=t[undone.keep],
-        mag=undone.mag,
-        instance=compass,
-        unit=vehicle.MAG_UNIT[vehicle.ARDUPILOT],
-        frame=ardupilot_frame(motor=False),
-        source=mag_type,
-    )
+    names = params.names()
+    mag_stream, mag_notes, undone = _ap_mag(name, seen, params, compass, params_note)
+    others, other_names, other_notes = [], [], []
+    for k in have_mag:
+        if k == compass:
+            continue
+        try:
+            other, notes_k, undone_k = _ap_mag(name, seen, params, k, params_note)
+        except LogImportError as exc:
+            other_notes.append(f"compass {k} left out of the flight columns: {exc}")
+            continue
+        others.append(other)
+        other_notes += notes_k
+        other_names += flight_recorded_ardupilot(undone_k.param_compass, undone_k.naming, names)
+    other_names += flight_recorded_ardupilot(undone.param_compass, undone.naming, names)
     return LogStreams(
         path=path,
         log_format="tlog",
@@ -348,16 +405,43 @@ def _ardupilot(path, name, seen, params, compass, imu, armed, throttle) -> LogSt
         naming=undone.naming,
         armed=armed,
         throttle=throttle,
-        notes=tuple(
-            dict.fromkeys(
-                imu_notes
-                + _order_note(late, mag_type)
-                + _stale_note(stale, mag_type)
-                + undone.notes
-            )
-        ),
+        other_mags=tuple(others),
+        other_param_names=tuple(dict.fromkeys(other_names)),
+        notes=tuple(dict.fromkeys(imu_notes + mag_notes + tuple(other_notes))),
         meta=undone.meta,
     )
+
+
+def _ap_mag(
+    name: str, seen: dict[str, list], params: ParamTimeline, compass: int, params_note: str
+) -> tuple[MagStream, tuple[str, ...], Undone]:
+    """ArduPilot compass ``compass``'s samples (RAW_IMU, SCALED_IMU2/3) with the correction in
+    force undone, the notes about them and how it was undone."""
+    mag_type = _imu_message(compass)
+    samples, late = _in_order(name, _mag_samples(seen, mag_type))
+    t = np.array([_boot_time_s(m) for _, m in samples])
+    t, field = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
+    t, field, stale = _fresh(t, field)
+    field = untruncate(field)
+    undone = undo_ardupilot(
+        name,
+        t,
+        field,
+        params,
+        compass,
+        params_complete=not params_note,
+        params_note=params_note,
+    )
+    stream = MagStream(
+        t=t[undone.keep],
+        mag=undone.mag,
+        instance=compass,
+        unit=vehicle.MAG_UNIT[vehicle.ARDUPILOT],
+        frame=ardupilot_frame(motor=False),
+        source=mag_type,
+    )
+    notes = _order_note(late, mag_type) + _stale_note(stale, mag_type) + undone.notes
+    return stream, notes, undone
 
 
 def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
@@ -382,19 +466,14 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
     if missing:
         raise LogImportError(f"{name} (PX4) has {' and '.join(missing)}; {NEEDS_PX4}")
     assert imu_stream is not None
-    samples, late = _in_order(name, _mag_samples(seen, mag_type))
-    t = np.array([_boot_time_s(m) for _, m in samples])
-    t, wire = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
-    t, wire, stale = _fresh(t, wire)
-    field = vehicle.mag_wire_to_unit(untruncate(wire), vehicle.PX4)
-    mag_stream = MagStream(
-        t=t,
-        mag=field,
-        instance=compass,
-        unit=vehicle.MAG_UNIT[vehicle.PX4],
-        frame=PX4_RAW_FRAME,
-        source=mag_type,
-    )
+    mag_stream, mag_notes = _px4_mag(name, seen, compass)
+    others, other_notes = [], []
+    for k in have_mag:
+        if k != compass:
+            other, notes_k = _px4_mag(name, seen, k)
+            others.append(other)
+            other_notes += notes_k
+    other_names = [n for k in have_mag for n in flight_recorded_px4(k - 1, params.names())]
     return LogStreams(
         path=path,
         log_format="tlog",
@@ -406,7 +485,26 @@ def _px4(path, name, seen, params, compass, imu, armed, throttle) -> LogStreams:
         param_compass=compass - 1,
         armed=armed,
         throttle=throttle,
-        notes=tuple(
-            dict.fromkeys(imu_notes + _order_note(late, mag_type) + _stale_note(stale, mag_type))
-        ),
+        other_mags=tuple(others),
+        other_param_names=tuple(dict.fromkeys(other_names)),
+        notes=tuple(dict.fromkeys(imu_notes + mag_notes + tuple(other_notes))),
     )
+
+
+def _px4_mag(name: str, seen: dict[str, list], compass: int) -> tuple[MagStream, tuple[str, ...]]:
+    """PX4 compass ``compass``'s raw samples (SCALED_IMU, SCALED_IMU2/3: sensor_mag, mG)."""
+    mag_type = ("SCALED_IMU", "SCALED_IMU2", "SCALED_IMU3")[compass - 1]
+    samples, late = _in_order(name, _mag_samples(seen, mag_type))
+    t = np.array([_boot_time_s(m) for _, m in samples])
+    t, wire = strictly_increasing(t, np.array([(m.xmag, m.ymag, m.zmag) for _, m in samples]))
+    t, wire, stale = _fresh(t, wire)
+    field = vehicle.mag_wire_to_unit(untruncate(wire), vehicle.PX4)
+    stream = MagStream(
+        t=t,
+        mag=field,
+        instance=compass,
+        unit=vehicle.MAG_UNIT[vehicle.PX4],
+        frame=PX4_RAW_FRAME,
+        source=mag_type,
+    )
+    return stream, _order_note(late, mag_type) + _stale_note(stale, mag_type)

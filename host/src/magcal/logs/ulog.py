@@ -41,8 +41,15 @@ from collections.abc import Callable
 import numpy as np
 
 from magcal.autopilot import vehicle
-from magcal.logs.correction import PX4_RAW_FRAME, px4_calibration_index, px4_recorded, undo_px4
+from magcal.logs.correction import (
+    PX4_RAW_FRAME,
+    flight_recorded_px4,
+    px4_calibration_index,
+    px4_recorded,
+    undo_px4,
+)
 from magcal.logs.streams import (
+    GnssStream,
     ImuStream,
     LogImportError,
     LogStreams,
@@ -62,6 +69,12 @@ TOPICS = [
     "vehicle_magnetometer",
     "actuator_armed",
     "vehicle_status",
+    "vehicle_gps_position",
+    "sensor_gps",
+    "battery_status",
+    "vehicle_land_detected",
+    "actuator_controls_0",
+    "vehicle_thrust_setpoint",
 ]
 RELATIVE_TIMESTAMP_INVALID = 0x7FFFFFFF
 ARMING_STATE_ARMED = 2
@@ -180,6 +193,69 @@ def _armed(ulog) -> StepSignal | None:
     return None
 
 
+def _gnss(ulog) -> GnssStream | None:
+    """vehicle_gps_position (the receiver chosen), else sensor_gps instance 0: fix, position
+    (lat/lon in 1e-7 degrees and alt in mm before PX4 1.14, latitude_deg/longitude_deg and
+    altitude_msl_m after), NED velocity (NaN where vel_ned_valid is false) and UTC."""
+    data = _datasets(ulog, "vehicle_gps_position").get(0)
+    source = "vehicle_gps_position"
+    if data is None:
+        data, source = _datasets(ulog, "sensor_gps").get(0), "sensor_gps"
+    if data is None or "fix_type" not in data:
+        return None
+    t = np.asarray(data.get("timestamp_sample", data["timestamp"]), dtype=float) * 1e-6
+    if "latitude_deg" in data:
+        lat, lon = (np.asarray(data[k], float) for k in ("latitude_deg", "longitude_deg"))
+        alt = np.asarray(data["altitude_msl_m"], float)
+    else:
+        lat, lon = (np.asarray(data[k], float) * 1e-7 for k in ("lat", "lon"))
+        alt = np.asarray(data["alt"], float) * 1e-3
+    vel = np.column_stack([np.asarray(data[f"vel_{a}_m_s"], float) for a in "ned"])
+    if "vel_ned_valid" in data:
+        vel[np.asarray(data["vel_ned_valid"]) == 0] = np.nan
+    utc = np.asarray(data.get("time_utc_usec", np.zeros(t.size)), dtype=float)
+    utc = np.where(utc > 0, utc * 1e-6, np.nan)
+    fix = np.asarray(data["fix_type"], dtype=int)
+    t, fix, lat, lon, alt, vel, utc = strictly_increasing(t, fix, lat, lon, alt, vel, utc)
+    return GnssStream(t, fix, lat, lon, alt, vel, utc, source)
+
+
+def _current(ulog) -> StepSignal | None:
+    """battery_status instance 0's current_a (A; negative: unknown)."""
+    data = _datasets(ulog, "battery_status").get(0)
+    if data is None or "current_a" not in data:
+        return None
+    t = np.asarray(data["timestamp"], dtype=float) * 1e-6
+    current = np.asarray(data["current_a"], dtype=float)
+    ok = current >= 0
+    return StepSignal(t[ok], current[ok]) if ok.any() else None
+
+
+def _airborne(ulog) -> StepSignal | None:
+    """vehicle_land_detected.landed: 0 in the air."""
+    data = _datasets(ulog, "vehicle_land_detected").get(0)
+    if data is None or "landed" not in data:
+        return None
+    t = np.asarray(data["timestamp"], dtype=float) * 1e-6
+    return StepSignal(t, (np.asarray(data["landed"]) == 0).astype(float))
+
+
+def _throttle(ulog) -> StepSignal | None:
+    """The collective thrust, 0–1: −vehicle_thrust_setpoint.xyz[2] (PX4 1.14 on), else
+    actuator_controls_0.control[3]."""
+    data = _datasets(ulog, "vehicle_thrust_setpoint").get(0)
+    if data is not None and "xyz[2]" in data:
+        value = -np.asarray(data["xyz[2]"], dtype=float)
+    else:
+        data = _datasets(ulog, "actuator_controls_0").get(0)
+        if data is None or "control[3]" not in data:
+            return None
+        value = np.asarray(data["control[3]"], dtype=float)
+    t = np.asarray(data["timestamp"], dtype=float) * 1e-6
+    ok = np.isfinite(value)
+    return StepSignal(t[ok], np.clip(value[ok], 0.0, 1.0)) if ok.any() else None
+
+
 def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = None) -> LogStreams:
     """Read a PX4 ``.ulg``; compass = sensor_mag instance + 1, imu 1 = sensor_combined."""
     from pyulog import ULog
@@ -217,6 +293,19 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         raise LogImportError(f"{name} has {' and '.join(missing)}; {NEEDS}")
     assert imu_stream is not None and chosen is not None
     mag_stream, notes, index = chosen
+    others, other_names = [], list(flight_recorded_px4(index, params.names()))
+    instances = set(_datasets(ulog, "sensor_mag")) | set(_datasets(ulog, "vehicle_magnetometer"))
+    for k in sorted(i + 1 for i in instances):
+        if k == compass:
+            continue
+        try:
+            other, other_notes, other_index = _choose_mag(name, ulog, params, k)
+        except (_NoMag, LogImportError) as exc:
+            notes += (f"compass {k} left out of the flight columns: {exc}",)
+            continue
+        others.append(other)
+        notes += other_notes
+        other_names += flight_recorded_px4(other_index, params.names())
     return LogStreams(
         path=path,
         log_format="ULog",
@@ -227,6 +316,12 @@ def read(path: str, compass: int = 1, imu: int = 1, progress: Progress | None = 
         param_names=px4_recorded(index, params.names()),
         param_compass=index,
         armed=_armed(ulog),
+        throttle=_throttle(ulog),
+        other_mags=tuple(others),
+        other_param_names=tuple(dict.fromkeys(other_names)),
+        gnss=_gnss(ulog),
+        current=_current(ulog),
+        airborne=_airborne(ulog),
         notes=notes,
         known_gaps=_dropouts(ulog),
         gap_cause="nothing was logged",

@@ -369,3 +369,64 @@ def test_malformed_motor_and_compasses_keys_are_refused_by_name(tmp_path):
     )
     with pytest.raises(Exception, match=r"'compasses\[0\].D_inv' is not the inverse"):
         result_compasses(wrong)
+
+
+# ------------------------------------------------------------------------------ MAVLink
+def test_mavlink_flash_backs_up_writes_and_confirms_the_motor_compensation(tmp_path, capsys):
+    from tests.autopilot_emulator import AutopilotEmulator
+
+    with AutopilotEmulator(personality="ardupilot", seed=8, speedup=20.0, compasses=1) as emu:
+        c = emu.truth.compass(1)
+        params = emu.params
+        R_old = rotations.ardupilot_matrix(int(params["COMPASS_ORIENT"]))
+        meta = {
+            f"param.{n}": repr(v) for n, v in params.items() if n.startswith(("COMPASS", "CUST"))
+        }
+        meta |= {"autopilot": "ardupilot", "compass": "1", "compass_external": "1"}
+        b = np.array([0.4, -0.8, 0.2])  # mG/A in y
+        result = CalibrationResult(
+            "ml",
+            R_old @ c.D,
+            R_old @ c.o,
+            emu.truth.m_n,
+            emu.truth.dip_deg,
+            extra={"mag_unit": "mG", "session_meta": meta, "motor": _motor(b)},
+        )
+        path = tmp_path / "r.json"
+        write_result(path, result)
+        field = f"{emu.field_strength:.9g}mG"
+        assert main(["flash", str(path), "--mavlink", emu.url, "--field", field]) == 0
+        after = emu.params
+    (backup,) = sorted(tmp_path.glob("r.backup-*.params"))
+    saved = P.read_param_file(backup).as_dict()
+    assert saved["COMPASS_MOTCT"] == 0 and saved["COMPASS_MOT_X"] == 0.0  # old values first
+    A = emu.field_strength * np.linalg.inv(R_old @ c.D)  # the rotation is enumerated here
+    want = -A @ b
+    got = np.array([after[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    assert np.allclose(got, want, atol=1e-4) and after["COMPASS_MOTCT"] == 2
+    assert "COMPASS_MOTCT = 2 confirmed" in capsys.readouterr().err
+
+
+@needs_logs
+def test_compass_2_of_a_flight_whose_calibration_in_force_is_right_changes_nothing(
+    imported, tmp_path, capsys
+):
+    meta = imported["f2_motor"]
+    if "param.COMPASS_OFS2_X" not in meta:
+        pytest.skip("this import records the parameters of its own compass only")
+    truth = json.loads((FLIGHTLOGS / "f2_motor.truth.json").read_text())
+    recorded = vehicle.params_from_meta(meta)
+    # compass 2: offsets (5, 13, −18) mG, no soft iron, COMPASS_MOT2 = −SIM_MAG_MOT in force
+    sim2 = {"DIA": [1, 1, 1], "ODI": [0, 0, 0], "OFS": [5.0, 13.0, -18.0]}
+    sim2 |= {"MOT": truth["sim"]["MOT"], "ROT": None}
+    D2, o2, b2 = _truth_calibration(sim2, F_MG, mapping.ardupilot_rotation(recorded, 2))
+    D1, o1, b1 = _truth_calibration(truth["sim"], F_MG, mapping.ardupilot_rotation(recorded, 1))
+    further = [{"compass": 2, "D": D2.tolist(), "o": o2.tolist(), "motor": _motor(b2)}]
+    res = tmp_path / "r.json"
+    write_result(res, _result(D1, o1, meta, motor=_motor(b1), compasses=further))
+    parm = tmp_path / "c2.parm"
+    assert main(["flash", str(res), "--param-file", str(parm), "--compass", "2"]) == 0
+    assert "already hold these values" in capsys.readouterr().out and not parm.exists()
+    assert main(["flash", str(res), "--param-file", str(parm)]) == 0
+    written = P.read_param_file(parm).as_dict()
+    assert written and not any("2_" in n or n.endswith("2") for n in written)

@@ -16,11 +16,33 @@ import numpy as np
 
 from magcal.commands.common import compass_params
 from magcal.errors import MagcalError
-from magcal.ui import EXIT_INTERRUPTED, EXIT_MISALIGNMENT_LEFT_OUT, refusal, say
+from magcal.ui import EXIT_INTERRUPTED, EXIT_MISALIGNMENT_LEFT_OUT, ProgressBar, refusal, say
 
 
 def _say(text: str) -> None:
     say("flash", text)
+
+
+class WriteProgress:
+    """``progress(text)`` for :func:`magcal.autopilot.flash.write_and_confirm`: in a log each
+    parameter's line as the writer words it ("magcal flash: 3/12 COMPASS_OFS_Z = 12.5
+    confirmed"); on a terminal a progress bar of the parameters written, the last one named
+    beside it, and a parameter not confirmed on a line of its own above the bar. ``close()``
+    (idempotent) after the writes."""
+
+    def __init__(self, total: int, stream=None) -> None:
+        self.bar = ProgressBar("flash: writing parameters", total, stream or sys.stderr)
+
+    def __call__(self, text: str) -> None:
+        if not self.bar.live:
+            say("flash", text, self.bar.stream)
+            return
+        if "NOT confirmed" in text:
+            self.bar.message(f"magcal flash: {text}")
+        self.bar.advance(note=text.split(" ", 1)[-1])
+
+    def close(self) -> None:
+        self.bar.close()
 
 
 def _field(args):
@@ -256,15 +278,18 @@ def run(args) -> int:
             known=known,
         )
         _say(f"backup of the values in force: {', '.join(map(str, backup.paths))}")
+        writing = WriteProgress(len(plan.writes))
         try:
-            failed = apflash.write_and_confirm(ap, plan.writes, _say, old=cp.values)
+            failed = apflash.write_and_confirm(ap, plan.writes, writing, old=cp.values)
         except apflash.WriteInterrupted as exc:
+            writing.close()
             return _interrupted(
                 exc,
                 f"flash: {exc}. The old values are in {backup.path}: run flash again, or "
                 f"restore with magcal flash --restore {backup.path} --mavlink URL",
                 backup.path,
             )
+        writing.close()
         if failed:
             raise apflash.AutopilotFlashError(
                 f"flash: {len(failed)} of {len(plan.writes)} parameters not confirmed: "
@@ -364,20 +389,23 @@ def _run_restore(args) -> int:
             or not params.confirmed(e.value, current[e.name].value, e.param_type)
         )
         _say(f"values in force saved in {backup.path}")
+        writing = WriteProgress(len(writes))
         try:
             failed = apflash.write_and_confirm(
                 ap,
                 writes,
-                _say,
+                writing,
                 old={n: e.value for n, e in current.items()},
             )
         except apflash.WriteInterrupted as exc:
+            writing.close()
             return _interrupted(
                 exc,
                 f"flash --restore: {exc}. The values before the restore are in {backup.path}; "
                 f"run the restore of {src} again",
                 backup.path,
             )
+        writing.close()
         if failed:
             raise apflash.AutopilotFlashError(
                 f"flash --restore: {len(failed)} of {len(writes)} parameters not confirmed: "

@@ -234,7 +234,13 @@ def run(args, out=None) -> int:
     min_samples = observability.MIN_SAMPLES
     progress = progress_printer()
     with open_device(args.port) as dev:
-        view = open_view(args, f"magnetometer of device {dev.info.uid_hex}")
+        info = dev.info
+        say(
+            "collect",
+            f"device {args.port}: uid {info.uid_hex}, firmware {info.fw_version_str}, "
+            f"{info.sample_rate_hz:g} Hz; recording: turn it slowly through all orientations",
+        )
+        view = open_view(args, f"magnetometer of device {info.uid_hex}")
         result = None
         try:
             result = collect_saving_partial(

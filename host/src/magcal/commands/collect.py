@@ -66,9 +66,8 @@ def add_parser(sub) -> None:
         "--max-samples or Ctrl-C, and whatever was recorded is written.",
         epilog="examples:\n"
         "  magcal collect --port /dev/ttyACM0 -o session.csv\n"
-        "  magcal collect --mavlink udpin:0.0.0.0:14550 --compass 2 -o session.csv\n"
-        "  magcal collect --port /dev/ttyACM0 --duration 90 --coverage off -o session.csv\n"
-        "  magcal collect --port /dev/ttyACM0 --view -o session.csv",
+        "  magcal collect --mavlink udpin:0.0.0.0:14550 --compass 2 --view -o session.csv\n"
+        "  magcal collect --port /dev/ttyACM0 --duration 90 --coverage off -o session.csv",
     )
     add_link_arguments(p)
     p.add_argument("-o", "--output", required=True, help="session CSV to write")

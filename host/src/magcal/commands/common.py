@@ -19,11 +19,11 @@ if TYPE_CHECKING:
     from magcal.device.client import DeviceClient, DeviceInfo, HelloResult, Scale
 
 
-def add_link_arguments(p: argparse.ArgumentParser) -> None:
+def add_link_arguments(p: argparse.ArgumentParser, required: bool = True) -> None:
     """``--port URL`` (a device running magcal's firmware) or ``--mavlink URL`` (an ArduPilot
-    or PX4 autopilot), exactly one (argparse says so when neither or both are given), and
-    ``--compass N`` for the autopilot's compass."""
-    link = p.add_mutually_exclusive_group(required=True)
+    or PX4 autopilot), at most one, and exactly one when ``required`` (argparse says so when
+    neither or both are given), and ``--compass N`` for the autopilot's compass."""
+    link = p.add_mutually_exclusive_group(required=required)
     link.add_argument(
         "--port",
         metavar="URL",

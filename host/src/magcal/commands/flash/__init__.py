@@ -44,11 +44,9 @@ def add_parser(sub) -> None:
         "  magcal flash result.json --param-file compass.parm",
     )
     p.add_argument("result", nargs="?", help="calibration result JSON (magcal-result/1)")
-    add_link_arguments(p)
     # --param-file alone writes a parameter file without a vehicle: neither link is required
     # (run() asks for one of the three)
-    for group in p._mutually_exclusive_groups:
-        group.required = False
+    add_link_arguments(p, required=False)
     p.add_argument(
         "--restore",
         metavar="BACKUP",

@@ -295,39 +295,63 @@ static ALWAYS_INLINE void measurement_tangent(const pass_t *p, const step_t *s, 
     }
 }
 
-/* Samples whose features are gathered before they are multiplied out: per direction a row
- * of FISHER_BLOCK · FEATURES values, so that F_ij gains one long contiguous dot product per
- * block instead of a rank-one update per feature (which compiles to scalar code). */
+/* Samples whose features are gathered before they are multiplied out: a block of up to
+ * BLOCK_LEN features per direction, stored feature-major (feature c of direction d at
+ * c · stride + d, stride = the directions rounded up to whole groups of
+ * MC_MEKF_FISHER_LANES, the padding zero), so that F gains whole tiles of dot products per
+ * block instead of a rank-one update per feature. */
 #define FEATURES 27 /* 6 + 21: a and the upper triangle of W at most */
 #define BLOCK_LEN (MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
 #if BLOCK_LEN % FEATURES != 0 || BLOCK_LEN < FEATURES
 #error "the Fisher workspace per direction must hold whole samples' features"
 #endif
+/* A tile of F computed together: TILE_I rows by TILE_J = MC_MEKF_FISHER_LANES columns. */
+#define TILE_I 4
+#define TILE_J MC_MEKF_FISHER_LANES
+#if TILE_J % TILE_I != 0
+#error "a tile's rows must divide a group of directions"
+#endif
 
 /* The accumulators of one pass. */
 typedef struct {
     size_t k;      /* directions                                              */
+    size_t stride; /* k rounded up to whole groups of MC_MEKF_FISHER_LANES    */
     double *info;  /* (k, k), upper triangle accumulated                      */
     double *grad;  /* (k)                                                     */
     int used;      /* features gathered in `block` per direction so far       */
-    double *block; /* (k, BLOCK_LEN) the caller's workspace, direction-major  */
+    double *block; /* (BLOCK_LEN, stride) the caller's workspace, feature-major */
 } fisher_acc_t;
 
-/* F += Φ Φᵀ over the gathered features, upper triangle; empties the block. */
-static void flush_block(fisher_acc_t *acc)
+/* F += Φ Φᵀ over the gathered features, upper triangle; empties the block.
+ *
+ * Each F_ij of the block is one sum over the features in their order, started from zero
+ * and then added to F_ij, as a plain dot product per pair would compute it: the tiling
+ * only makes TILE_I · TILE_J such sums run side by side (independent chains of additions
+ * instead of one chain whose latency bounds the loop), and the j's of a tile are adjacent
+ * in memory, so that they map onto vector lanes. Every lane is the same IEEE product and
+ * sum (no FMA: -ffp-contract=off), so the result does not depend on how the compiler
+ * vectorises. The tiles below the diagonal and the padding are computed and dropped. */
+static HOT_PASS void flush_block(fisher_acc_t *acc)
 {
-    const size_t nd = acc->k;
+    const size_t nd = acc->k, stride = acc->stride;
     const int len = acc->used;
-    for (size_t i = 0; i < nd; ++i) {
-        const double *restrict fi = acc->block + BLOCK_LEN * i;
-        double *restrict row = acc->info + nd * i;
-        for (size_t j = i; j < nd; ++j) {
-            const double *restrict fj = acc->block + BLOCK_LEN * j;
-            double v = 0.0;
-            for (int c = 0; c < len; ++c) v += fi[c] * fj[c];
-            row[j] += v;
+    for (size_t i0 = 0; i0 < nd; i0 += TILE_I)
+        for (size_t j0 = i0 - i0 % TILE_J; j0 < nd; j0 += TILE_J) {
+            double v[TILE_I][TILE_J];
+            for (int a = 0; a < TILE_I; ++a)
+                for (int b = 0; b < TILE_J; ++b) v[a][b] = 0.0;
+            const double *restrict f = acc->block;
+            for (int c = 0; c < len; ++c, f += stride)
+                for (int a = 0; a < TILE_I; ++a) {
+                    const double fi = f[i0 + a];
+                    for (int b = 0; b < TILE_J; ++b) v[a][b] += fi * f[j0 + b];
+                }
+            for (int a = 0; a < TILE_I && i0 + a < nd; ++a) {
+                double *restrict row = acc->info + nd * (i0 + a);
+                for (int b = 0; b < TILE_J && j0 + b < nd; ++b)
+                    if (j0 + b >= i0 + a) row[j0 + b] += v[a][b];
+            }
         }
-    }
     acc->used = 0;
 }
 
@@ -403,21 +427,22 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
                 W[ny * i + j] = v;
             }
         /* This sample's features of direction d, appended to its row of the block. */
-        double *f = acc->block + BLOCK_LEN * d + acc->used;
+        double *f = acc->block + acc->stride * (size_t)acc->used + d;
+        const size_t st = acc->stride;
         double gq = 0.0, gw = 0.0, tr = 0.0;
-        int c = 0;
+        size_t c = 0;
         for (int i = 0; i < ny; ++i) {
-            f[c++] = a[i];
+            f[st * c++] = a[i];
             gq += a[i] * u->w[i];
         }
         for (int i = 0; i < ny; ++i) {
             const double wii = W[ny * i + i];
-            f[c++] = wii * SQRT_HALF;
+            f[st * c++] = wii * SQRT_HALF;
             tr += wii;
             gw += wii * u->w[i] * u->w[i];
             for (int j = i + 1; j < ny; ++j) {
                 const double wij = W[ny * i + j];
-                f[c++] = wij;
+                f[st * c++] = wij;
                 gw += 2.0 * wij * u->w[i] * u->w[j];
             }
         }
@@ -573,7 +598,7 @@ double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
     if (k_valid && info) memset(info, 0, k * k * sizeof *info);
     if (k_valid && grad) memset(grad, 0, k * sizeof *grad);
     if (!k_valid || !valid_arguments(model, data) || !directions || !info || !grad || !work ||
-        work_len < k * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
+        work_len < MC_MEKF_FISHER_WORK_DOUBLES(k))
         return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
@@ -583,7 +608,9 @@ double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
     /* The prior (q₀, P₀) is data: its tangents are zero. */
     memset(dphi, 0, sizeof dphi);
     memset(dP, 0, sizeof dP);
-    fisher_acc_t acc_s = {k, info, grad, 0, work}, *acc = &acc_s;
+    const size_t stride = MC_MEKF_FISHER_WORK_DOUBLES(k) / BLOCK_LEN;
+    memset(work, 0, stride * BLOCK_LEN * sizeof *work); /* the padding stays zero */
+    fisher_acc_t acc_s = {k, stride, info, grad, 0, work}, *acc = &acc_s;
     double cost = any_mask(data) ? fisher_pass_masked(&p, tan, dphi, dP, acc)
                                  : fisher_pass_unmasked(&p, tan, dphi, dP, acc);
     flush_block(acc);

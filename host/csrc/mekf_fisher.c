@@ -63,6 +63,13 @@ typedef double vd_unaligned;
 #if MC_MEKF_FISHER_LANES % VLANES != 0
 #error "a group of directions in the workspace must hold whole vectors"
 #endif
+/* Fully unrolled small loops whose bounds depend on an outer index (the triangular
+ * products below): GCC unrolls loops of constant trip count only. */
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 8
+#define UNROLL_6 _Pragma("GCC unroll 6")
+#else
+#define UNROLL_6
+#endif
 /* Groups of VLANES directions at most. */
 #define MAX_GROUPS ((MC_MEKF_FISHER_MAX_DIRECTIONS + VLANES - 1) / VLANES)
 
@@ -520,18 +527,21 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
         vd a[6], X[36], W[36];
         for (int i = 0; i < ny; ++i) {
             vd v = {0.0};
+            UNROLL_6
             for (int k = 0; k <= i; ++k) v += Li[ny * i + k] * de[k];
             a[i] = v;
         }
         for (int i = 0; i < ny; ++i) /* X = L⁻¹ dS */
             for (int j = 0; j < ny; ++j) {
                 vd v = {0.0};
+                UNROLL_6
                 for (int k = 0; k <= i; ++k) v += Li[ny * i + k] * dS[ny * k + j];
                 X[ny * i + j] = v;
             }
         for (int i = 0; i < ny; ++i) /* W = X L⁻ᵀ, upper triangle */
             for (int j = i; j < ny; ++j) {
                 vd v = {0.0};
+                UNROLL_6
                 for (int k = 0; k <= j; ++k) v += X[ny * i + k] * Li[ny * j + k];
                 W[ny * i + j] = v;
             }

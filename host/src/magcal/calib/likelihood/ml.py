@@ -197,17 +197,19 @@ def maximum_likelihood(
     progress: Callable[[int, float, float], None] | None = None,
     priors: Priors = Priors(),
     optimizer: str = OPTIMIZERS[0],
-    other_starts: Sequence[tuple[str, ModelParams]] = (),
+    other_starts: Sequence[tuple[str, ModelParams]]
+    | Callable[[], Sequence[tuple[str, ModelParams]]] = (),
     stage: Callable[[str], None] | None = None,
 ) -> MLEstimate:
     """Algorithm 1 step 2 from the initial estimate; ``gradient`` "exact" or "numeric";
     ``priors`` make it a MAP estimate (:class:`~magcal.calib.likelihood.problem.Priors`);
     ``optimizer`` one of :data:`OPTIMIZERS`. The trust region needs exact gradients.
 
-    ``other_starts``: (name, parameters in raw units) of other starting points. The
-    paper's model is fitted from each as well, on a second thread beside the initial
-    estimate's fit; the estimate continues from the best optimum reached, and
-    :attr:`MLEstimate.starting_points` records them all.
+    ``other_starts``: (name, parameters in raw units) of other starting points, or a
+    function that returns them (called on the second thread, so that finding them costs
+    no wall time either). The paper's model is fitted from each as well, on a second
+    thread beside the initial estimate's fit; the estimate continues from the best optimum
+    reached, and :attr:`MLEstimate.starting_points` records them all.
 
     ``stage(text)`` is told as each fit starts (the model it fits); ``progress(iteration,
     cost, decrement)`` at each iteration of the fits, numbered across them."""
@@ -325,13 +327,17 @@ def maximum_likelihood(
     with ThreadPoolExecutor(max_workers=1) as pool:
         # The kernels release the GIL: on two cores the other starting points cost little
         # wall time.
-        pending = [(name, pool.submit(fit_from, p)) for name, p in other_starts]
+        def fit_others() -> list[tuple[str, OptimizeReport | int | None]]:
+            starts = other_starts() if callable(other_starts) else other_starts
+            return [(name, fit_from(p)) for name, p in starts]
+
+        pending = pool.submit(fit_others)
         # The fits before the last are compared by their cost alone (the tests), so they stop
         # once their remaining decrease is far below what a test can see; whichever is chosen
         # is refined to the final tolerance.
         plain = run(problem, True, theta0, fits, final=False, label=STAGE_PLAIN)
         main_iterations.append(plain.iterations)
-        others = [(name, future.result()) for name, future in pending]
+        others = pending.result()
     starting_points = [
         StartingPoint("the initial estimate", plain.cost, plain.iterations, plain.converged)
     ]

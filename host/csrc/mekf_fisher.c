@@ -250,7 +250,7 @@ static ALWAYS_INLINE void backward_solve(const double *restrict L, int n, double
 
 /* The update's nominal quantities at sample k from the step's. Returns 0 when S has a
  * non-positive pivot (only rounding can do that where the step succeeded). */
-static int prepare_update(const pass_t *p, const step_t *s, size_t k, int ha, int hm,
+static ALWAYS_INLINE int prepare_update(const pass_t *p, const step_t *s, size_t k, int ha, int hm,
                           update_t *u)
 {
     const mc_mekf_model_t *m = p->m;
@@ -697,13 +697,13 @@ static ALWAYS_INLINE double fisher_loop(const pass_t *p, const tangent_t *tan, v
     return cost + 0.5 * logdet_total(&ld);
 }
 
-static NOINLINE double fisher_pass_unmasked(const pass_t *p, const tangent_t *tan, vd *dphi,
+static HOT_PASS double fisher_pass_unmasked(const pass_t *p, const tangent_t *tan, vd *dphi,
                                             vd *dP, fisher_acc_t *acc)
 {
     return fisher_loop(p, tan, dphi, dP, acc, 0);
 }
 
-static NOINLINE double fisher_pass_masked(const pass_t *p, const tangent_t *tan, vd *dphi,
+static HOT_PASS double fisher_pass_masked(const pass_t *p, const tangent_t *tan, vd *dphi,
                                           vd *dP, fisher_acc_t *acc)
 {
     return fisher_loop(p, tan, dphi, dP, acc, 1);

@@ -324,6 +324,55 @@ def maximum_likelihood(
         except _Abandoned as stop:
             return stop.iterations
 
+    def finish(
+        plain: OptimizeReport, fits: list
+    ) -> tuple[OptimizeReport, TimeOffsetTest | None, GyroGainTest | None, LikelihoodProblem]:
+        """The fits after the paper's model's, from its optimum ``plain``: the time offset's
+        test, the gyroscope gain's, the refinement. Returns the chosen fit, the tests and the
+        problem it was fitted on."""
+        chosen, time_test, gain_test, final = plain, None, None, problem
+        if budget_left(fits):  # budget left to test a delay
+            delayed = run(problem, False, plain.x, fits, final=False, label=STAGE_TIME_OFFSET)
+            statistic = 2.0 * (plain.cost - delayed.cost)
+            threshold = chi2_one_dof_quantile(TIME_OFFSET_TEST_LEVEL)
+            time_test = TimeOffsetTest(
+                statistic=float(statistic),
+                threshold=threshold,
+                fitted_s=float(delayed.x[INDEX_TIME_OFFSET]),
+                kept=bool(statistic > threshold),
+            )
+            chosen = delayed if time_test.kept else plain
+        if budget_left(fits):  # and to test the gyroscope's gain
+            gained = problem.with_gyro_gain_error(GYRO_GAIN_ERROR)
+            statistic = 2.0 * (chosen.cost - gained.cost(chosen.x))
+            threshold = chi2_one_dof_quantile(GYRO_GAIN_TEST_LEVEL)
+            gain_test = GyroGainTest(
+                statistic=float(statistic),
+                threshold=threshold,
+                gain_error=GYRO_GAIN_ERROR,
+                kept=bool(statistic > threshold),
+            )
+            if gain_test.kept:
+                final = gained
+                chosen = run(
+                    gained,
+                    not (time_test and time_test.kept),
+                    chosen.x,
+                    fits,
+                    label=STAGE_GYRO_GAIN,
+                )
+        if optimizer == "trust-region" and not (gain_test and gain_test.kept) and budget_left(fits):
+            # The chosen fit stopped at the tests' tolerance: refined from where it stopped.
+            chosen = run(
+                problem,
+                not (time_test and time_test.kept),
+                chosen.x,
+                fits,
+                start=chosen,
+                label=STAGE_REFINE,
+            )
+        return chosen, time_test, gain_test, final
+
     with ThreadPoolExecutor(max_workers=1) as pool:
         # The kernels release the GIL: on two cores the other starting points cost little
         # wall time.
@@ -337,6 +386,14 @@ def maximum_likelihood(
         # is refined to the final tolerance.
         plain = run(problem, True, theta0, fits, final=False, label=STAGE_PLAIN)
         main_iterations.append(plain.iterations)
+        # The other starting points nearly always end where this fit did: the fits after it
+        # go on from its optimum while they finish, and are redone from another optimum only
+        # where one is better (below), so that the result is the same as in sequence.
+        ahead_fits = list(fits)
+        try:
+            ahead: tuple | BaseException = finish(plain, ahead_fits)
+        except Exception as exc:  # raised below, unless another starting point is better
+            ahead = exc
         others = pending.result()
     starting_points = [
         StartingPoint("the initial estimate", plain.cost, plain.iterations, plain.converged)
@@ -357,47 +414,12 @@ def maximum_likelihood(
         plain = run(
             problem, True, better.x, fits, final=False, start=better, label=STAGE_FROM_OTHER
         )
-    chosen, time_test, gain_test = plain, None, None
-    if budget_left(fits):  # budget left to test a delay
-        delayed = run(problem, False, plain.x, fits, final=False, label=STAGE_TIME_OFFSET)
-        statistic = 2.0 * (plain.cost - delayed.cost)
-        threshold = chi2_one_dof_quantile(TIME_OFFSET_TEST_LEVEL)
-        time_test = TimeOffsetTest(
-            statistic=float(statistic),
-            threshold=threshold,
-            fitted_s=float(delayed.x[INDEX_TIME_OFFSET]),
-            kept=bool(statistic > threshold),
-        )
-        chosen = delayed if time_test.kept else plain
-    if budget_left(fits):  # and to test the gyroscope's gain
-        gained = problem.with_gyro_gain_error(GYRO_GAIN_ERROR)
-        statistic = 2.0 * (chosen.cost - gained.cost(chosen.x))
-        threshold = chi2_one_dof_quantile(GYRO_GAIN_TEST_LEVEL)
-        gain_test = GyroGainTest(
-            statistic=float(statistic),
-            threshold=threshold,
-            gain_error=GYRO_GAIN_ERROR,
-            kept=bool(statistic > threshold),
-        )
-        if gain_test.kept:
-            problem = gained
-            chosen = run(
-                gained,
-                not (time_test and time_test.kept),
-                chosen.x,
-                fits,
-                label=STAGE_GYRO_GAIN,
-            )
-    if optimizer == "trust-region" and not (gain_test and gain_test.kept) and budget_left(fits):
-        # The chosen fit stopped at the tests' tolerance: refined from where it stopped.
-        chosen = run(
-            problem,
-            not (time_test and time_test.kept),
-            chosen.x,
-            fits,
-            start=chosen,
-            label=STAGE_REFINE,
-        )
+        chosen, time_test, gain_test, problem = finish(plain, fits)
+    elif isinstance(ahead, BaseException):
+        raise ahead
+    else:
+        fits = ahead_fits
+        chosen, time_test, gain_test, problem = ahead
     report = dataclasses.replace(
         chosen,
         iterations=sum(r.iterations for r in fits),

@@ -42,6 +42,10 @@ $(STAMP): host/pyproject.toml host/setup.py evaluation/pyproject.toml host/requi
 	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet --upgrade pip
 	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet -e 'host[dev]'
 	PIP_CONSTRAINT=$(CURDIR)/$(LOCK) $(PY) -m pip install --quiet -e evaluation
+	# Editable installs leave the sources uncompiled, and where PYTHONDONTWRITEBYTECODE is set
+	# nothing caches them: every cold command would compile magcal's modules again (~0.1 s
+	# of each `magcal calibrate`). Compiled once here; Python checks each against its source.
+	$(PY) -m compileall -q host/src evaluation/src
 	touch $@
 
 # The end-to-end demo (magcal_evaluation.demo): the SIL device with a random distortion, tumbled by the

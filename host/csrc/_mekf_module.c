@@ -294,7 +294,7 @@ static PyObject *py_fisher(PyObject *self, PyObject *args)
          (grad = get_float64(grad_obj, &bufs.b[B_OUT1], k, 1, "grad")) != NULL;
     double cost = NAN;
     double *work = NULL;
-    const size_t work_len = (size_t)k * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION;
+    const size_t work_len = MC_MEKF_FISHER_WORK_DOUBLES((size_t)k);
     if (ok && !(work = PyMem_RawMalloc(work_len * sizeof *work))) {
         PyErr_NoMemory();
         ok = 0;

@@ -33,12 +33,114 @@
  *
  * The cost is about 2 + K/6 times a forward pass (K directions); nothing is taped, and the
  * memory is O(K) whatever the number of samples.
+ *
+ * The directions are carried in groups of VLANES side by side: every tangent quantity is a
+ * vector of VLANES doubles (GCC's and clang's vector extension; one double elsewhere), the
+ * nominal quantities they combine with are scalars, and the code of one group reads as the
+ * code of one direction. Each lane is computed by the same IEEE operations in the same
+ * order as a direction alone (no FMA: the build has -ffp-contract=off), so the results do
+ * not depend on VLANES or on the instruction set; a pass costs about a quarter of what the
+ * directions took one at a time.
  */
 #include "mekf_step.h"
 
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC optimize("tree-vectorize")
+#if defined(__GNUC__) && defined(__SIZEOF_DOUBLE__) && !defined(MC_MEKF_FISHER_SCALAR)
+#define VLANES 4
+typedef double vd __attribute__((vector_size(VLANES * sizeof(double))));
+#else
+#define VLANES 1
+typedef double vd;
 #endif
+/* The same vector at any double's alignment and aliasing doubles, for the block's rows
+ * (memcpy into a vector goes through the stack, where the halves' stores do not forward to
+ * the whole vector's load). */
+#if VLANES > 1
+typedef double vd_unaligned
+    __attribute__((vector_size(VLANES * sizeof(double)), aligned(sizeof(double)), may_alias));
+#else
+typedef double vd_unaligned;
+#endif
+#if MC_MEKF_FISHER_LANES % VLANES != 0
+#error "a group of directions in the workspace must hold whole vectors"
+#endif
+/* Fully unrolled small loops whose bounds depend on an outer index (the triangular
+ * products below): GCC unrolls loops of constant trip count only. */
+#if defined(__GNUC__) && !defined(__clang__) && __GNUC__ >= 8
+#define UNROLL_6 _Pragma("GCC unroll 6")
+#else
+#define UNROLL_6
+#endif
+/* Groups of VLANES directions at most. */
+#define MAX_GROUPS ((MC_MEKF_FISHER_MAX_DIRECTIONS + VLANES - 1) / VLANES)
+
+/* Lane l of v, read and written through memory (the same for a vector and a double). */
+static ALWAYS_INLINE double get_lane(const vd *v, int l)
+{
+    double t[VLANES];
+    memcpy(t, v, sizeof t);
+    return t[l];
+}
+
+static ALWAYS_INLINE void set_lane(vd *v, int l, double x)
+{
+    double t[VLANES];
+    memcpy(t, v, sizeof t);
+    t[l] = x;
+    memcpy(v, t, sizeof t);
+}
+
+/* The 3×3 helpers of mekf_step.h with vector operands where the tangents are: the same
+ * expressions, evaluated per lane. _sv: scalar first operand, vector second; _vs the
+ * reverse. */
+static ALWAYS_INLINE void cross3_sv(const double *restrict a, const vd *restrict b, vd *restrict c)
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static ALWAYS_INLINE void cross3_vs(const vd *restrict a, const double *restrict b, vd *restrict c)
+{
+    c[0] = a[1] * b[2] - a[2] * b[1];
+    c[1] = a[2] * b[0] - a[0] * b[2];
+    c[2] = a[0] * b[1] - a[1] * b[0];
+}
+
+static ALWAYS_INLINE void mat_vec_sv(const double *restrict a, const vd *restrict x, vd *restrict y)
+{
+    for (int i = 0; i < 3; ++i) y[i] = a[3 * i] * x[0] + a[3 * i + 1] * x[1] + a[3 * i + 2] * x[2];
+}
+
+static ALWAYS_INLINE void mat_vec_vs(const vd *restrict a, const double *restrict x, vd *restrict y)
+{
+    for (int i = 0; i < 3; ++i) y[i] = a[3 * i] * x[0] + a[3 * i + 1] * x[1] + a[3 * i + 2] * x[2];
+}
+
+static ALWAYS_INLINE void mat_tvec_sv(const double *restrict a, const vd *restrict x, vd *restrict y)
+{
+    for (int i = 0; i < 3; ++i) y[i] = a[i] * x[0] + a[3 + i] * x[1] + a[6 + i] * x[2];
+}
+
+static ALWAYS_INLINE void sym_fill_v(vd *s)
+{
+    s[3] = s[1];
+    s[6] = s[2];
+    s[7] = s[5];
+}
+
+/* c = a S aᵀ, a scalar, S symmetric (sym_sandwich). */
+static ALWAYS_INLINE void sym_sandwich_sv(const double *restrict a, const vd *restrict s,
+                                          vd *restrict c)
+{
+    vd t[9];
+    for (int i = 0; i < 3; ++i) /* t = a S (mat_mul) */
+        for (int j = 0; j < 3; ++j)
+            t[3 * i + j] = a[3 * i] * s[j] + a[3 * i + 1] * s[3 + j] + a[3 * i + 2] * s[6 + j];
+    for (int i = 0; i < 3; ++i) /* c = t aᵀ, upper triangle (sym_mul_nt) */
+        for (int j = i; j < 3; ++j)
+            c[3 * i + j] = t[3 * i] * a[3 * j] + t[3 * i + 1] * a[3 * j + 1] + t[3 * i + 2] * a[3 * j + 2];
+    sym_fill_v(c);
+}
 
 /* The rotation-vector coefficients of rotvec_apply for one θ, so that a step applies
  * Exp(θ) and the Jacobians to every direction without recomputing them. */
@@ -64,45 +166,48 @@ static ALWAYS_INLINE void rotvec_coef(const double *restrict th, rotvec_coef_t *
 
 /* Jr(θ)ᵀ v (sign +1) or Jr(θ) v = Jr(−θ)ᵀ v (sign −1); Exp(θ) v with rotate set. */
 static ALWAYS_INLINE void rotvec_jac(const rotvec_coef_t *restrict c, double sign,
-                                     const double *restrict v, double *restrict out)
+                                     const vd *restrict v, vd *restrict out)
 {
-    double c1[3], c2[3];
-    cross3(c->th, v, c1);
-    cross3(c->th, c1, c2);
+    vd c1[3], c2[3];
+    cross3_sv(c->th, v, c1);
+    cross3_sv(c->th, c1, c2);
     for (int i = 0; i < 3; ++i) out[i] = v[i] + sign * c->a * c1[i] + c->b * c2[i];
 }
 
-static ALWAYS_INLINE void rotvec_rotate(const rotvec_coef_t *restrict c, const double *restrict v,
-                                        double *restrict out)
+static ALWAYS_INLINE void rotvec_rotate(const rotvec_coef_t *restrict c, const vd *restrict v,
+                                        vd *restrict out)
 {
-    double c1[3], c2[3];
-    cross3(c->th, v, c1);
-    cross3(c->th, c1, c2);
+    vd c1[3], c2[3];
+    cross3_sv(c->th, v, c1);
+    cross3_sv(c->th, c1, c2);
     for (int i = 0; i < 3; ++i) out[i] = v[i] + c->s * c1[i] + c->a * c2[i];
 }
 
-/* The model tangent of one direction, its covariances symmetrised as the filter uses
- * them. */
+/* The model tangents of a group of VLANES directions, one per lane, their covariances
+ * symmetrised as the filter uses them. */
 typedef struct {
-    double D[9], o[3], m[3], bias[3], delay;
-    double Sw[9], Sa[9], Sm[9];
+    vd D[9], o[3], m[3], bias[3], delay;
+    vd Sw[9], Sa[9], Sm[9];
 } tangent_t;
 
-static void load_tangent(const double *dir, tangent_t *t)
+/* Direction `dir` into lane l of t. */
+static void load_tangent(const double *dir, tangent_t *t, int l)
 {
     mc_mekf_model_t model; /* the struct is flat: see mc_mekf_model_is_flat */
     memcpy(&model, dir, sizeof model);
     const mc_mekf_model_t *d = &model;
-    memcpy(t->D, d->D, sizeof t->D);
-    memcpy(t->o, d->o, sizeof t->o);
-    memcpy(t->m, d->m, sizeof t->m);
-    memcpy(t->bias, d->bias, sizeof t->bias);
-    t->delay = d->delay;
+    for (int i = 0; i < 9; ++i) set_lane(t->D + i, l, d->D[i]);
+    for (int i = 0; i < 3; ++i) {
+        set_lane(t->o + i, l, d->o[i]);
+        set_lane(t->m + i, l, d->m[i]);
+        set_lane(t->bias + i, l, d->bias[i]);
+    }
+    set_lane(&t->delay, l, d->delay);
     for (int i = 0; i < 3; ++i)
         for (int j = 0; j < 3; ++j) {
-            t->Sw[3 * i + j] = 0.5 * (d->Sw[3 * i + j] + d->Sw[3 * j + i]);
-            t->Sa[3 * i + j] = 0.5 * (d->Sa[3 * i + j] + d->Sa[3 * j + i]);
-            t->Sm[3 * i + j] = 0.5 * (d->Sm[3 * i + j] + d->Sm[3 * j + i]);
+            set_lane(t->Sw + 3 * i + j, l, 0.5 * (d->Sw[3 * i + j] + d->Sw[3 * j + i]));
+            set_lane(t->Sa + 3 * i + j, l, 0.5 * (d->Sa[3 * i + j] + d->Sa[3 * j + i]));
+            set_lane(t->Sm + 3 * i + j, l, 0.5 * (d->Sm[3 * i + j] + d->Sm[3 * j + i]));
         }
 }
 
@@ -145,7 +250,7 @@ static ALWAYS_INLINE void backward_solve(const double *restrict L, int n, double
 
 /* The update's nominal quantities at sample k from the step's. Returns 0 when S has a
  * non-positive pivot (only rounding can do that where the step succeeded). */
-static int prepare_update(const pass_t *p, const step_t *s, size_t k, int ha, int hm,
+static ALWAYS_INLINE int prepare_update(const pass_t *p, const step_t *s, size_t k, int ha, int hm,
                           update_t *u)
 {
     const mc_mekf_model_t *m = p->m;
@@ -233,11 +338,11 @@ static int prepare_update(const pass_t *p, const step_t *s, size_t k, int ha, in
     return 1;
 }
 
-/* dH (rows of H, 6 × 3; only the measured rows are set) and dŷ (6) of one direction, from
- * the orientation tangent dφ₁ of the predicted attitude. */
+/* dH (rows of H, 6 × 3; only the measured rows are set) and dŷ (6) of a group of
+ * directions, from the orientation tangent dφ₁ of the predicted attitude. */
 static ALWAYS_INLINE void measurement_tangent(const pass_t *p, const step_t *s, const update_t *u, int ha,
-                                int hm, const tangent_t *t, const double *restrict dphi1,
-                                double *restrict dH, double *restrict dy)
+                                int hm, const tangent_t *t, const vd *restrict dphi1,
+                                vd *restrict dH, vd *restrict dy)
 {
     const mc_mekf_model_t *m = p->m;
     const double g = p->g;
@@ -246,128 +351,162 @@ static ALWAYS_INLINE void measurement_tangent(const pass_t *p, const step_t *s, 
         /* ŷa = −Rᵀ g_n: dŷa = Rᵀ (dφ × g_n); column j of dHa = Rᵀ (dφ × (g_n × e_j)), with
          * g_n × e_0 = (0, −g, 0), g_n × e_1 = (g, 0, 0), g_n × e_2 = 0. */
         const double gn[3] = {0.0, 0.0, -g};
-        double c[3], col[3];
-        cross3(dphi1, gn, c);
-        mat_tvec(R, c, dy);
+        vd c[3], col[3];
+        cross3_vs(dphi1, gn, c);
+        mat_tvec_sv(R, c, dy);
         const double ge0[3] = {0.0, -g, 0.0}, ge1[3] = {g, 0.0, 0.0};
-        cross3(dphi1, ge0, c);
-        mat_tvec(R, c, col);
+        cross3_vs(dphi1, ge0, c);
+        mat_tvec_sv(R, c, col);
         for (int i = 0; i < 3; ++i) dH[3 * i] = col[i];
-        cross3(dphi1, ge1, c);
-        mat_tvec(R, c, col);
+        cross3_vs(dphi1, ge1, c);
+        mat_tvec_sv(R, c, col);
+        const vd zero = {0.0};
         for (int i = 0; i < 3; ++i) {
             dH[3 * i + 1] = col[i];
-            dH[3 * i + 2] = 0.0;
+            dH[3 * i + 2] = zero;
         }
     }
     if (hm) {
         /* dψ = dφ₁ − Rm Jr(−v) dv, dv = dτ ω − τ dδω: the tangent of the rotation the
          * magnetometer sees. */
-        double dv[3], jdv[3], rj[3], dpsi[3];
+        vd dv[3], jdv[3], rj[3], dpsi[3];
         for (int i = 0; i < 3; ++i) dv[i] = t->delay * u->omega_k[i] - m->delay * t->bias[i];
         rotvec_jac(&u->delay_c, -1.0, dv, jdv);
-        mat_vec(s->Rm, jdv, rj);
+        mat_vec_sv(s->Rm, jdv, rj);
         for (int i = 0; i < 3; ++i) dpsi[i] = dphi1[i] - rj[i];
         /* ŷm = D Rmᵀ m + o: dŷm = dD Rmᵀ m + D Rmᵀ (m × dψ) + D Rmᵀ dm + do. */
-        double mxd[3], a[3], rtdm[3], b[3];
-        cross3(m->m, dpsi, mxd);
-        mat_tvec(s->Rm, mxd, a);
-        mat_tvec(s->Rm, t->m, rtdm);
+        vd mxd[3], a[3], rtdm[3], b[3];
+        cross3_sv(m->m, dpsi, mxd);
+        mat_tvec_sv(s->Rm, mxd, a);
+        mat_tvec_sv(s->Rm, t->m, rtdm);
         for (int i = 0; i < 3; ++i) a[i] += rtdm[i];
-        mat_vec(m->D, a, b);
-        double dDmb[3];
-        mat_vec(t->D, u->mb, dDmb);
+        mat_vec_sv(m->D, a, b);
+        vd dDmb[3];
+        mat_vec_vs(t->D, u->mb, dDmb);
         for (int i = 0; i < 3; ++i) dy[3 + i] = dDmb[i] + b[i] + t->o[i];
         /* Column j of Hm = D Rmᵀ (m × e_j); of dHm = dD Rmᵀ (m × e_j)
          * − D Rmᵀ (dψ × (m × e_j)) + D Rmᵀ (dm × e_j). */
         for (int j = 0; j < 3; ++j) {
-            double mej[3] = {0.0, 0.0, 0.0}, e[3] = {0.0, 0.0, 0.0}, dmej[3], x[3], y[3], col[3];
+            double mej[3] = {0.0, 0.0, 0.0}, e[3] = {0.0, 0.0, 0.0};
+            vd dmej[3], x[3], y[3], col[3];
             e[j] = 1.0;
             cross3(m->m, e, mej);
-            cross3(t->m, e, dmej);
-            cross3(dpsi, mej, x);
+            cross3_vs(t->m, e, dmej);
+            cross3_vs(dpsi, mej, x);
             for (int i = 0; i < 3; ++i) x[i] = dmej[i] - x[i];
-            mat_vec(u->DRt, x, y);
+            mat_vec_sv(u->DRt, x, y);
             const double rm[3] = {u->RtMb[j], u->RtMb[3 + j], u->RtMb[6 + j]};
-            mat_vec(t->D, rm, col);
+            mat_vec_vs(t->D, rm, col);
             for (int i = 0; i < 3; ++i) dH[9 + 3 * i + j] = col[i] + y[i];
         }
     }
 }
 
-/* Samples whose features are gathered before they are multiplied out: per direction a row
- * of FISHER_BLOCK · FEATURES values, so that F_ij gains one long contiguous dot product per
- * block instead of a rank-one update per feature (which compiles to scalar code). */
+/* Samples whose features are gathered before they are multiplied out: a block of up to
+ * BLOCK_LEN features per direction, stored feature-major (feature c of direction d at
+ * c · stride + d, stride = the directions rounded up to whole groups of
+ * MC_MEKF_FISHER_LANES, the padding zero), so that F gains whole tiles of dot products per
+ * block instead of a rank-one update per feature. */
 #define FEATURES 27 /* 6 + 21: a and the upper triangle of W at most */
 #define BLOCK_LEN (MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
 #if BLOCK_LEN % FEATURES != 0 || BLOCK_LEN < FEATURES
 #error "the Fisher workspace per direction must hold whole samples' features"
 #endif
+/* A tile of F computed together: TILE_I rows by TILE_J = MC_MEKF_FISHER_LANES columns. */
+#define TILE_I 4
+#define TILE_J MC_MEKF_FISHER_LANES
+#if TILE_J % TILE_I != 0
+#error "a tile's rows must divide a group of directions"
+#endif
 
 /* The accumulators of one pass. */
 typedef struct {
     size_t k;      /* directions                                              */
+    size_t stride; /* k rounded up to whole groups of MC_MEKF_FISHER_LANES    */
     double *info;  /* (k, k), upper triangle accumulated                      */
     double *grad;  /* (k)                                                     */
     int used;      /* features gathered in `block` per direction so far       */
-    double *block; /* (k, BLOCK_LEN) the caller's workspace, direction-major  */
+    double *block; /* (BLOCK_LEN, stride) the caller's workspace, feature-major */
 } fisher_acc_t;
 
-/* F += Φ Φᵀ over the gathered features, upper triangle; empties the block. */
-static void flush_block(fisher_acc_t *acc)
+/* F += Φ Φᵀ over the gathered features, upper triangle; empties the block.
+ *
+ * Each F_ij of the block is one sum over the features in their order, started from zero
+ * and then added to F_ij, as a plain dot product per pair would compute it: the tiling
+ * only makes TILE_I · TILE_J such sums run side by side (independent chains of additions
+ * instead of one chain whose latency bounds the loop), and the j's of a tile are adjacent
+ * in memory, so that they map onto vector lanes. Every lane is the same IEEE product and
+ * sum (no FMA: -ffp-contract=off), so the result does not depend on how the compiler
+ * vectorises. The tiles below the diagonal and the padding are computed and dropped. */
+static HOT_PASS void flush_block(fisher_acc_t *acc)
 {
-    const size_t nd = acc->k;
+    enum { NV = TILE_J / VLANES }; /* vectors per row of a tile */
+    const size_t nd = acc->k, stride = acc->stride;
     const int len = acc->used;
-    for (size_t i = 0; i < nd; ++i) {
-        const double *restrict fi = acc->block + BLOCK_LEN * i;
-        double *restrict row = acc->info + nd * i;
-        for (size_t j = i; j < nd; ++j) {
-            const double *restrict fj = acc->block + BLOCK_LEN * j;
-            double v = 0.0;
-            for (int c = 0; c < len; ++c) v += fi[c] * fj[c];
-            row[j] += v;
+    for (size_t i0 = 0; i0 < nd; i0 += TILE_I)
+        for (size_t j0 = i0 - i0 % TILE_J; j0 < nd; j0 += TILE_J) {
+            vd v[TILE_I][NV];
+            for (int a = 0; a < TILE_I; ++a)
+                for (int b = 0; b < NV; ++b) v[a][b] = (vd){0.0};
+            const double *restrict f = acc->block;
+            for (int c = 0; c < len; ++c, f += stride) {
+                vd fj[NV];
+                for (int b = 0; b < NV; ++b) fj[b] = *(const vd_unaligned *)(f + j0 + VLANES * b);
+                for (int a = 0; a < TILE_I; ++a) {
+                    const double fi = f[i0 + a];
+                    for (int b = 0; b < NV; ++b) v[a][b] += fi * fj[b];
+                }
+            }
+            for (int a = 0; a < TILE_I && i0 + a < nd; ++a) {
+                double *restrict row = acc->info + nd * (i0 + a);
+                for (int b = 0; b < TILE_J && j0 + b < nd; ++b) {
+                    const vd sum = v[a][b / VLANES];
+                    if (j0 + b >= i0 + a) row[j0 + b] += get_lane(&sum, b % VLANES);
+                }
+            }
         }
-    }
     acc->used = 0;
 }
 
 static const double SQRT_HALF = 0.70710678118654752440;
 
 /* One sample's update along every direction: the features, the gradient, and the state
- * tangents carried through the update (dphi, dP: in, the predicted; out, the updated). */
+ * tangents carried through the update (dphi, dP: in, the predicted; out, the updated), a
+ * group of VLANES directions at a time. */
 static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, const update_t *u,
-                                          int ha, int hm, const tangent_t *tan, double *dphi,
-                                          double *dP, fisher_acc_t *acc, const int ny,
+                                          int ha, int hm, const tangent_t *tan, vd *dphi,
+                                          vd *dP, fisher_acc_t *acc, const int ny,
                                           const int r0)
 {
-    const size_t nd = acc->k;
+    const size_t ng = (acc->k + VLANES - 1) / VLANES;
     const int nf = ny + ny * (ny + 1) / 2;
     if (acc->used + FEATURES > BLOCK_LEN) flush_block(acc);
     rotvec_coef_t eta_c;
     rotvec_coef(s->eta, &eta_c);
-    for (size_t d = 0; d < nd; ++d) {
-        const tangent_t *t = tan + d;
-        double *dphi1 = dphi + 3 * d, *dPp = dP + 9 * d;
-        double dH[18], dy[6];
+    const size_t st = acc->stride;
+    for (size_t gi = 0; gi < ng; ++gi) {
+        const tangent_t *t = tan + gi;
+        vd *dphi1 = dphi + 3 * gi, *dPp = dP + 9 * gi;
+        vd dH[18], dy[6];
         measurement_tangent(p, s, u, ha, hm, t, dphi1, dH, dy);
-        double de[6], dHM[36], dS[36], G[18];
+        vd de[6], dHM[36], dS[36], G[18];
         for (int i = 0; i < ny; ++i) de[i] = -dy[(r0 + i)];
         /* dH M (ny × ny), then dS. */
         for (int i = 0; i < ny; ++i) {
-            const double *h = dH + 3 * (r0 + i);
+            const vd *h = dH + 3 * (r0 + i);
             for (int j = 0; j < ny; ++j)
                 dHM[ny * i + j] = h[0] * u->M[j] + h[1] * u->M[ny + j] + h[2] * u->M[2 * ny + j];
         }
         for (int i = 0; i < ny; ++i) {
             const int ri = (r0 + i);
             const double *h = u->H + 3 * ri;
-            double hp[3]; /* row of H dPp */
+            vd hp[3]; /* row of H dPp */
             for (int b = 0; b < 3; ++b) hp[b] = h[0] * dPp[b] + h[1] * dPp[3 + b] + h[2] * dPp[6 + b];
             for (int j = i; j < ny; ++j) {
                 const int rj = (r0 + j);
                 const double *h2 = u->H + 3 * rj;
-                double v = dHM[ny * i + j] + dHM[ny * j + i] + hp[0] * h2[0] + hp[1] * h2[1] +
-                           hp[2] * h2[2];
+                vd v = dHM[ny * i + j] + dHM[ny * j + i] + hp[0] * h2[0] + hp[1] * h2[1] +
+                       hp[2] * h2[2];
                 if (ri < 3 && rj < 3) v += t->Sa[3 * ri + rj];
                 if (ri >= 3 && rj >= 3) v += t->Sm[3 * (ri - 3) + (rj - 3)];
                 dS[ny * i + j] = dS[ny * j + i] = v;
@@ -377,81 +516,87 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
         for (int b = 0; b < 3; ++b)
             for (int i = 0; i < ny; ++i) {
                 const int r = (r0 + i);
-                const double *h = u->H + 3 * r, *dh = dH + 3 * r;
+                const double *h = u->H + 3 * r;
+                const vd *dh = dH + 3 * r;
                 G[ny * b + i] = dPp[3 * b] * h[0] + dPp[3 * b + 1] * h[1] + dPp[3 * b + 2] * h[2] +
                                 s->Pp[3 * b] * dh[0] + s->Pp[3 * b + 1] * dh[1] + s->Pp[3 * b + 2] * dh[2];
             }
         /* Features and gradient: a = L⁻¹ dε, W = L⁻¹ dS L⁻ᵀ, with L⁻¹ formed once per
          * sample (products instead of triangular solves: no divisions, no chains). */
         const double *Li = u->Linv;
-        double a[6], X[36], W[36];
+        vd a[6], X[36], W[36];
         for (int i = 0; i < ny; ++i) {
-            double v = 0.0;
+            vd v = {0.0};
+            UNROLL_6
             for (int k = 0; k <= i; ++k) v += Li[ny * i + k] * de[k];
             a[i] = v;
         }
         for (int i = 0; i < ny; ++i) /* X = L⁻¹ dS */
             for (int j = 0; j < ny; ++j) {
-                double v = 0.0;
+                vd v = {0.0};
+                UNROLL_6
                 for (int k = 0; k <= i; ++k) v += Li[ny * i + k] * dS[ny * k + j];
                 X[ny * i + j] = v;
             }
         for (int i = 0; i < ny; ++i) /* W = X L⁻ᵀ, upper triangle */
             for (int j = i; j < ny; ++j) {
-                double v = 0.0;
+                vd v = {0.0};
+                UNROLL_6
                 for (int k = 0; k <= j; ++k) v += X[ny * i + k] * Li[ny * j + k];
                 W[ny * i + j] = v;
             }
-        /* This sample's features of direction d, appended to its row of the block. */
-        double *f = acc->block + BLOCK_LEN * d + acc->used;
-        double gq = 0.0, gw = 0.0, tr = 0.0;
-        int c = 0;
+        /* This group's features of this sample, one row of the block per feature. */
+        double *f = acc->block + st * (size_t)acc->used + VLANES * gi;
+        vd gq = {0.0}, gw = {0.0}, tr = {0.0};
+        size_t c = 0;
         for (int i = 0; i < ny; ++i) {
-            f[c++] = a[i];
+            *(vd_unaligned *)(f + st * c++) = a[i];
             gq += a[i] * u->w[i];
         }
         for (int i = 0; i < ny; ++i) {
-            const double wii = W[ny * i + i];
-            f[c++] = wii * SQRT_HALF;
+            const vd wii = W[ny * i + i];
+            *(vd_unaligned *)(f + st * c++) = wii * SQRT_HALF;
             tr += wii;
             gw += wii * u->w[i] * u->w[i];
             for (int j = i + 1; j < ny; ++j) {
-                const double wij = W[ny * i + j];
-                f[c++] = wij;
+                const vd wij = W[ny * i + j];
+                *(vd_unaligned *)(f + st * c++) = wij;
                 gw += 2.0 * wij * u->w[i] * u->w[j];
             }
         }
-        acc->grad[d] += gq - 0.5 * gw + 0.5 * tr;
+        const vd gd = gq - 0.5 * gw + 0.5 * tr;
+        for (int l = 0; l < VLANES && VLANES * gi + l < acc->k; ++l)
+            acc->grad[VLANES * gi + l] += get_lane(&gd, l);
         /* dη = G z − K (dS z) + K dε, dPu = dPp − G Kᵀ − K Gᵀ + K dS Kᵀ. */
-        double dSz[6], deta[3], KdS[18];
+        vd dSz[6], deta[3], KdS[18];
         for (int i = 0; i < ny; ++i) {
-            double v = 0.0;
+            vd v = {0.0};
             for (int j = 0; j < ny; ++j) v += dS[ny * i + j] * u->z[j];
             dSz[i] = v;
         }
         for (int b = 0; b < 3; ++b) {
-            double v = 0.0;
+            vd v = {0.0};
             for (int i = 0; i < ny; ++i)
                 v += G[ny * b + i] * u->z[i] + u->K[ny * b + i] * (de[i] - dSz[i]);
             deta[b] = v;
             for (int j = 0; j < ny; ++j) {
-                double x = 0.0;
+                vd x = {0.0};
                 for (int i = 0; i < ny; ++i) x += u->K[ny * b + i] * dS[ny * i + j];
                 KdS[ny * b + j] = x;
             }
         }
-        double dPu[9];
+        vd dPu[9];
         for (int b = 0; b < 3; ++b)
-            for (int c = b; c < 3; ++c) {
-                double v = dPp[3 * b + c];
+            for (int cc = b; cc < 3; ++cc) {
+                vd v = dPp[3 * b + cc];
                 for (int i = 0; i < ny; ++i)
-                    v += -G[ny * b + i] * u->K[ny * c + i] - u->K[ny * b + i] * G[ny * c + i] +
-                         KdS[ny * b + i] * u->K[ny * c + i];
-                dPu[3 * b + c] = v;
+                    v += -G[ny * b + i] * u->K[ny * cc + i] - u->K[ny * b + i] * G[ny * cc + i] +
+                         KdS[ny * b + i] * u->K[ny * cc + i];
+                dPu[3 * b + cc] = v;
             }
-        sym_fill(dPu);
-        memcpy(dPp, dPu, sizeof dPu);
-        double r1[3], r2[3];
+        sym_fill_v(dPu);
+        for (int i = 0; i < 9; ++i) dPp[i] = dPu[i];
+        vd r1[3], r2[3];
         rotvec_rotate(&eta_c, dphi1, r1);
         rotvec_jac(&eta_c, 1.0, deta, r2);
         for (int i = 0; i < 3; ++i) dphi1[i] = r1[i] + r2[i];
@@ -462,30 +607,30 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
 /* update_tangents with the number of measured rows and the first one as constants, so that
  * the small loops over them unroll: both sensors (6 rows), the accelerometer alone (rows
  * 0–2) or the magnetometer alone (rows 3–5). */
-static NOINLINE void update_tangents_both(const pass_t *p, const step_t *s, const update_t *u,
-                                          const tangent_t *tan, double *dphi, double *dP,
+static HOT_PASS void update_tangents_both(const pass_t *p, const step_t *s, const update_t *u,
+                                          const tangent_t *tan, vd *dphi, vd *dP,
                                           fisher_acc_t *acc)
 {
     update_tangents(p, s, u, 1, 1, tan, dphi, dP, acc, 6, 0);
 }
 
-static NOINLINE void update_tangents_acc(const pass_t *p, const step_t *s, const update_t *u,
-                                         const tangent_t *tan, double *dphi, double *dP,
+static HOT_PASS void update_tangents_acc(const pass_t *p, const step_t *s, const update_t *u,
+                                         const tangent_t *tan, vd *dphi, vd *dP,
                                          fisher_acc_t *acc)
 {
     update_tangents(p, s, u, 1, 0, tan, dphi, dP, acc, 3, 0);
 }
 
-static NOINLINE void update_tangents_mag(const pass_t *p, const step_t *s, const update_t *u,
-                                         const tangent_t *tan, double *dphi, double *dP,
+static HOT_PASS void update_tangents_mag(const pass_t *p, const step_t *s, const update_t *u,
+                                         const tangent_t *tan, vd *dphi, vd *dP,
                                          fisher_acc_t *acc)
 {
     update_tangents(p, s, u, 0, 1, tan, dphi, dP, acc, 3, 3);
 }
 
-/* The time update of every direction's tangents, sample k − 1 → k (k > 0). */
-static void predict_tangents(const pass_t *p, const step_t *s, size_t k, const tangent_t *tan,
-                             size_t nd, double *dphi, double *dP)
+/* The time update of every group's tangents, sample k − 1 → k (k > 0). */
+static HOT_PASS void predict_tangents(const pass_t *p, const step_t *s, size_t k,
+                                      const tangent_t *tan, size_t ng, vd *dphi, vd *dP)
 {
     const double dt = p->d->dt[k];
     const double *w = p->d->gyr + 3 * (k - 1);
@@ -496,32 +641,33 @@ static void predict_tangents(const pass_t *p, const step_t *s, size_t k, const t
     mat_mul(s->R, p->Sw, RS);
     sym_mul_nt(RS, s->R, Q);
     const double dt2 = dt * dt;
-    for (size_t d = 0; d < nd; ++d) {
-        const tangent_t *t = tan + d;
-        double *f = dphi + 3 * d, *P = dP + 9 * d;
-        double dth[3], j[3], rj[3];
+    for (size_t gi = 0; gi < ng; ++gi) {
+        const tangent_t *t = tan + gi;
+        vd *f = dphi + 3 * gi, *P = dP + 9 * gi;
+        vd dth[3], j[3], rj[3];
         for (int i = 0; i < 3; ++i) dth[i] = -dt * t->bias[i];
         rotvec_jac(&c, -1.0, dth, j);
-        mat_vec(s->R, j, rj);
+        mat_vec_sv(s->R, j, rj);
         for (int i = 0; i < 3; ++i) f[i] += rj[i];
         /* [dφ×] Q − Q [dφ×] = A + Aᵀ with A = [dφ×] Q; column j of A is dφ × Q_j. */
-        double A[9], RdS[9];
+        vd A[9], RdS[9];
         for (int jj = 0; jj < 3; ++jj) {
             const double qj[3] = {Q[jj], Q[3 + jj], Q[6 + jj]};
-            double col[3];
-            cross3(f, qj, col);
+            vd col[3];
+            cross3_vs(f, qj, col);
             for (int i = 0; i < 3; ++i) A[3 * i + jj] = col[i];
         }
-        sym_sandwich(s->R, t->Sw, RdS);
+        sym_sandwich_sv(s->R, t->Sw, RdS);
         for (int a = 0; a < 3; ++a)
             for (int b = 0; b < 3; ++b) P[3 * a + b] += dt2 * (A[3 * a + b] + A[3 * b + a] + RdS[3 * a + b]);
     }
 }
 
-static ALWAYS_INLINE double fisher_loop(const pass_t *p, const tangent_t *tan, double *dphi,
-                                        double *dP, fisher_acc_t *acc, int masked)
+static ALWAYS_INLINE double fisher_loop(const pass_t *p, const tangent_t *tan, vd *dphi, vd *dP,
+                                        fisher_acc_t *acc, int masked)
 {
     const mc_mekf_data_t *data = p->d;
+    const size_t ng = (acc->k + VLANES - 1) / VLANES;
     double q[4], P[9];
     load_prior(data, q, P);
     double cost = 0.0;
@@ -532,7 +678,7 @@ static ALWAYS_INLINE double fisher_loop(const pass_t *p, const tangent_t *tan, d
         int ha, hm;
         sample_has(data, k, masked, &ha, &hm);
         if (!step_forward(p, k, ha, hm, q, P, &s)) return NAN;
-        if (k > 0) predict_tangents(p, &s, k, tan, acc->k, dphi, dP);
+        if (k > 0) predict_tangents(p, &s, k, tan, ng, dphi, dP);
         if (ha || hm) {
             if (!prepare_update(p, &s, k, ha, hm, &u)) return NAN;
             if (ha && hm)
@@ -551,14 +697,14 @@ static ALWAYS_INLINE double fisher_loop(const pass_t *p, const tangent_t *tan, d
     return cost + 0.5 * logdet_total(&ld);
 }
 
-static NOINLINE double fisher_pass_unmasked(const pass_t *p, const tangent_t *tan, double *dphi,
-                                            double *dP, fisher_acc_t *acc)
+static HOT_PASS double fisher_pass_unmasked(const pass_t *p, const tangent_t *tan, vd *dphi,
+                                            vd *dP, fisher_acc_t *acc)
 {
     return fisher_loop(p, tan, dphi, dP, acc, 0);
 }
 
-static NOINLINE double fisher_pass_masked(const pass_t *p, const tangent_t *tan, double *dphi,
-                                          double *dP, fisher_acc_t *acc)
+static HOT_PASS double fisher_pass_masked(const pass_t *p, const tangent_t *tan, vd *dphi,
+                                          vd *dP, fisher_acc_t *acc)
 {
     return fisher_loop(p, tan, dphi, dP, acc, 1);
 }
@@ -573,17 +719,23 @@ double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,
     if (k_valid && info) memset(info, 0, k * k * sizeof *info);
     if (k_valid && grad) memset(grad, 0, k * sizeof *grad);
     if (!k_valid || !valid_arguments(model, data) || !directions || !info || !grad || !work ||
-        work_len < k * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
+        work_len < MC_MEKF_FISHER_WORK_DOUBLES(k))
         return NAN;
     pass_t p;
     if (!make_pass(model, data, &p)) return NAN;
-    tangent_t tan[MC_MEKF_FISHER_MAX_DIRECTIONS];
-    double dphi[3 * MC_MEKF_FISHER_MAX_DIRECTIONS], dP[9 * MC_MEKF_FISHER_MAX_DIRECTIONS];
-    for (size_t d = 0; d < k; ++d) load_tangent(directions + MC_MEKF_MODEL_DOUBLES * d, tan + d);
-    /* The prior (q₀, P₀) is data: its tangents are zero. */
+    /* The padding lanes of the last group are zero directions: their tangents stay zero
+     * (every tangent is linear in them) and their results are dropped. The prior (q₀, P₀)
+     * is data: its tangents are zero. */
+    tangent_t tan[MAX_GROUPS];
+    vd dphi[3 * MAX_GROUPS], dP[9 * MAX_GROUPS];
+    memset(tan, 0, sizeof tan);
     memset(dphi, 0, sizeof dphi);
     memset(dP, 0, sizeof dP);
-    fisher_acc_t acc_s = {k, info, grad, 0, work}, *acc = &acc_s;
+    for (size_t d = 0; d < k; ++d)
+        load_tangent(directions + MC_MEKF_MODEL_DOUBLES * d, tan + d / VLANES, (int)(d % VLANES));
+    const size_t stride = MC_MEKF_FISHER_WORK_DOUBLES(k) / BLOCK_LEN;
+    memset(work, 0, stride * BLOCK_LEN * sizeof *work); /* the padding stays zero */
+    fisher_acc_t acc_s = {k, stride, info, grad, 0, work}, *acc = &acc_s;
     double cost = any_mask(data) ? fisher_pass_masked(&p, tan, dphi, dP, acc)
                                  : fisher_pass_unmasked(&p, tan, dphi, dP, acc);
     flush_block(acc);

@@ -103,9 +103,17 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
 
 /* Most directions mc_mekf_fisher takes in one pass (its tangents are on the stack). */
 #define MC_MEKF_FISHER_MAX_DIRECTIONS 64
-/* Doubles of mc_mekf_fisher's workspace per direction: the features of 8 samples (27 each),
+/* Features of mc_mekf_fisher's workspace per direction: those of 8 samples (27 each),
  * gathered before they are multiplied out. */
 #define MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION 216
+/* The directions are stored in groups of this many, the last padded with zeros, so that the
+ * information is multiplied out in whole tiles (mekf_fisher.c, flush_block). */
+#define MC_MEKF_FISHER_LANES 8
+/* Doubles of mc_mekf_fisher's workspace for k directions: k rounded up to whole groups of
+ * MC_MEKF_FISHER_LANES, times MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION. */
+#define MC_MEKF_FISHER_WORK_DOUBLES(k)                                                     \
+    ((((k) + MC_MEKF_FISHER_LANES - 1) / MC_MEKF_FISHER_LANES) * MC_MEKF_FISHER_LANES *     \
+     MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION)
 
 /* The cost of mc_mekf_cost and, along k directions of the model (the rows of `directions`,
  * k × MC_MEKF_MODEL_DOUBLES, in the layout of mc_mekf_model_t), the Fisher information of
@@ -116,7 +124,7 @@ double mc_mekf_cost_grad(const mc_mekf_model_t *model, const mc_mekf_data_t *dat
  * covariance entries are symmetrised as the model's are. Returns the cost; on NaN (the
  * arguments of mc_mekf_cost, `directions`, `info` or `grad` NULL, k = 0 or above
  * MC_MEKF_FISHER_MAX_DIRECTIONS, `work` NULL or shorter than
- * k · MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION (caller-owned; its contents on entry do not
+ * MC_MEKF_FISHER_WORK_DOUBLES(k) (caller-owned; its contents on entry do not
  * matter), or a covariance not positive definite) info and grad are zero, except for a k
  * out of range, where nothing is written. */
 double mc_mekf_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data,

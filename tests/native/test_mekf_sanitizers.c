@@ -429,7 +429,7 @@ static void test_argument_errors(const mc_mekf_model_t *model, const mc_mekf_dat
  * the derivative along each direction equal to mc_mekf_cost_grad's gradient to 1e-9 of its
  * largest component, a symmetric information with a non-negative diagonal; and NaN for every
  * argument error, with info and grad zeroed where k itself is valid. */
-static double fisher_work[MC_MEKF_MODEL_DOUBLES * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION];
+static double fisher_work[MC_MEKF_FISHER_WORK_DOUBLES(MC_MEKF_MODEL_DOUBLES)];
 static double fisher_info[MC_MEKF_MODEL_DOUBLES * MC_MEKF_MODEL_DOUBLES];
 
 static void test_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data)
@@ -458,7 +458,7 @@ static void test_fisher(const mc_mekf_model_t *model, const mc_mekf_data_t *data
     CHECK(symmetric && diagonal);
 
     /* Argument errors: NaN, and info and grad zeroed. */
-    const size_t need = (size_t)K * MC_MEKF_FISHER_WORK_DOUBLES_PER_DIRECTION;
+    const size_t need = MC_MEKF_FISHER_WORK_DOUBLES((size_t)K);
     const struct {
         const double *dirs;
         size_t k;

@@ -328,3 +328,49 @@ def test_every_method_on_a_swinging_session_is_right_or_refused(swing, method):
         return
     error = heading_rms_deg(truth, result.D, result.o)
     assert error < 10.0, f"{method}: {error:.1f}° written"
+
+
+def _field_stretch_medians_by_masks(t, calibrated):
+    """The medians and counts of ``consistency.field_stretches``, one mask per stretch and
+    direction (the plain way, O(N × cells)): the reference its grouped version must equal."""
+    norm = np.linalg.norm(calibrated, axis=1)
+    cell = np.argmax((calibrated / norm[:, None]) @ consistency._DIRECTIONS.T, axis=1)
+    index = np.floor((t - t[0]) / consistency.FIELD_STRETCH_S).astype(int)
+    med = np.full((index.max() + 1, consistency.FIELD_DIRECTIONS), np.nan)
+    count = np.zeros(med.shape, dtype=int)
+    for j in range(index.max() + 1):
+        for c in np.unique(cell[index == j]):
+            values = norm[(index == j) & (cell == c)]
+            count[j, c] = values.size
+            if values.size >= consistency.FIELD_MIN_CELL_SAMPLES:
+                med[j, c] = np.median(values)
+    return med, count
+
+
+def test_field_stretches_group_the_samples_as_masks_do(handheld):
+    session, _ = handheld
+    rng = np.random.default_rng(2)
+    cal = session.mag - session.mag.mean(axis=0)
+    cal[rng.integers(0, len(cal), 5)] = np.nan  # NaN in, NaN out, as np.median
+    med, count = _field_stretch_medians_by_masks(session.t, cal)
+    norm = np.linalg.norm(cal, axis=1)
+    cell = np.argmax((cal / norm[:, None]) @ consistency._DIRECTIONS.T, axis=1)
+    index = np.floor((session.t - session.t[0]) / consistency.FIELD_STRETCH_S).astype(int)
+    groups, first, sizes, ranked = consistency._sorted_groups(
+        index * consistency.FIELD_DIRECTIONS + cell, norm
+    )
+    np.testing.assert_array_equal(count.flat[groups], sizes)
+    assert count.sum() == sizes.sum() == len(norm)
+    middle = 0.5 * (ranked[first + (sizes - 1) // 2] + ranked[first + sizes // 2])
+    middle[np.isnan(ranked[first + sizes - 1])] = np.nan
+    enough = sizes >= consistency.FIELD_MIN_CELL_SAMPLES
+    np.testing.assert_array_equal(middle[enough], med.flat[groups[enough]])
+    # The stretches' spans and levels on clean data, against the same masks.
+    clean = session.mag - session.mag.mean(axis=0)
+    stretches = consistency.field_stretches(session.t, clean)
+    index = np.floor((session.t - session.t[0]) / consistency.FIELD_STRETCH_S).astype(int)
+    spans = [
+        (session.t[index == j][0] - session.t[0], session.t[index == j][-1] - session.t[0])
+        for j in range(index.max() + 1)
+    ]
+    assert [(s.start_s, s.end_s) for s in stretches] == spans

@@ -230,6 +230,45 @@ def test_ml_goes_on_from_a_starting_point_that_reached_a_better_optimum():
     np.testing.assert_allclose(est.params.D, optimum.D, atol=1e-3 * np.abs(optimum.D).max())
 
 
+def test_other_starting_points_given_as_a_function_are_found_and_fitted_on_the_thread():
+    import threading
+
+    from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
+    from magcal.calib.initial.estimate import initial_estimate
+    from magcal.calib.likelihood.ml import maximum_likelihood
+
+    session, _ = simulate(preset("mems", duration_s=20.0), 7)
+    init = initial_estimate(session, fit_ellipsoid_sdp(session.mag))
+    optimum = calibrate(session, "ml").ml.params
+    called_on = []
+
+    def starts():
+        called_on.append(threading.current_thread())
+        return [("the optimum", optimum)]
+
+    lazy = maximum_likelihood(session, init, other_starts=starts)
+    eager = maximum_likelihood(session, init, other_starts=[("the optimum", optimum)])
+    assert called_on and called_on[0] is not threading.main_thread()
+    assert lazy.starting_points == eager.starting_points
+    np.testing.assert_array_equal(lazy.theta, eager.theta)
+
+
+def test_with_ellipsoid_is_the_initial_estimate_of_that_ellipsoid():
+    from magcal.calib.initial.estimate import initial_estimate, with_ellipsoid
+    from magcal.calib.norm_only import twostep
+
+    session, _ = simulate(preset("handheld", duration_s=20.0), 3)
+    init = initial_estimate(session)
+    fit, _ = twostep.calibration_ellipsoid(session.mag, force=True)
+    again = initial_estimate(session, fit).params
+    p = with_ellipsoid(session, init, fit)
+    for name in ("D", "o", "dip_rad", "gyro_bias", "Sigma_gyr", "Sigma_acc", "Sigma_mag"):
+        np.testing.assert_array_equal(getattr(p, name), getattr(again, name), err_msg=name)
+    # Without the stored inertial attitude (an estimate made elsewhere) it is recomputed.
+    bare = dataclasses.replace(init, q_inertial=None, acc_weights=None)
+    np.testing.assert_array_equal(with_ellipsoid(session, bare, fit).D, again.D)
+
+
 def test_clearly_different_optima_are_named():
     from magcal.calib.likelihood.ml import MLEstimate, StartingPoint
 

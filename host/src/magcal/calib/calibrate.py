@@ -23,7 +23,7 @@ import numpy as np
 from magcal.calib import samples
 from magcal.calib.diagnostics import consistency, observability, quality, units
 from magcal.calib.initial.ellipsoid import fit_ellipsoid_sdp
-from magcal.calib.initial.estimate import InitialEstimate, initial_estimate
+from magcal.calib.initial.estimate import InitialEstimate, initial_estimate, with_ellipsoid
 from magcal.calib.initial.sensor_levels import measure_sensor_levels
 from magcal.calib.likelihood import mekf
 from magcal.calib.likelihood.ml import OPTIMIZERS, MLEstimate, maximum_likelihood
@@ -97,16 +97,14 @@ def _on_every_row(session: Session, init: InitialEstimate) -> InitialEstimate:
 def _other_starting_points(view: Session, init: InitialEstimate) -> list[tuple[str, ModelParams]]:
     """Where else the ML step starts from, to check that its optimum is the best the
     method's starting points reach: the initial estimate with its ellipsoid from TWO-STEP,
-    the norm-only fit, in place of the SDP's (and the alignment and dip that go with it).
-    None where TWO-STEP has no ellipsoid for the data."""
+    the norm-only fit, in place of the SDP's (and the alignment and dip that go with it,
+    from the initial estimate's own inertial attitude). None where TWO-STEP has no
+    ellipsoid for the data."""
     try:
         fit, _ = twostep.calibration_ellipsoid(view.mag, force=True)
-        other = initial_estimate(view, fit)
+        p = with_ellipsoid(view, init, fit)
     except MagcalError:
         return []
-    p = dataclasses.replace(
-        init.params, D=other.params.D, o=other.params.o, dip_rad=other.params.dip_rad
-    )
     return [("the TWO-STEP fit", p)]
 
 
@@ -266,7 +264,8 @@ def calibrate(
             progress,
             priors,
             optimizer,
-            other_starts=_other_starting_points(view, init),
+            # Found on the second thread, beside the first fit.
+            other_starts=lambda: _other_starting_points(view, init),
             stage=stage,
         )
         seconds["ml"] = time.perf_counter() - t0

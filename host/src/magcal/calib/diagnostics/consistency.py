@@ -357,18 +357,17 @@ def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]
     n_stretch = int(index.max()) + 1
     if n_stretch < 2:
         return []
-    # Median norm of each stretch in each direction (NaN where it has too few samples): the
-    # samples sorted by (stretch, direction, norm), each group's middle read off at once.
-    group = index * FIELD_DIRECTIONS + cell
-    order = np.lexsort((norm, group))
-    keys, first, count_of = np.unique(group[order], return_index=True, return_counts=True)
-    sorted_norm = norm[order]
-    middle = 0.5 * (sorted_norm[first + (count_of - 1) // 2] + sorted_norm[first + count_of // 2])
+    # Median norm of each stretch in each direction (NaN where it has too few samples).
     med = np.full((n_stretch, FIELD_DIRECTIONS), np.nan)
     count = np.zeros((n_stretch, FIELD_DIRECTIONS), dtype=int)
-    count.flat[keys] = count_of
-    enough = count_of >= FIELD_MIN_CELL_SAMPLES
-    med.flat[keys[enough]] = middle[enough]
+    groups, first, sizes, ranked = _sorted_groups(index * FIELD_DIRECTIONS + cell, norm)
+    count.flat[groups] = sizes
+    # The median as np.median takes it: the mean of the two middle values (the same one
+    # twice for an odd count, which halves back exactly).
+    middle = 0.5 * (ranked[first + (sizes - 1) // 2] + ranked[first + sizes // 2])
+    middle[np.isnan(ranked[first + sizes - 1])] = np.nan  # np.median's NaN in, NaN out
+    enough = sizes >= FIELD_MIN_CELL_SAMPLES
+    med.flat[groups[enough]] = middle[enough]
     shared = np.isfinite(med).sum(axis=0) >= 2  # directions seen in two stretches or more
     reference = np.full(FIELD_DIRECTIONS, np.nan)
     reference[shared] = np.nanmedian(med[:, shared], axis=0)
@@ -378,13 +377,24 @@ def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]
         if use.any():
             levels[j] = np.average(med[j, use] / reference[use] - 1.0, weights=count[j, use])
     levels -= _constant_level(levels)
-    # t is in time order, so each stretch's samples are consecutive.
-    present, start = np.unique(index, return_index=True)
-    end = np.append(start[1:], t.size) - 1
+    # Each stretch's first and last sample in the session's order.
+    order = np.argsort(index, kind="stable")
+    present, start, size = np.unique(index[order], return_index=True, return_counts=True)
     return [
-        FieldStretch(float(t[a] - t[0]), float(t[b] - t[0]), float(levels[j]))
-        for j, a, b in zip(present, start, end, strict=True)
+        FieldStretch(float(t[order[a]] - t[0]), float(t[order[a + n - 1]] - t[0]), float(levels[j]))
+        for j, a, n in zip(present, start, size, strict=True)
     ]
+
+
+def _sorted_groups(
+    key: np.ndarray, values: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``values`` (N,) grouped by the integer ``key`` (N,) and sorted within each group:
+    (the distinct keys, each group's first position in the sorted values, its size, the
+    sorted values). NaN values sort last in their group, as ``np.sort`` puts them."""
+    order = np.lexsort((values, key))
+    groups, first, sizes = np.unique(key[order], return_index=True, return_counts=True)
+    return groups, first, sizes, values[order]
 
 
 def _plain_correction(

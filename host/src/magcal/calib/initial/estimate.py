@@ -14,6 +14,7 @@ Everything here works in raw magnetometer units; the likelihood problem
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 
@@ -30,7 +31,12 @@ from magcal.io.session import Session, site_latitude_deg
 
 @dataclass(frozen=True)
 class InitialEstimate:
-    """θ₀ in model form (raw magnetometer units) and what produced it."""
+    """θ₀ in model form (raw magnetometer units) and what produced it.
+
+    ``q_inertial`` (N, 4) and ``acc_weights`` (N,) are step 1c's inputs on the session
+    step 1 saw: the inertial-only filter's attitude and each sample's weight by its
+    acceleration. They depend on the data alone, so :func:`with_ellipsoid` aligns another
+    ellipsoid fit with them without running the filter again."""
 
     params: ModelParams
     ellipsoid: EllipsoidFit
@@ -38,6 +44,8 @@ class InitialEstimate:
     levels: SensorLevels
     seconds: dict = field(default_factory=dict)
     warnings: tuple[str, ...] = ()
+    q_inertial: np.ndarray | None = None
+    acc_weights: np.ndarray | None = None
 
 
 def inertial_attitude(session: Session, levels: SensorLevels) -> np.ndarray:
@@ -91,14 +99,7 @@ def initial_estimate(session: Session, fit: EllipsoidFit | None = None) -> Initi
     t0 = time.perf_counter()
     q_inertial = inertial_attitude(session, levels)
     weights = acceleration_weights(session.acc, g=levels.g)
-    alignment = estimate_alignment(
-        session.mag,
-        fit.o,
-        fit.D_tilde,
-        q_inertial,
-        weights,
-        site_latitude_deg=site_latitude_deg(session.meta),
-    )
+    alignment = _aligned(session, fit, q_inertial, weights)
     seconds["alignment"] = time.perf_counter() - t0
 
     params = ModelParams(
@@ -123,4 +124,36 @@ def initial_estimate(session: Session, fit: EllipsoidFit | None = None) -> Initi
         levels=levels,
         seconds=seconds,
         warnings=tuple(warnings),
+        q_inertial=q_inertial,
+        acc_weights=weights,
     )
+
+
+def _aligned(
+    session: Session, fit: EllipsoidFit, q_inertial: np.ndarray, weights: np.ndarray
+) -> Alignment:
+    """Step 1c for the ellipsoid ``fit``: misalignment and dip against the inclination of
+    the inertial-only attitude ``q_inertial`` (N, 4), samples weighted by ``weights`` (N,)."""
+    return estimate_alignment(
+        session.mag,
+        fit.o,
+        fit.D_tilde,
+        q_inertial,
+        weights,
+        site_latitude_deg=site_latitude_deg(session.meta),
+    )
+
+
+def with_ellipsoid(session: Session, init: InitialEstimate, fit: EllipsoidFit) -> ModelParams:
+    """``init``'s parameters with another ellipsoid ``fit`` (e.g. a norm-only fit's) in place
+    of its own: o from ``fit``, and D and the dip from step 1c redone for it with ``init``'s
+    inertial attitude and weights; the noise levels are ``init``'s. The same as
+    :func:`initial_estimate` on ``session`` (the session step 1 saw) with ``fit``, without
+    measuring the levels or running the inertial filter again."""
+    if init.q_inertial is None or init.acc_weights is None:
+        other = initial_estimate(session, fit)
+        D, dip_rad = other.params.D, other.params.dip_rad
+    else:
+        alignment = _aligned(session, fit, init.q_inertial, init.acc_weights)
+        D, dip_rad = alignment.D0, alignment.dip_rad
+    return dataclasses.replace(init.params, D=D, o=fit.o, dip_rad=dip_rad)

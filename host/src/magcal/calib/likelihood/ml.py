@@ -197,17 +197,19 @@ def maximum_likelihood(
     progress: Callable[[int, float, float], None] | None = None,
     priors: Priors = Priors(),
     optimizer: str = OPTIMIZERS[0],
-    other_starts: Sequence[tuple[str, ModelParams]] = (),
+    other_starts: Sequence[tuple[str, ModelParams]]
+    | Callable[[], Sequence[tuple[str, ModelParams]]] = (),
     stage: Callable[[str], None] | None = None,
 ) -> MLEstimate:
     """Algorithm 1 step 2 from the initial estimate; ``gradient`` "exact" or "numeric";
     ``priors`` make it a MAP estimate (:class:`~magcal.calib.likelihood.problem.Priors`);
     ``optimizer`` one of :data:`OPTIMIZERS`. The trust region needs exact gradients.
 
-    ``other_starts``: (name, parameters in raw units) of other starting points. The
-    paper's model is fitted from each as well, on a second thread beside the initial
-    estimate's fit; the estimate continues from the best optimum reached, and
-    :attr:`MLEstimate.starting_points` records them all.
+    ``other_starts``: (name, parameters in raw units) of other starting points, or a
+    function that returns them (called on the second thread, so that finding them costs
+    no wall time either). The paper's model is fitted from each as well, on a second
+    thread beside the initial estimate's fit; the estimate continues from the best optimum
+    reached, and :attr:`MLEstimate.starting_points` records them all.
 
     ``stage(text)`` is told as each fit starts (the model it fits); ``progress(iteration,
     cost, decrement)`` at each iteration of the fits, numbered across them."""
@@ -322,16 +324,77 @@ def maximum_likelihood(
         except _Abandoned as stop:
             return stop.iterations
 
+    def finish(
+        plain: OptimizeReport, fits: list
+    ) -> tuple[OptimizeReport, TimeOffsetTest | None, GyroGainTest | None, LikelihoodProblem]:
+        """The fits after the paper's model's, from its optimum ``plain``: the time offset's
+        test, the gyroscope gain's, the refinement. Returns the chosen fit, the tests and the
+        problem it was fitted on."""
+        chosen, time_test, gain_test, final = plain, None, None, problem
+        if budget_left(fits):  # budget left to test a delay
+            delayed = run(problem, False, plain.x, fits, final=False, label=STAGE_TIME_OFFSET)
+            statistic = 2.0 * (plain.cost - delayed.cost)
+            threshold = chi2_one_dof_quantile(TIME_OFFSET_TEST_LEVEL)
+            time_test = TimeOffsetTest(
+                statistic=float(statistic),
+                threshold=threshold,
+                fitted_s=float(delayed.x[INDEX_TIME_OFFSET]),
+                kept=bool(statistic > threshold),
+            )
+            chosen = delayed if time_test.kept else plain
+        if budget_left(fits):  # and to test the gyroscope's gain
+            gained = problem.with_gyro_gain_error(GYRO_GAIN_ERROR)
+            statistic = 2.0 * (chosen.cost - gained.cost(chosen.x))
+            threshold = chi2_one_dof_quantile(GYRO_GAIN_TEST_LEVEL)
+            gain_test = GyroGainTest(
+                statistic=float(statistic),
+                threshold=threshold,
+                gain_error=GYRO_GAIN_ERROR,
+                kept=bool(statistic > threshold),
+            )
+            if gain_test.kept:
+                final = gained
+                chosen = run(
+                    gained,
+                    not (time_test and time_test.kept),
+                    chosen.x,
+                    fits,
+                    label=STAGE_GYRO_GAIN,
+                )
+        if optimizer == "trust-region" and not (gain_test and gain_test.kept) and budget_left(fits):
+            # The chosen fit stopped at the tests' tolerance: refined from where it stopped.
+            chosen = run(
+                problem,
+                not (time_test and time_test.kept),
+                chosen.x,
+                fits,
+                start=chosen,
+                label=STAGE_REFINE,
+            )
+        return chosen, time_test, gain_test, final
+
     with ThreadPoolExecutor(max_workers=1) as pool:
         # The kernels release the GIL: on two cores the other starting points cost little
         # wall time.
-        pending = [(name, pool.submit(fit_from, p)) for name, p in other_starts]
+        def fit_others() -> list[tuple[str, OptimizeReport | int | None]]:
+            starts = other_starts() if callable(other_starts) else other_starts
+            return [(name, fit_from(p)) for name, p in starts]
+
+        pending = pool.submit(fit_others)
         # The fits before the last are compared by their cost alone (the tests), so they stop
         # once their remaining decrease is far below what a test can see; whichever is chosen
         # is refined to the final tolerance.
         plain = run(problem, True, theta0, fits, final=False, label=STAGE_PLAIN)
         main_iterations.append(plain.iterations)
-        others = [(name, future.result()) for name, future in pending]
+        # The other starting points nearly always end where this fit did: the fits after it
+        # go on from its optimum while they finish, and are redone from another optimum only
+        # where one is better (below), so that the result is the same as in sequence.
+        ahead_fits = list(fits)
+        try:
+            ahead: tuple | BaseException = finish(plain, ahead_fits)
+        except Exception as exc:  # raised below, unless another starting point is better
+            ahead = exc
+        others = pending.result()
     starting_points = [
         StartingPoint("the initial estimate", plain.cost, plain.iterations, plain.converged)
     ]
@@ -351,47 +414,12 @@ def maximum_likelihood(
         plain = run(
             problem, True, better.x, fits, final=False, start=better, label=STAGE_FROM_OTHER
         )
-    chosen, time_test, gain_test = plain, None, None
-    if budget_left(fits):  # budget left to test a delay
-        delayed = run(problem, False, plain.x, fits, final=False, label=STAGE_TIME_OFFSET)
-        statistic = 2.0 * (plain.cost - delayed.cost)
-        threshold = chi2_one_dof_quantile(TIME_OFFSET_TEST_LEVEL)
-        time_test = TimeOffsetTest(
-            statistic=float(statistic),
-            threshold=threshold,
-            fitted_s=float(delayed.x[INDEX_TIME_OFFSET]),
-            kept=bool(statistic > threshold),
-        )
-        chosen = delayed if time_test.kept else plain
-    if budget_left(fits):  # and to test the gyroscope's gain
-        gained = problem.with_gyro_gain_error(GYRO_GAIN_ERROR)
-        statistic = 2.0 * (chosen.cost - gained.cost(chosen.x))
-        threshold = chi2_one_dof_quantile(GYRO_GAIN_TEST_LEVEL)
-        gain_test = GyroGainTest(
-            statistic=float(statistic),
-            threshold=threshold,
-            gain_error=GYRO_GAIN_ERROR,
-            kept=bool(statistic > threshold),
-        )
-        if gain_test.kept:
-            problem = gained
-            chosen = run(
-                gained,
-                not (time_test and time_test.kept),
-                chosen.x,
-                fits,
-                label=STAGE_GYRO_GAIN,
-            )
-    if optimizer == "trust-region" and not (gain_test and gain_test.kept) and budget_left(fits):
-        # The chosen fit stopped at the tests' tolerance: refined from where it stopped.
-        chosen = run(
-            problem,
-            not (time_test and time_test.kept),
-            chosen.x,
-            fits,
-            start=chosen,
-            label=STAGE_REFINE,
-        )
+        chosen, time_test, gain_test, problem = finish(plain, fits)
+    elif isinstance(ahead, BaseException):
+        raise ahead
+    else:
+        fits = ahead_fits
+        chosen, time_test, gain_test, problem = ahead
     report = dataclasses.replace(
         chosen,
         iterations=sum(r.iterations for r in fits),

@@ -70,6 +70,15 @@ typedef double vd_unaligned;
 #else
 #define UNROLL_6
 #endif
+/* The hot functions of this pass, compiled for AVX as well (HOT_PASS), except under
+ * AddressSanitizer: the native tests' instrumented build of both clones of the vector code
+ * took four times as long to compile as the rest of the kernel, and the clones compute the
+ * same results. */
+#if defined(__SANITIZE_ADDRESS__)
+#define FISHER_HOT NOINLINE
+#else
+#define FISHER_HOT HOT_PASS
+#endif
 /* Groups of VLANES directions at most. */
 #define MAX_GROUPS ((MC_MEKF_FISHER_MAX_DIRECTIONS + VLANES - 1) / VLANES)
 
@@ -438,7 +447,7 @@ typedef struct {
  * in memory, so that they map onto vector lanes. Every lane is the same IEEE product and
  * sum (no FMA: -ffp-contract=off), so the result does not depend on how the compiler
  * vectorises. The tiles below the diagonal and the padding are computed and dropped. */
-static HOT_PASS void flush_block(fisher_acc_t *acc)
+static FISHER_HOT void flush_block(fisher_acc_t *acc)
 {
     enum { NV = TILE_J / VLANES }; /* vectors per row of a tile */
     const size_t nd = acc->k, stride = acc->stride;
@@ -607,21 +616,21 @@ static ALWAYS_INLINE void update_tangents(const pass_t *p, const step_t *s, cons
 /* update_tangents with the number of measured rows and the first one as constants, so that
  * the small loops over them unroll: both sensors (6 rows), the accelerometer alone (rows
  * 0–2) or the magnetometer alone (rows 3–5). */
-static HOT_PASS void update_tangents_both(const pass_t *p, const step_t *s, const update_t *u,
+static FISHER_HOT void update_tangents_both(const pass_t *p, const step_t *s, const update_t *u,
                                           const tangent_t *tan, vd *dphi, vd *dP,
                                           fisher_acc_t *acc)
 {
     update_tangents(p, s, u, 1, 1, tan, dphi, dP, acc, 6, 0);
 }
 
-static HOT_PASS void update_tangents_acc(const pass_t *p, const step_t *s, const update_t *u,
+static FISHER_HOT void update_tangents_acc(const pass_t *p, const step_t *s, const update_t *u,
                                          const tangent_t *tan, vd *dphi, vd *dP,
                                          fisher_acc_t *acc)
 {
     update_tangents(p, s, u, 1, 0, tan, dphi, dP, acc, 3, 0);
 }
 
-static HOT_PASS void update_tangents_mag(const pass_t *p, const step_t *s, const update_t *u,
+static FISHER_HOT void update_tangents_mag(const pass_t *p, const step_t *s, const update_t *u,
                                          const tangent_t *tan, vd *dphi, vd *dP,
                                          fisher_acc_t *acc)
 {
@@ -629,7 +638,7 @@ static HOT_PASS void update_tangents_mag(const pass_t *p, const step_t *s, const
 }
 
 /* The time update of every group's tangents, sample k − 1 → k (k > 0). */
-static HOT_PASS void predict_tangents(const pass_t *p, const step_t *s, size_t k,
+static FISHER_HOT void predict_tangents(const pass_t *p, const step_t *s, size_t k,
                                       const tangent_t *tan, size_t ng, vd *dphi, vd *dP)
 {
     const double dt = p->d->dt[k];
@@ -697,13 +706,13 @@ static ALWAYS_INLINE double fisher_loop(const pass_t *p, const tangent_t *tan, v
     return cost + 0.5 * logdet_total(&ld);
 }
 
-static HOT_PASS double fisher_pass_unmasked(const pass_t *p, const tangent_t *tan, vd *dphi,
+static FISHER_HOT double fisher_pass_unmasked(const pass_t *p, const tangent_t *tan, vd *dphi,
                                             vd *dP, fisher_acc_t *acc)
 {
     return fisher_loop(p, tan, dphi, dP, acc, 0);
 }
 
-static HOT_PASS double fisher_pass_masked(const pass_t *p, const tangent_t *tan, vd *dphi,
+static FISHER_HOT double fisher_pass_masked(const pass_t *p, const tangent_t *tan, vd *dphi,
                                           vd *dP, fisher_acc_t *acc)
 {
     return fisher_loop(p, tan, dphi, dP, acc, 1);

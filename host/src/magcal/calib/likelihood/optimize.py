@@ -159,7 +159,14 @@ def minimize_bfgs(
             resets += 1
             B = np.eye(n) * curvature
             L = np.linalg.cholesky(B)
-        d = -np.linalg.solve(L.T, np.linalg.solve(L, g))
+        with np.errstate(over="ignore", invalid="ignore"):
+            d = -np.linalg.solve(L.T, np.linalg.solve(L, g))
+        if not np.all(np.isfinite(d)):
+            # B positive definite but so ill-conditioned that its step overflows: restart
+            # from the scaled identity, as for a B that stopped being positive definite.
+            resets += 1
+            B = np.eye(n) * curvature
+            d = -g / curvature
         decrement = -0.5 * float(g @ d)
         if progress:
             progress(iteration, v, decrement)

@@ -98,6 +98,17 @@ def test_yaw_only_is_refused():
         raise_if_unobservable(report, force=False)
 
 
+def test_a_flight_is_told_what_a_flight_allows():
+    rng = np.random.default_rng(1)
+    report = check_observability(*_sensors(_yaw_only(), rng, acc_noise=1.0))
+    with pytest.raises(InsufficientDataError) as refused:
+        raise_if_unobservable(report, force=False, flight=True)
+    message = str(refused.value)
+    assert "only turned about the vertical" in message and "This is a flight" in message
+    assert "import that stretch of the log" in message and "flat on a table" not in message
+    assert "\n" not in message
+
+
 def test_small_wobble_is_refused():
     rng = np.random.default_rng(2)
     report = check_observability(*_sensors(_wobble(15.0), rng))

@@ -201,7 +201,8 @@ def calibrate(
     t0 = time.perf_counter()
     announce("checking what the session can determine")
     report = observability.check_observability(view.gyr, view.acc, view.mag, view.t)
-    warnings = observability.raise_if_unobservable(report, force)
+    flight = session.meta.get("motion") == "flight"
+    warnings = observability.raise_if_unobservable(report, force, flight)
     field_left_out = None
     if not force:  # forced, all of it is used, and the result's checks name the change
         session, view, field_left_out, cut = _without_changed_field(session, view)

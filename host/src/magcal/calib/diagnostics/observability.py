@@ -240,17 +240,37 @@ def check_observability(
     )
 
 
-def raise_if_unobservable(report: ObservabilityReport, force: bool) -> list[str]:
+#: What to do when a flight (``motion: flight``, ``magcal import`` of a flight log) does
+#: not determine the calibration: a vehicle in flight cannot be tumbled, but it can be
+#: turned by hand on the ground and that stretch of a log imported.
+_FLIGHT_ADVICE = (
+    "This is a flight: a flight's small tilts leave the calibration undetermined with the "
+    "hand-rotation model. Turn the vehicle by hand through all orientations (nose up and "
+    "down, on each side) before a flight and import that stretch of the log (magcal import "
+    "finds it, or give --start and --end), or record it with magcal collect --mavlink. "
+    "--force calibrates the flight anyway, but this model has neither the motors' "
+    "interference nor the flight's accelerations: with the motors' current moving the "
+    "field, such a result can be tens of degrees off."
+)
+
+
+def raise_if_unobservable(
+    report: ObservabilityReport, force: bool, flight: bool = False
+) -> list[str]:
     """Refuse an unobservable session, or (with ``force``) turn the refusal into warnings.
 
     Returns the warnings to carry into the result: the report's warnings, plus, with
     ``force``, one naming the failed checks. Raises :class:`InsufficientDataError` with
-    ``report.message`` when the report is not ok and ``force`` is False.
+    ``report.message`` when the report is not ok and ``force`` is False; for a ``flight``
+    the advice is what a flight allows.
     """
     if report.ok:
         return list(report.warnings)
     if not force:
-        raise InsufficientDataError(report.message)
+        message = report.message
+        if flight:
+            message = message.replace(_ADVICE, _FLIGHT_ADVICE)
+        raise InsufficientDataError(message)
     forced = "calibrated despite failed observability checks (forced): " + "; ".join(
         report.problems
     )

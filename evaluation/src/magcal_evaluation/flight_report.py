@@ -427,7 +427,7 @@ def main(argv: list[str] | None = None) -> int:
         "wall_s": wall,
         "flights": args.flights,
         "reallogs": args.reallogs,
-        "cache": str(cache),
+        "cache": args.cache or str(Path(args.work) / "cache"),
         "pymavlink": flight.pymavlink_version(),
     }
     out = Path(args.out)

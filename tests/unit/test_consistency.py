@@ -374,3 +374,18 @@ def test_field_stretches_group_the_samples_as_masks_do(handheld):
         for j in range(index.max() + 1)
     ]
     assert [(s.start_s, s.end_s) for s in stretches] == spans
+
+
+def test_what_is_left_after_a_change_must_still_determine_the_calibration(handheld, monkeypatch):
+    """Were the part left after a change to turn about the vertical only, the session is
+    refused for that, not calibrated from it."""
+    from magcal.calib import calibrate as pipeline
+
+    yaw, _ = simulate(preset("handheld", motion="yaw-only", duration_s=60.0), 1)
+
+    def left(session, view):
+        return yaw, yaw, {"left_out_s": [[0.0, 5.0]]}, ["the magnetic field changed …"]
+
+    monkeypatch.setattr(pipeline, "_without_changed_field", left)
+    with pytest.raises(MagcalError, match="cannot determine the magnetometer calibration"):
+        calibrate(handheld[0], "init")

@@ -206,7 +206,9 @@ def calibrate(
     field_left_out = None
     if not force:  # forced, all of it is used, and the result's checks name the change
         session, view, field_left_out, cut = _without_changed_field(session, view)
-        warnings += cut
+        if cut:  # what is left must still determine the calibration
+            report = observability.check_observability(view.gyr, view.acc, view.mag, view.t)
+            warnings = observability.raise_if_unobservable(report, force, flight) + cut
     seconds["checks"] = time.perf_counter() - t0
 
     # Past the checks (or forced), a degenerate ellipsoid is fitted regardless, with a

@@ -264,58 +264,66 @@ def _dip_spread_deg(acc: np.ndarray, calibrated: np.ndarray) -> tuple[float, int
     return float(1.4826 * np.median(np.abs(dip - np.median(dip)))), int(dip.size)
 
 
+def turn_windows(
+    t: np.ndarray, gyr: np.ndarray, gyro_bias: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The pairs of samples :data:`TURN_WINDOW_S` apart that the turn checks compare: the
+    first sample of each pair (K,), the second (K,), and the rotation the gyroscope measured
+    from the first to the second, M = R_aᵀ R_b (K, 3, 3), which carries the field seen at the
+    second back to the first. K is 0 for a session shorter than the window.
+
+    gyr : (N, 3) rad/s, each row's rate held until the next row (the session's convention).
+    """
+    none = np.zeros(0, dtype=int)
+    if t.size < 2:
+        return none, none, np.zeros((0, 3, 3))
+    later = np.searchsorted(t, t + TURN_WINDOW_S)
+    pairs = np.flatnonzero(later < t.size)
+    R = frames.quat_to_matrix(frames.integrate_rates(gyr[:-1] - gyro_bias, np.diff(t)))
+    return pairs, later[pairs], np.swapaxes(R[pairs], 1, 2) @ R[later[pairs]]
+
+
+def _median_miss_deg(windows, calibrated: np.ndarray, Q: np.ndarray | None = None) -> float:
+    """The median angle, degrees, between the corrected field (turned by Q when given) at the
+    first sample of each window and its direction at the second carried back by the
+    gyroscope's rotation: constant if all agree."""
+    first, second, M = windows
+    if first.size == 0:
+        return float("nan")
+    u = calibrated / np.linalg.norm(calibrated, axis=1, keepdims=True)
+    if Q is not None:
+        u = u @ Q.T
+    cosines = np.sum(u[first] * (M @ u[second][:, :, None])[:, :, 0], axis=1)
+    return float(np.rad2deg(np.median(np.arccos(np.clip(cosines, -1.0, 1.0)))))
+
+
 def turn_misses_deg(
     t: np.ndarray, gyr: np.ndarray, gyro_bias: np.ndarray, *corrections: np.ndarray
 ) -> tuple[list[float], int]:
     """For each correction of the magnetometer (N, 3): the median angle, degrees, between the
     corrected field's direction at t + :data:`TURN_WINDOW_S` and its direction at t carried
     there by the gyroscope's rotation; and the pairs they are over. The rotation is
-    integrated once for all of them.
-
-    gyr : (N, 3) rad/s, each row's rate held until the next row (the session's convention).
+    integrated once for all of them (:func:`turn_windows`).
     """
-    if t.size < 2:
-        return [float("nan")] * len(corrections), 0
-    later = np.searchsorted(t, t + TURN_WINDOW_S)
-    pairs = np.flatnonzero(later < t.size)
-    if pairs.size == 0:
-        return [float("nan")] * len(corrections), 0
-    R = frames.quat_to_matrix(frames.integrate_rates(gyr[:-1] - gyro_bias, np.diff(t)))
-    misses = []
-    for calibrated in corrections:
-        u = calibrated / np.linalg.norm(calibrated, axis=1, keepdims=True)
-        # The field in the frame the gyroscope's integration starts from: constant if all
-        # agree.
-        w = np.einsum("kij,kj->ki", R, u)
-        cosines = np.clip(np.sum(w[pairs] * w[later[pairs]], axis=1), -1.0, 1.0)
-        misses.append(float(np.rad2deg(np.median(np.arccos(cosines)))))
-    return misses, int(pairs.size)
+    windows = turn_windows(t, gyr, gyro_bias)
+    return [_median_miss_deg(windows, c) for c in corrections], int(windows[0].size)
 
 
-def turn_to_gyroscope(
-    t: np.ndarray, gyr: np.ndarray, gyro_bias: np.ndarray, calibrated: np.ndarray
-) -> tuple[np.ndarray, float, float]:
+def turn_to_gyroscope(windows, calibrated: np.ndarray) -> tuple[np.ndarray, float, float]:
     """The rotation Q (3, 3) that, applied to the corrected field, makes it follow the
-    gyroscope's rotation best (least squares of the chords between the field at t carried
-    over :data:`TURN_WINDOW_S` and the field there), the median miss (degrees, as
-    :func:`turn_misses_deg`) with Q applied, and Q's angle (degrees). Q is the identity, and
-    the miss the plain one, when there are no window pairs.
+    gyroscope's rotation best over the pairs of :func:`turn_windows` (least squares of the
+    chords Q u_a − M Q u_b), the median miss (degrees, as :func:`turn_misses_deg`) with Q
+    applied, and Q's angle (degrees). Q is the identity and the miss NaN without pairs.
     """
-    later = np.searchsorted(t, t + TURN_WINDOW_S)
-    pairs = np.flatnonzero(later < t.size)
-    if pairs.size == 0:
+    first, second, M = windows
+    if first.size == 0:
         return np.eye(3), float("nan"), 0.0
-    R = frames.quat_to_matrix(frames.integrate_rates(gyr[:-1] - gyro_bias, np.diff(t)))
-    # The chord seen from the pair's first sample: Q u_a − M Q u_b, M = R_aᵀ R_b the rotation
-    # over the window, of the same length as R_a Q u_a − R_b Q u_b.
-    M = np.swapaxes(R[pairs], 1, 2) @ R[later[pairs]]
     u = calibrated / np.linalg.norm(calibrated, axis=1, keepdims=True)
-    ua, ub = u[pairs], u[later[pairs]]
+    ua, ub = u[first], u[second]
     Q = np.eye(3)
     for _ in range(_TURN_FIT_STEPS):
         qa, qb = ua @ Q.T, ub @ Q.T
-        Mqb = (M @ qb[:, :, None])[:, :, 0]
-        chord = qa - Mqb
+        chord = qa - (M @ qb[:, :, None])[:, :, 0]
         # Q → exp([φ]×) Q moves Q u by −[Q u]× φ.
         J = M @ frames.skew(qb) - frames.skew(qa)
         step = -np.linalg.solve(
@@ -325,11 +333,8 @@ def turn_to_gyroscope(
         Q = frames.rotvec_to_matrix(step) @ Q
         if np.linalg.norm(step) < 1e-6:
             break
-    qa, qb = ua @ Q.T, ub @ Q.T
-    cosines = np.sum(qa * (M @ qb[:, :, None])[:, :, 0], axis=1)
-    miss = float(np.rad2deg(np.median(np.arccos(np.clip(cosines, -1.0, 1.0)))))
     angle = float(np.rad2deg(np.arccos(np.clip(0.5 * (np.trace(Q) - 1.0), -1.0, 1.0))))
-    return Q, miss, angle
+    return Q, _median_miss_deg(windows, calibrated, Q), angle
 
 
 def field_stretches(t: np.ndarray, calibrated: np.ndarray) -> list[FieldStretch]:
@@ -648,14 +653,17 @@ def check(
 
     if gyr is not None:
         bias = np.zeros(3) if gyro_bias is None else np.asarray(gyro_bias, dtype=float)
-        (miss_plain, miss_result), n_pairs = turn_misses_deg(t, gyr, bias, plain_cal, calibrated)
+        windows = turn_windows(t, gyr, bias)
+        miss_plain = _median_miss_deg(windows, plain_cal)
+        miss_result = _median_miss_deg(windows, calibrated)
+        n_pairs = int(windows[0].size)
         figures["turn_miss_deg"] = {
             "plain_fit": _finite(miss_plain),
             "result": _finite(miss_result),
             "pairs": n_pairs,
             "window_s": TURN_WINDOW_S,
         }
-        Q, miss_turned, angle = turn_to_gyroscope(t, gyr, bias, calibrated)
+        Q, miss_turned, angle = turn_to_gyroscope(windows, calibrated)
         figures["turn_miss_deg"]["result_turned"] = _finite(miss_turned)
         figures["turn_miss_deg"]["turn_deg"] = _finite(angle)
         if (
